@@ -1,0 +1,97 @@
+"""What a controller needs from an actuator drive, whatever the fieldbus.
+
+CANopen (this package) implements it today; an EtherCAT CoE backend maps the same CiA 402
+objects onto process data and can implement it without touching the controller.
+"""
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One synchronous sample of the drive, in SI units.
+
+    `joint_torque` is the torque sensor's reading on its nominal scale; the model's
+    `torque_sensor_gain` (K_j) maps it to the true joint torque.
+    """
+
+    t: float  # s, cycle count x period (the drive's time base)
+    position: float  # rad
+    velocity: float  # rad/s
+    motor_current: float  # A
+    joint_torque: float  # N.m
+    statusword: int
+
+
+class DriveError(RuntimeError):
+    """Base of everything a drive reports as going wrong."""
+
+
+class DriveFault(DriveError):
+    """The drive is in its CiA 402 fault state (EMCY received); needs an explicit reset."""
+
+    def __init__(self, message: str, error_code: int = 0):
+        super().__init__(message)
+        self.error_code = error_code
+
+
+class DriveLost(DriveError):
+    """The drive stopped talking (heartbeat missing, or it rebooted under us)."""
+
+
+class DriveTimeout(DriveError):
+    """A SYNC went unanswered: the sample did not arrive in time."""
+
+
+class CommandRangeError(ValueError):
+    """A command outside what the drive accepts; nothing was sent."""
+
+
+class Drive(ABC):
+    """A torque-controlled joint behind a drive: enable, sample, command current, disable.
+
+    `sync()` is the clock: it makes the drive sample (and, in lock-step simulation, advance)
+    and returns the new sample; a command given after it is applied from the next cycle on.
+    """
+
+    period: float  # s
+    current_limit: float  # A, the largest |current| the drive accepts
+
+    @abstractmethod
+    def start(self) -> None:
+        """Bring the drive up (boot, configure) and enable it for current commands."""
+
+    @abstractmethod
+    def sync(self) -> Sample:
+        """Trigger one cycle and return its sample; raises DriveError subclasses."""
+
+    @abstractmethod
+    def read(self) -> Sample | None:
+        """The latest sample without triggering a cycle (None before the first)."""
+
+    @abstractmethod
+    def command_current(self, current: float) -> None:
+        """Command motor current (A); CommandRangeError if |current| > current_limit or NaN."""
+
+    @abstractmethod
+    def enable(self) -> None:
+        """Run the CiA 402 sequence to operation enabled (resets a fault first)."""
+
+    @abstractmethod
+    def disable(self) -> None:
+        """Zero current and leave the power stage off (switch on disabled)."""
+
+    @abstractmethod
+    def fault_reset(self) -> None:
+        """Clear a drive fault (CiA 402 fault reset); the drive is left disabled."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Disable the drive (best effort if it is unreachable) and release the bus."""
+
+    def __enter__(self) -> "Drive":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,1 @@
+"""The actuator: parameters, dynamics with analytic derivatives, and the integrator."""

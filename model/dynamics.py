@@ -1,0 +1,94 @@
+"""Forward dynamics of the paper's joint model, its analytic derivatives and an integrator.
+
+All functions are pure and compiled (numba) so that the simulator and the iLQR hot loop call
+the very same code. Parameters travel as one flat vector (`ActuatorParameters.packed()`):
+
+    qdd = (drive_gain i - Fv qd - Fs sign(qd) - off - g (MY sin q + MX cos q)) / I
+"""
+
+import math
+
+import numba
+import numpy as np
+
+P_DRIVE_GAIN = 0
+P_INERTIA = 1  # I = I_m + I_j (+ payload)
+P_GRAVITY_MX = 2  # g MX
+P_GRAVITY_MY = 3  # g MY
+P_VISCOUS = 4  # Fv = Fvm + Fvj
+P_DRY = 5  # Fs = Fsm + Fsj
+P_OFFSET = 6  # off = off_m + off_j
+N_PARAMS = 7
+
+
+@numba.njit(cache=True)
+def gravity_torque(q: float, p: np.ndarray) -> float:
+    return p[P_GRAVITY_MY] * math.sin(q) + p[P_GRAVITY_MX] * math.cos(q)
+
+
+@numba.njit(cache=True)
+def smooth_acceleration(q: float, qd: float, current: float, p: np.ndarray,
+                        friction_sharpness: float) -> tuple:
+    """qdd with sign(qd) replaced by tanh(beta qd) (the paper's choice for a differentiable
+    model), and its partial derivatives (dq, dqd, di): everything iLQR needs per step."""
+    th = math.tanh(friction_sharpness * qd)
+    inv_inertia = 1.0 / p[P_INERTIA]
+    torque = (p[P_DRIVE_GAIN] * current - p[P_VISCOUS] * qd - p[P_DRY] * th - p[P_OFFSET]
+              - gravity_torque(q, p))
+    d_gravity = p[P_GRAVITY_MY] * math.cos(q) - p[P_GRAVITY_MX] * math.sin(q)
+    d_friction = p[P_VISCOUS] + p[P_DRY] * friction_sharpness * (1.0 - th * th)
+    return (torque * inv_inertia, -d_gravity * inv_inertia, -d_friction * inv_inertia,
+            p[P_DRIVE_GAIN] * inv_inertia)
+
+
+@numba.njit(cache=True)
+def step(q: float, qd: float, current: float, p: np.ndarray, dt: float,
+         substeps: int) -> tuple:
+    """Advance (q, qd) by dt under a constant current, with set-valued dry friction.
+
+    Each substep is semi-implicit: viscous friction implicit, Coulomb friction as the implicit
+    (Moreau) projection that either stops the joint exactly (stiction, when the dry friction can
+    absorb the impulse) or removes at most Fs h. This neither chatters around qd = 0 nor injects
+    energy, unlike explicit Euler on sign(qd) or a stiff tanh.
+
+    Returns q, qd, the mean acceleration of the last substep and the dry-friction torque it
+    applied (the joint-torque sensor needs both).
+    """
+    h = dt / substeps
+    inertia = p[P_INERTIA]
+    damping = inertia + h * p[P_VISCOUS]
+    qdd = 0.0
+    dry = 0.0
+    for _ in range(substeps):
+        drive = p[P_DRIVE_GAIN] * current - p[P_OFFSET] - gravity_torque(q, p)
+        free_velocity = (inertia * qd + h * drive) / damping
+        max_velocity_change = h * p[P_DRY] / damping
+        if abs(free_velocity) <= max_velocity_change:
+            new_velocity = 0.0
+        else:
+            new_velocity = free_velocity - math.copysign(max_velocity_change, free_velocity)
+        dry = damping * (free_velocity - new_velocity) / h
+        qdd = (new_velocity - qd) / h
+        qd = new_velocity
+        q = q + h * qd
+    return q, qd, qdd, dry
+
+
+@numba.njit(cache=True)
+def simulate(q0: float, qd0: float, currents: np.ndarray, p: np.ndarray, dt: float,
+             substeps: int) -> np.ndarray:
+    """States after each period for a current held constant over each period; row k is the
+    state at the end of period k (shape (len(currents), 2))."""
+    out = np.empty((currents.shape[0], 2))
+    q, qd = q0, qd0
+    for k in range(currents.shape[0]):
+        q, qd, _, _ = step(q, qd, currents[k], p, dt, substeps)
+        out[k, 0] = q
+        out[k, 1] = qd
+    return out
+
+
+def rest_position(p: np.ndarray) -> float:
+    """The hanging equilibrium: gravity torque zero with positive stiffness, i.e. the angle at
+    which MY sin q + MX cos q = 0 closest to q = 0."""
+    return -math.atan2(p[P_GRAVITY_MX], p[P_GRAVITY_MY])

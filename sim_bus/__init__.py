@@ -1,0 +1,1 @@
+"""A virtual CiA 402 elbow drive on a python-can bus, its physics from `model/`."""
