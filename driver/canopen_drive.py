@@ -30,12 +30,14 @@ log = logging.getLogger(__name__)
 SYNC_COB_ID = 0x80
 HEARTBEAT_BASE = 0x700
 DEFAULT_HEARTBEAT_MS = 100
+NOTIFIER_CYCLE = 0.05  # s; bounds how long closing the network waits for the receive thread
 ENABLE_STEP_TIMEOUT = 0.5  # s for the drive to show each CiA 402 transition
 
 
 def open_network(bus_spec: str) -> canopen.Network:
     """A connected canopen Network for a bus spec (see protocol.bus_spec)."""
     network = canopen.Network()
+    network.NOTIFIER_CYCLE = NOTIFIER_CYCLE
     network.connect(**parse_bus_spec(bus_spec))
     return network
 
@@ -43,9 +45,10 @@ def open_network(bus_spec: str) -> canopen.Network:
 class CanOpenDrive(Drive):
     """One CiA 402 drive on a CANopen network, this process being the master.
 
-    The drive owns `network` and disconnects it on close. The master owns the SYNC: `sync()` sends one SYNC and waits for every mapped TPDO of that
-    cycle, so in lock-step simulation time advances exactly one period per call and on real
-    hardware the caller's timer sets the rate.
+    The drive owns `network` and disconnects it on close. The master owns the SYNC: `sync()`
+    sends one SYNC and waits for every mapped TPDO of that cycle, so in lock-step simulation
+    time advances exactly one period per call and on real hardware the caller's timer sets
+    the rate.
     """
 
     def __init__(self, network: canopen.Network, node_id: int = 2, period: float = 1e-3,

@@ -46,22 +46,25 @@ def step(q: float, qd: float, current: float, p: np.ndarray, dt: float,
          substeps: int) -> tuple:
     """Advance (q, qd) by dt under a constant current, with set-valued dry friction.
 
-    Each substep is semi-implicit: viscous friction implicit, Coulomb friction as the implicit
-    (Moreau) projection that either stops the joint exactly (stiction, when the dry friction can
-    absorb the impulse) or removes at most Fs h. This neither chatters around qd = 0 nor injects
-    energy, unlike explicit Euler on sign(qd) or a stiff tanh.
+    Each substep is semi-implicit: viscous friction by the trapezoidal rule, Coulomb friction
+    as the implicit (Moreau) projection that either stops the joint exactly (stiction, when the
+    dry friction can absorb the impulse) or removes at most Fs h. This neither chatters around
+    qd = 0 nor injects energy, unlike explicit Euler on sign(qd) or a stiff tanh. Gravity is
+    taken at the mid-step position (position Verlet).
 
     Returns q, qd, the mean acceleration of the last substep and the dry-friction torque it
     applied (the joint-torque sensor needs both).
     """
     h = dt / substeps
     inertia = p[P_INERTIA]
-    damping = inertia + h * p[P_VISCOUS]
+    damping = inertia + 0.5 * h * p[P_VISCOUS]
+    undamping = inertia - 0.5 * h * p[P_VISCOUS]
     qdd = 0.0
     dry = 0.0
     for _ in range(substeps):
-        drive = p[P_DRIVE_GAIN] * current - p[P_OFFSET] - gravity_torque(q, p)
-        free_velocity = (inertia * qd + h * drive) / damping
+        q_mid = q + 0.5 * h * qd
+        drive = p[P_DRIVE_GAIN] * current - p[P_OFFSET] - gravity_torque(q_mid, p)
+        free_velocity = (undamping * qd + h * drive) / damping
         max_velocity_change = h * p[P_DRY] / damping
         if abs(free_velocity) <= max_velocity_change:
             new_velocity = 0.0
@@ -69,8 +72,8 @@ def step(q: float, qd: float, current: float, p: np.ndarray, dt: float,
             new_velocity = free_velocity - math.copysign(max_velocity_change, free_velocity)
         dry = damping * (free_velocity - new_velocity) / h
         qdd = (new_velocity - qd) / h
+        q = q_mid + 0.5 * h * new_velocity
         qd = new_velocity
-        q = q + h * qd
     return q, qd, qdd, dry
 
 

@@ -9,7 +9,7 @@ from model import dynamics
 from model.parameters import GRAVITY, ActuatorParameters, Payload
 from protocol import objects as od
 
-PHYSICS_SUBSTEPS = 10  # 100 us substeps at 1 kHz: position error vs 100 substeps < 1 encoder count
+PHYSICS_SUBSTEPS = 20  # 50 us: within 1 encoder count of 1000 substeps (tests/test_dynamics.py)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,61 @@
+import itertools
+import os
+import random
+import subprocess
+import sys
+import time
+from contextlib import contextmanager
+
+import pytest
+
+from driver.canopen_drive import CanOpenDrive, open_network
+from model.parameters import Payload, load_model
+from sim_bus.drive import VirtualDrive
+from sim_bus.plant import SensorNoise
+
+_channels = itertools.count()
+
+
+@contextmanager
+def virtual_pair(payload: Payload = Payload(), noise: SensorNoise = SensorNoise(), model=None,
+                 **drive_kwargs):
+    """A virtual drive and our master on a private python-can `virtual` channel."""
+    channel = f"virtual:test-{os.getpid()}-{next(_channels)}"
+    sim_network = open_network(channel)
+    sim = VirtualDrive(sim_network, 2, model or load_model(), payload, noise)
+    sim.boot()
+    master = CanOpenDrive(open_network(channel), 2, **drive_kwargs)
+    try:
+        yield sim, master
+    finally:
+        master.close()
+        sim.close()
+        sim_network.disconnect()
+
+
+@pytest.fixture
+def pair():
+    with virtual_pair() as p:
+        yield p
+
+
+def udp_bus_spec() -> str:
+    """A multicast group and port of our own, so parallel runs do not hear each other."""
+    return f"udp_multicast:239.0.0.{random.randint(1, 250)}:{random.randint(20000, 60000)}"
+
+
+@contextmanager
+def sim_bus_process(bus: str, *extra: str):
+    proc = subprocess.Popen([sys.executable, "-m", "sim_bus.cli", "--bus", bus, *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+        assert "ready" in line, f"sim-bus did not start: {line!r} {proc.stderr.read()}"
+        time.sleep(0.05)
+        yield proc
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
