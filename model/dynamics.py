@@ -10,6 +10,7 @@ import math
 
 import numba
 import numpy as np
+from numba.extending import register_jitable
 
 P_DRIVE_GAIN = 0
 P_INERTIA = 1  # I = I_m + I_j (+ payload)
@@ -21,21 +22,27 @@ P_OFFSET = 6  # off = off_m + off_j
 N_PARAMS = 7
 
 
-@numba.njit(cache=True)
-def gravity_torque(q: float, p: np.ndarray) -> float:
-    return p[P_GRAVITY_MY] * math.sin(q) + p[P_GRAVITY_MX] * math.cos(q)
+@register_jitable
+def gravity_torque(q, p: np.ndarray):
+    """g (MY sin q + MX cos q); works on scalars and numpy arrays alike."""
+    return p[P_GRAVITY_MY] * np.sin(q) + p[P_GRAVITY_MX] * np.cos(q)
 
 
-@numba.njit(cache=True)
-def smooth_acceleration(q: float, qd: float, current: float, p: np.ndarray,
-                        friction_sharpness: float) -> tuple:
+@register_jitable
+def smooth_acceleration(q, qd, current, p: np.ndarray, friction_sharpness: float) -> tuple:
     """qdd with sign(qd) replaced by tanh(beta qd) (the paper's choice for a differentiable
-    model), and its partial derivatives (dq, dqd, di): everything iLQR needs per step."""
-    th = math.tanh(friction_sharpness * qd)
+    model), and its partial derivatives (dq, dqd, di): everything iLQR needs per step.
+
+    Written with numpy ufuncs and registered as jitable: one source serves the vectorised
+    numpy reference (arrays over the horizon) and, compiled into it, the scalar hot loop.
+    """
+    th = np.tanh(friction_sharpness * qd)
     inv_inertia = 1.0 / p[P_INERTIA]
+    sin_q, cos_q = np.sin(q), np.cos(q)
+    gravity = p[P_GRAVITY_MY] * sin_q + p[P_GRAVITY_MX] * cos_q
     torque = (p[P_DRIVE_GAIN] * current - p[P_VISCOUS] * qd - p[P_DRY] * th - p[P_OFFSET]
-              - gravity_torque(q, p))
-    d_gravity = p[P_GRAVITY_MY] * math.cos(q) - p[P_GRAVITY_MX] * math.sin(q)
+              - gravity)
+    d_gravity = p[P_GRAVITY_MY] * cos_q - p[P_GRAVITY_MX] * sin_q
     d_friction = p[P_VISCOUS] + p[P_DRY] * friction_sharpness * (1.0 - th * th)
     return (torque * inv_inertia, -d_gravity * inv_inertia, -d_friction * inv_inertia,
             p[P_DRIVE_GAIN] * inv_inertia)

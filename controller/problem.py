@@ -1,0 +1,93 @@
+"""The paper's optimal control problem as data: horizon, weights, barrier sharpness, limits.
+
+Defaults follow the paper (eq. 14-15, section II-B) where readable; each says where it is from.
+"""
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from model.parameters import Limits
+
+# Indices of the packed cost vector the compiled solver reads.
+C_Q_POSITION = 0
+C_Q_VELOCITY = 1
+C_R_CURRENT = 2
+C_W_POSITION = 3
+C_W_VELOCITY = 4
+C_P_TORQUE = 5
+C_ALPHA_POSITION = 6
+C_ALPHA_VELOCITY = 7
+C_ALPHA_TORQUE = 8
+C_POSITION_MIN = 9
+C_POSITION_MAX = 10
+C_VELOCITY_MAX = 11
+C_TORQUE_MAX = 12
+C_DRIVE_GAIN = 13
+C_FRICTION_SHARPNESS = 14
+C_DT = 15
+N_COST = 16
+
+
+@dataclass(frozen=True)
+class Weights:
+    position: float = 400.0  # Q_qq, paper eq. 15
+    velocity: float = 0.01  # Q_vv, paper eq. 15
+    current: float = 1e-4  # R, paper eq. 15
+    # W_qq: unreadable in the paper's OCR; 100 (as P) keeps the plateau ~0.1 rad inside the
+    # limit for a reference 0.15 rad beyond it, as in the paper's Fig. 5.
+    position_barrier: float = 100.0
+    velocity_barrier: float = 0.01  # W_vv, paper notes
+    torque_barrier: float = 100.0  # P, paper eq. 15
+
+
+@dataclass(frozen=True)
+class Sharpness:
+    """alpha of each exponential barrier: how steep the wall is (paper, after eq. 23)."""
+
+    position: float = 10.0  # 1/rad
+    velocity: float = 1.0  # s/rad
+    torque: float = 0.5  # 1/(N.m), on motor torque drive_gain x current
+
+
+@dataclass(frozen=True)
+class OcpSettings:
+    horizon: int = 100  # steps; the paper's 100 ms window at 1 ms
+    dt: float = 1e-3  # s
+    weights: Weights = field(default_factory=Weights)
+    sharpness: Sharpness = field(default_factory=Sharpness)
+    friction_sharpness: float = 1000.0  # beta in tanh(beta qd), paper section II-C
+    max_iterations: int = 100  # cold solve
+    tick_iterations: int = 1  # warm-started MPC tick (real-time iteration)
+    tolerance: float = 1e-6  # relative cost decrease that counts as converged
+
+    def __post_init__(self) -> None:
+        if self.horizon < 2:
+            raise ValueError(f"horizon must be >= 2 steps, got {self.horizon}")
+        if not 0 < self.dt <= 0.1:
+            raise ValueError(f"dt must be in (0, 0.1] s, got {self.dt}")
+        for group in (self.weights, self.sharpness):
+            for name, value in vars(group).items():
+                if not np.isfinite(value) or value < 0:
+                    raise ValueError(f"{name} must be finite and >= 0, got {value}")
+
+    def with_weights(self, **changes: float) -> "OcpSettings":
+        return replace(self, weights=replace(self.weights, **changes))
+
+
+def pack_cost(settings: OcpSettings, limits: Limits, drive_gain: float) -> np.ndarray:
+    """The flat vector the compiled cost and solver take."""
+    c = np.zeros(N_COST)
+    w, s = settings.weights, settings.sharpness
+    c[C_Q_POSITION], c[C_Q_VELOCITY], c[C_R_CURRENT] = w.position, w.velocity, w.current
+    c[C_W_POSITION], c[C_W_VELOCITY] = w.position_barrier, w.velocity_barrier
+    c[C_P_TORQUE] = w.torque_barrier
+    c[C_ALPHA_POSITION], c[C_ALPHA_VELOCITY], c[C_ALPHA_TORQUE] = (s.position, s.velocity,
+                                                                    s.torque)
+    c[C_POSITION_MIN], c[C_POSITION_MAX] = limits.position_min, limits.position_max
+    c[C_VELOCITY_MAX] = limits.velocity_max
+    c[C_TORQUE_MAX] = drive_gain * limits.current_max
+    c[C_DRIVE_GAIN] = drive_gain
+    c[C_FRICTION_SHARPNESS] = settings.friction_sharpness
+    c[C_DT] = settings.dt
+    return c
