@@ -16,26 +16,32 @@ from controller.problem import (
     C_ALPHA_TORQUE,
     C_ALPHA_VELOCITY,
     C_DRIVE_GAIN,
+    C_E_POSITION_HIGH,
+    C_E_POSITION_LOW,
+    C_E_TORQUE_HIGH,
+    C_E_TORQUE_LOW,
+    C_E_VELOCITY_HIGH,
+    C_E_VELOCITY_LOW,
     C_P_TORQUE,
-    C_POSITION_MAX,
-    C_POSITION_MIN,
     C_Q_POSITION,
     C_Q_VELOCITY,
     C_R_CURRENT,
-    C_TORQUE_MAX,
-    C_VELOCITY_MAX,
     C_W_POSITION,
     C_W_VELOCITY,
 )
 
-EXPONENT_CAP = 200.0  # keeps exp() finite for absurd iterates; exp(200)^2 ~ 1e173
-
 
 @register_jitable
-def barrier(value, lower, upper, sharpness, weight) -> tuple:
-    """weight Cs(value)^2 and its first and second derivatives."""
-    e_high = np.exp(np.minimum(sharpness * (value - upper), EXPONENT_CAP))
-    e_low = np.exp(np.minimum(sharpness * (lower - value), EXPONENT_CAP))
+def barrier(value, sharpness, weight, exp_high, exp_low) -> tuple:
+    """weight Cs(value)^2 and its first and second derivatives.
+
+    One exp per call: exp(a (v - hi)) = exp(a v) exp_high and exp(a (lo - v)) = exp_low /
+    exp(a v), with exp_high = exp(-a hi) and exp_low = exp(a lo) precomputed by pack_cost.
+    Absurd iterates overflow to inf, which the solver's line search rejects.
+    """
+    e = np.exp(sharpness * value)
+    e_high = e * exp_high
+    e_low = exp_low / e
     cs = e_high + e_low
     d_cs = sharpness * (e_high - e_low)
     return (weight * cs * cs, 2.0 * weight * cs * d_cs,
@@ -46,10 +52,10 @@ def barrier(value, lower, upper, sharpness, weight) -> tuple:
 def state_cost(q, qd, q_ref, qd_ref, c: np.ndarray) -> tuple:
     """Tracking and state barriers: l, l_q, l_qd, l_qq, l_qdqd (no cross term)."""
     eq, ev = q - q_ref, qd - qd_ref
-    bq, bq_d, bq_dd = barrier(q, c[C_POSITION_MIN], c[C_POSITION_MAX], c[C_ALPHA_POSITION],
-                              c[C_W_POSITION])
-    bv, bv_d, bv_dd = barrier(qd, -c[C_VELOCITY_MAX], c[C_VELOCITY_MAX], c[C_ALPHA_VELOCITY],
-                              c[C_W_VELOCITY])
+    bq, bq_d, bq_dd = barrier(q, c[C_ALPHA_POSITION], c[C_W_POSITION], c[C_E_POSITION_HIGH],
+                              c[C_E_POSITION_LOW])
+    bv, bv_d, bv_dd = barrier(qd, c[C_ALPHA_VELOCITY], c[C_W_VELOCITY], c[C_E_VELOCITY_HIGH],
+                              c[C_E_VELOCITY_LOW])
     return (c[C_Q_POSITION] * eq * eq + c[C_Q_VELOCITY] * ev * ev + bq + bv,
             2.0 * c[C_Q_POSITION] * eq + bq_d,
             2.0 * c[C_Q_VELOCITY] * ev + bv_d,
@@ -61,8 +67,8 @@ def state_cost(q, qd, q_ref, qd_ref, c: np.ndarray) -> tuple:
 def control_cost(u, c: np.ndarray) -> tuple:
     """Effort and the motor-torque barrier on drive_gain x current: l, l_u, l_uu."""
     gain = c[C_DRIVE_GAIN]
-    bt, bt_d, bt_dd = barrier(gain * u, -c[C_TORQUE_MAX], c[C_TORQUE_MAX], c[C_ALPHA_TORQUE],
-                              c[C_P_TORQUE])
+    bt, bt_d, bt_dd = barrier(gain * u, c[C_ALPHA_TORQUE], c[C_P_TORQUE], c[C_E_TORQUE_HIGH],
+                              c[C_E_TORQUE_LOW])
     return (c[C_R_CURRENT] * u * u + bt, 2.0 * c[C_R_CURRENT] * u + gain * bt_d,
             2.0 * c[C_R_CURRENT] + gain * gain * bt_dd)
 

@@ -1,11 +1,19 @@
 """Compiled iLQR for the 2-state, 1-input actuator problem: the hot loop of the MPC.
 
-Same algorithm as `ilqr_reference` (read that one first), written out in scalars so numba
-keeps everything in registers: semi-implicit Euler discretisation of the model's smooth
-dynamics, exact cost derivatives, Tassa-style regularisation on the value function,
-backtracking line search on the actual cost, convergence on relative cost decrease.
-Trajectories are double-buffered so a line-search rollout also leaves the derivatives the
-next backward pass needs.
+Same algorithm as `ilqr_reference` (read that one first), written out in scalars so numba keeps
+everything in registers: semi-implicit Euler discretisation of the model's smooth dynamics,
+exact cost derivatives, Tassa-style regularisation on the value function, backtracking line
+search on the actual cost, convergence on relative cost decrease.
+
+A trajectory is a tuple of arrays (X, U, A, B, LX, LXX, LU, LUU, LC): states, controls, the
+linearisation and the cost derivatives along it, and the stage costs. Two of them are kept so a
+line-search trial leaves everything the next backward pass needs.
+
+The warm-started MPC tick is a real-time iteration: the previous solution, its linearisation
+and its stage costs are shifted by one step (only the last stage is new), the backward pass runs
+on them directly, and the forward pass from the measured state is the line search. The merit it
+must beat is the shifted cost corrected to the measured state by the value function's quadratic
+model, so the Armijo test stays meaningful. One simulation per tick instead of two.
 """
 
 from dataclasses import dataclass
@@ -15,6 +23,7 @@ import numpy as np
 
 from controller.cost import control_cost, state_cost
 from controller.problem import C_DT, C_FRICTION_SHARPNESS, OcpSettings
+from controller.reference import reference_at
 from model.dynamics import smooth_acceleration
 
 CONVERGED = 0
@@ -23,65 +32,84 @@ LINE_SEARCH_FAILED = 2
 NOT_FINITE = 3
 STATUS_NAMES = ("converged", "max_iterations", "line_search_failed", "not_finite")
 
+COLD, WARM, RESAMPLE = 0, 1, 2  # tick modes
+
 MU_MIN = 1e-8
 MU_MAX = 1e10
 ARMIJO = 1e-4
 LINE_SEARCH_STEPS = 10  # alpha = 1, 1/2, ..., 1/512
+JIT = {"cache": True, "error_model": "numpy"}
 
 
-@numba.njit(cache=True)
-def _rollout(q0, qd0, U_base, X_base, K, kff, alpha, closed_loop, X, U, A, B, LX, LXX, LU,
-             LUU, ref_q, ref_qd, p, c):
-    """Simulate the policy u = U_base + alpha kff + K (x - X_base) from x0, storing the
-    trajectory, its linearisation and cost derivatives; returns the total cost."""
-    n = U.shape[0]
+@numba.njit(**JIT)
+def _stage(k, q, qd, u, traj, ref_q, ref_qd, p, c):
+    """Store x_k, u_k, the linearisation and cost derivatives at step k; return x_{k+1} and
+    the stage cost."""
+    X, U, A, B, LX, LXX, LU, LUU, LC = traj
     dt = c[C_DT]
-    beta = c[C_FRICTION_SHARPNESS]
-    q, qd = q0, qd0
-    total = 0.0
-    for k in range(n):
-        u = U_base[k]
-        if closed_loop:
-            u += alpha * kff[k] + K[k, 0] * (q - X_base[k, 0]) + K[k, 1] * (qd - X_base[k, 1])
-        X[k, 0] = q
-        X[k, 1] = qd
-        U[k] = u
-        ls, ls_q, ls_qd, ls_qq, ls_qdqd = state_cost(q, qd, ref_q[k], ref_qd[k], c)
-        lc, lc_u, lc_uu = control_cost(u, c)
-        total += ls + lc
-        LX[k, 0] = ls_q
-        LX[k, 1] = ls_qd
-        LXX[k, 0] = ls_qq
-        LXX[k, 1] = ls_qdqd
-        LU[k] = lc_u
-        LUU[k] = lc_uu
-        a, a_q, a_qd, a_u = smooth_acceleration(q, qd, u, p, beta)
-        # semi-implicit Euler: qd+ = qd + dt a, q+ = q + dt qd+
-        A[k, 0] = 1.0 + dt * dt * a_q
-        A[k, 1] = dt + dt * dt * a_qd
-        A[k, 2] = dt * a_q
-        A[k, 3] = 1.0 + dt * a_qd
-        B[k, 0] = dt * dt * a_u
-        B[k, 1] = dt * a_u
-        qd = qd + dt * a
-        q = q + dt * qd
+    X[k, 0] = q
+    X[k, 1] = qd
+    U[k] = u
+    ls, ls_q, ls_qd, ls_qq, ls_qdqd = state_cost(q, qd, ref_q[k], ref_qd[k], c)
+    lc, lc_u, lc_uu = control_cost(u, c)
+    LX[k, 0] = ls_q
+    LX[k, 1] = ls_qd
+    LXX[k, 0] = ls_qq
+    LXX[k, 1] = ls_qdqd
+    LU[k] = lc_u
+    LUU[k] = lc_uu
+    LC[k] = ls + lc
+    a, a_q, a_qd, a_u = smooth_acceleration(q, qd, u, p, c[C_FRICTION_SHARPNESS])
+    # semi-implicit Euler: qd+ = qd + dt a, q+ = q + dt qd+
+    A[k, 0] = 1.0 + dt * dt * a_q
+    A[k, 1] = dt + dt * dt * a_qd
+    A[k, 2] = dt * a_q
+    A[k, 3] = 1.0 + dt * a_qd
+    B[k, 0] = dt * dt * a_u
+    B[k, 1] = dt * a_u
+    qd_next = qd + dt * a
+    return q + dt * qd_next, qd_next, ls + lc
+
+
+@numba.njit(**JIT)
+def _terminal(q, qd, traj, ref_q, ref_qd, c):
+    X, _, _, _, LX, LXX, _, _, LC = traj
+    n = X.shape[0] - 1
+    ls, ls_q, ls_qd, ls_qq, ls_qdqd = state_cost(q, qd, ref_q[n], ref_qd[n], c)
     X[n, 0] = q
     X[n, 1] = qd
-    ls, ls_q, ls_qd, ls_qq, ls_qdqd = state_cost(q, qd, ref_q[n], ref_qd[n], c)
     LX[n, 0] = ls_q
     LX[n, 1] = ls_qd
     LXX[n, 0] = ls_qq
     LXX[n, 1] = ls_qdqd
-    total += ls
+    LC[n] = ls
+    return ls
+
+
+@numba.njit(**JIT)
+def _rollout(q0, qd0, base, K, kff, alpha, out, ref_q, ref_qd, p, c):
+    """Simulate u = U_base + alpha kff + K (x - X_base) from x0 into `out`; total cost, or
+    inf when it is not finite."""
+    X_base, U_base = base[0], base[1]
+    n = U_base.shape[0]
+    q, qd = q0, qd0
+    total = 0.0
+    for k in range(n):
+        u = U_base[k] + alpha * kff[k] + K[k, 0] * (q - X_base[k, 0]) + K[k, 1] * (
+            qd - X_base[k, 1])
+        q, qd, cost = _stage(k, q, qd, u, out, ref_q, ref_qd, p, c)
+        total += cost
+    total += _terminal(q, qd, out, ref_q, ref_qd, c)
     if not np.isfinite(total):
         return np.inf
     return total
 
 
-@numba.njit(cache=True)
-def _backward(A, B, LX, LXX, LU, LUU, mu, K, kff):
-    """Riccati sweep; returns (ok, dV1, dV2) with the expected cost change
-    alpha dV1 + alpha^2 dV2 of a step alpha along the new policy."""
+@numba.njit(**JIT)
+def _backward(traj, mu, K, kff):
+    """Riccati sweep. Returns ok, the expected change alpha dv1 + alpha^2 dv2 of a step alpha,
+    and the value function's gradient and Hessian at the first state."""
+    _, _, A, B, LX, LXX, LU, LUU, _ = traj
     n = LU.shape[0]
     vx1, vx2 = LX[n, 0], LX[n, 1]
     v11, v12, v22 = LXX[n, 0], 0.0, LXX[n, 1]
@@ -104,7 +132,7 @@ def _backward(A, B, LX, LXX, LU, LUU, mu, K, kff):
         rb2 = vb2 + mu * b2
         quu_r = LUU[k] + b1 * rb1 + b2 * rb2
         if not quu_r > 0.0:
-            return False, 0.0, 0.0
+            return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
         qux1_r = rb1 * a11 + rb2 * a21
         qux2_r = rb1 * a12 + rb2 * a22
         va11 = v11 * a11 + v12 * a21
@@ -127,24 +155,48 @@ def _backward(A, B, LX, LXX, LU, LUU, mu, K, kff):
         v22 = qxx22 + k2 * quu * k2 + 2.0 * k2 * qux2
         dv1 += kk * qu
         dv2 += 0.5 * kk * kk * quu
-    return True, dv1, dv2
+    return True, dv1, dv2, vx1, vx2, v11, v12, v22
 
 
-@numba.njit(cache=True)
-def _solve(q0, qd0, U, X, K, kff, work_x, work_u, A, B, LX, LXX, LU, LUU, A2, B2, LX2,
-           LXX2, LU2, LUU2, ref_q, ref_qd, p, c, max_iterations, tolerance, stats):
-    """iLQR from the warm start U (in place). stats <- [status, iterations, cost, mu]."""
-    cost = _rollout(q0, qd0, U, X, K, kff, 0.0, False, X, U, A, B, LX, LXX, LU, LUU, ref_q,
-                    ref_qd, p, c)
-    if not np.isfinite(cost):
-        stats[0], stats[1], stats[2], stats[3] = NOT_FINITE, 0, cost, MU_MIN
-        return
+@numba.njit(**JIT)
+def _copy(src, dst):
+    dst[0][:, :] = src[0]
+    dst[1][:] = src[1]
+    dst[2][:, :] = src[2]
+    dst[3][:, :] = src[3]
+    dst[4][:, :] = src[4]
+    dst[5][:, :] = src[5]
+    dst[6][:] = src[6]
+    dst[7][:] = src[7]
+    dst[8][:] = src[8]
+
+
+@numba.njit(**JIT)
+def _line_search(q0, qd0, cur, trial, K, kff, dv1, dv2, merit, ref_q, ref_qd, p, c):
+    """Backtrack alpha until the trial beats `merit` by the Armijo fraction of the predicted
+    decrease; returns (accepted, new cost, rollouts)."""
+    alpha = 1.0
+    for attempt in range(LINE_SEARCH_STEPS):
+        new_cost = _rollout(q0, qd0, cur, K, kff, alpha, trial, ref_q, ref_qd, p, c)
+        expected = -(alpha * dv1 + alpha * alpha * dv2)
+        if np.isfinite(new_cost) and merit - new_cost > ARMIJO * expected:
+            return True, new_cost, attempt + 1
+        alpha *= 0.5
+    return False, np.inf, LINE_SEARCH_STEPS
+
+
+@numba.njit(**JIT)
+def _iterate(q0, qd0, cur, trial, K, kff, cost, ref_q, ref_qd, p, c, max_iterations,
+             tolerance, stats):
+    """iLQR iterations from `cur` (states, derivatives and `cost` valid); result in `cur`.
+    stats <- [status, iterations, cost, mu, rollouts] (rollouts added to what is there)."""
     mu = MU_MIN
     status = MAX_ITERATIONS
     iteration = 0
+    rollouts = 0
     while iteration < max_iterations:
         iteration += 1
-        ok, dv1, dv2 = _backward(A, B, LX, LXX, LU, LUU, mu, K, kff)
+        ok, dv1, dv2, _, _, _, _, _ = _backward(cur, mu, K, kff)
         if not ok:
             mu = max(mu * 10.0, 1e-6)
             if mu > MU_MAX:
@@ -154,31 +206,16 @@ def _solve(q0, qd0, U, X, K, kff, work_x, work_u, A, B, LX, LXX, LU, LUU, A2, B2
         if -dv1 < tolerance * max(cost, 1.0) * 1e-3:
             status = CONVERGED  # the model predicts no meaningful improvement is left
             break
-        accepted = False
-        alpha = 1.0
-        new_cost = cost
-        for _ in range(LINE_SEARCH_STEPS):
-            new_cost = _rollout(q0, qd0, U, X, K, kff, alpha, True, work_x, work_u, A2, B2,
-                                LX2, LXX2, LU2, LUU2, ref_q, ref_qd, p, c)
-            expected = -(alpha * dv1 + alpha * alpha * dv2)
-            if np.isfinite(new_cost) and cost - new_cost > ARMIJO * expected:
-                accepted = True
-                break
-            alpha *= 0.5
+        accepted, new_cost, trials = _line_search(q0, qd0, cur, trial, K, kff, dv1, dv2, cost,
+                                                  ref_q, ref_qd, p, c)
+        rollouts += trials
         if not accepted:
             mu = max(mu * 10.0, 1e-6)
             if mu > MU_MAX:
                 status = LINE_SEARCH_FAILED
                 break
             continue
-        X[:, :] = work_x
-        U[:] = work_u
-        A[:, :] = A2
-        B[:, :] = B2
-        LX[:, :] = LX2
-        LXX[:, :] = LXX2
-        LU[:] = LU2
-        LUU[:] = LUU2
+        _copy(trial, cur)
         improvement = cost - new_cost
         cost = new_cost
         mu = mu / 10.0 if mu > MU_MIN * 10.0 else MU_MIN
@@ -186,6 +223,150 @@ def _solve(q0, qd0, U, X, K, kff, work_x, work_u, A, B, LX, LXX, LU, LUU, A2, B2
             status = CONVERGED
             break
     stats[0], stats[1], stats[2], stats[3] = status, iteration, cost, mu
+    stats[4] += rollouts
+
+
+@numba.njit(**JIT)
+def _solve_from_controls(q0, qd0, cur, trial, K, kff, ref_q, ref_qd, p, c, max_iterations,
+                         tolerance, stats):
+    """Classic iLQR: simulate the controls in cur.U open loop, then iterate."""
+    K[:, :] = 0.0
+    cost = _rollout(q0, qd0, cur, K, kff, 0.0, cur, ref_q, ref_qd, p, c)
+    stats[4] = 1
+    if not np.isfinite(cost):
+        stats[0], stats[1], stats[2], stats[3] = NOT_FINITE, 0, cost, MU_MIN
+        return
+    _iterate(q0, qd0, cur, trial, K, kff, cost, ref_q, ref_qd, p, c, max_iterations,
+             tolerance, stats)
+
+
+@numba.njit(**JIT)
+def _shift(cur, K, ref_q, ref_qd, p, c):
+    """Advance the stored solution one step: everything moves up by one (in place, ascending,
+    so no temporaries), the last control is repeated and only the last stage and the terminal
+    state are evaluated anew."""
+    X, U, A, B, LX, LXX, LU, LUU, LC = cur
+    n = U.shape[0]
+    for k in range(n):
+        X[k, 0] = X[k + 1, 0]
+        X[k, 1] = X[k + 1, 1]
+        LX[k, 0] = LX[k + 1, 0]
+        LX[k, 1] = LX[k + 1, 1]
+        LXX[k, 0] = LXX[k + 1, 0]
+        LXX[k, 1] = LXX[k + 1, 1]
+        LC[k] = LC[k + 1]
+    for k in range(n - 1):
+        U[k] = U[k + 1]
+        A[k, 0] = A[k + 1, 0]
+        A[k, 1] = A[k + 1, 1]
+        A[k, 2] = A[k + 1, 2]
+        A[k, 3] = A[k + 1, 3]
+        B[k, 0] = B[k + 1, 0]
+        B[k, 1] = B[k + 1, 1]
+        LU[k] = LU[k + 1]
+        LUU[k] = LUU[k + 1]
+        K[k, 0] = K[k + 1, 0]
+        K[k, 1] = K[k + 1, 1]
+    q, qd, _ = _stage(n - 1, X[n - 1, 0], X[n - 1, 1], U[n - 2], cur, ref_q, ref_qd, p, c)
+    _terminal(q, qd, cur, ref_q, ref_qd, c)
+
+
+@numba.njit(**JIT)
+def _tick_warm(q0, qd0, cur, trial, K, kff, ref_q, ref_qd, p, c, max_iterations, tolerance,
+               stats):
+    """Real-time iteration from the shifted previous solution (see the module docstring)."""
+    _shift(cur, K, ref_q, ref_qd, p, c)
+    X = cur[0]
+    ok, dv1, dv2, vx1, vx2, v11, v12, v22 = _backward(cur, MU_MIN, K, kff)
+    stats[4] = 0
+    if ok:
+        d1, d2 = q0 - X[0, 0], qd0 - X[0, 1]
+        shifted_cost = 0.0
+        for cost in cur[8]:
+            shifted_cost += cost
+        merit = shifted_cost + vx1 * d1 + vx2 * d2 + 0.5 * (v11 * d1 * d1 + 2.0 * v12 * d1 * d2
+                                                            + v22 * d2 * d2)
+        accepted, new_cost, trials = _line_search(q0, qd0, cur, trial, K, kff, dv1, dv2, merit,
+                                                  ref_q, ref_qd, p, c)
+        stats[4] = trials
+        if accepted:
+            _copy(trial, cur)
+            stats[0], stats[1], stats[2], stats[3] = MAX_ITERATIONS, 1, new_cost, MU_MIN
+            if max_iterations > 1:
+                _iterate(q0, qd0, cur, trial, K, kff, new_cost, ref_q, ref_qd, p, c,
+                         max_iterations - 1, tolerance, stats)
+                stats[1] += 1
+            return
+    rollouts = stats[4]
+    _solve_from_controls(q0, qd0, cur, trial, K, kff, ref_q, ref_qd, p, c, max_iterations,
+                         tolerance, stats)
+    stats[4] += rollouts
+
+
+@numba.njit(**JIT)
+def _trajectory(ws, start, n):
+    """The nine arrays of one trajectory laid out from ws[start]; returns them and the end."""
+    sizes = (2 * (n + 1), n, 4 * n, 2 * n, 2 * (n + 1), 2 * (n + 1), n, n, n + 1)
+    o = np.empty(10, np.int64)
+    o[0] = start
+    for i in range(9):
+        o[i + 1] = o[i] + sizes[i]
+    return (ws[o[0]:o[1]].reshape((n + 1, 2)), ws[o[1]:o[2]], ws[o[2]:o[3]].reshape((n, 4)),
+            ws[o[3]:o[4]].reshape((n, 2)), ws[o[4]:o[5]].reshape((n + 1, 2)),
+            ws[o[5]:o[6]].reshape((n + 1, 2)), ws[o[6]:o[7]], ws[o[7]:o[8]],
+            ws[o[8]:o[9]]), o[9]
+
+
+@numba.njit(**JIT)
+def _workspace(ws, n):
+    """Named views into the one flat workspace (one array crosses the Python/numba border,
+    which keeps the per-call dispatch cost low): the current and the trial trajectory, the
+    policy (K, kff), the reference over the horizon and the time it was sampled from."""
+    cur, end = _trajectory(ws, 0, n)
+    trial, end = _trajectory(ws, end, n)
+    K = ws[end:end + 2 * n].reshape((n, 2))
+    end += 2 * n
+    kff = ws[end:end + n]
+    end += n
+    ref_q = ws[end:end + n + 1]
+    ref_qd = ws[end + n + 1:end + 2 * n + 2]
+    return cur, trial, K, kff, ref_q, ref_qd, ws[end + 2 * n + 2:end + 2 * n + 3]
+
+
+def workspace_size(n: int) -> int:
+    trajectory = 2 * (n + 1) + n + 4 * n + 2 * n + 4 * (n + 1) + 2 * n + n + 1
+    return 2 * trajectory + 2 * n + n + 2 * (n + 1) + 1
+
+
+@numba.njit(**JIT)
+def _tick(q0, qd0, t0, reference, mode, initial_current, ws, n, p, c, max_iterations,
+          tolerance, stats):
+    """One MPC step. mode COLD: solve from a constant `initial_current`. mode WARM: if t0 is
+    exactly one step after the previous tick, a real-time iteration on the shifted solution;
+    otherwise (a missed cycle) the shifted controls are re-simulated and iterated. mode
+    RESAMPLE: the reference changed, so it is sampled anew before doing the latter."""
+    cur, trial, K, kff, ref_q, ref_qd, last_t0 = _workspace(ws, n)
+    dt = c[C_DT]
+    contiguous = abs(t0 - last_t0[0] - dt) < 1e-6 * dt
+    last_t0[0] = t0
+    if mode == WARM and contiguous:
+        for k in range(n):
+            ref_q[k] = ref_q[k + 1]
+            ref_qd[k] = ref_qd[k + 1]
+        ref_q[n], ref_qd[n] = reference_at(reference, t0 + n * dt)
+        _tick_warm(q0, qd0, cur, trial, K, kff, ref_q, ref_qd, p, c, max_iterations, tolerance,
+                   stats)
+        return
+    for k in range(n + 1):
+        ref_q[k], ref_qd[k] = reference_at(reference, t0 + k * dt)
+    U = cur[1]
+    if mode == COLD:
+        U[:] = initial_current
+    else:
+        for k in range(n - 1):
+            U[k] = U[k + 1]
+    _solve_from_controls(q0, qd0, cur, trial, K, kff, ref_q, ref_qd, p, c, max_iterations,
+                         tolerance, stats)
 
 
 @dataclass
@@ -193,6 +374,7 @@ class SolveResult:
     status: int
     iterations: int
     cost: float
+    rollouts: int = 0  # trajectory simulations, line-search trials included
 
     @property
     def status_name(self) -> str:
@@ -204,29 +386,27 @@ class SolveResult:
 
 
 class IlqrSolver:
-    """Preallocated workspace around the compiled solver; `U`, `X`, `K` persist between calls
-    so the MPC can warm start."""
+    """The compiled solver with its preallocated workspace; the plan (`U`, `X`) persists
+    between calls so the MPC can warm start."""
 
     def __init__(self, settings: OcpSettings, dynamics_params: np.ndarray,
                  cost_params: np.ndarray):
         n = settings.horizon
         self.settings = settings
+        self.horizon = n
         self.p = np.ascontiguousarray(dynamics_params, dtype=np.float64)
         self.c = np.ascontiguousarray(cost_params, dtype=np.float64)
-        self.U = np.zeros(n)
-        self.X = np.zeros((n + 1, 2))
-        self.K = np.zeros((n, 2))
-        self.kff = np.zeros(n)
-        self._work_x = np.zeros((n + 1, 2))
-        self._work_u = np.zeros(n)
-        self._buffers = [np.zeros((n, 4)), np.zeros((n, 2)), np.zeros((n + 1, 2)),
-                         np.zeros((n + 1, 2)), np.zeros(n), np.zeros(n)]
-        self._buffers2 = [np.zeros_like(b) for b in self._buffers]
-        self.stats = np.zeros(4)
+        self._ws = np.zeros(workspace_size(n))
+        cur, _, self.K, _, self.reference_position, self.reference_velocity, _ = _workspace(
+            self._ws, n)
+        self.X, self.U = cur[0], cur[1]
+        self.stats = np.zeros(5)
 
-    def solve(self, x0: tuple[float, float], ref_q: np.ndarray, ref_qd: np.ndarray,
-              max_iterations: int) -> SolveResult:
-        _solve(float(x0[0]), float(x0[1]), self.U, self.X, self.K, self.kff, self._work_x,
-               self._work_u, *self._buffers, *self._buffers2, ref_q, ref_qd, self.p, self.c,
-               max_iterations, self.settings.tolerance, self.stats)
-        return SolveResult(int(self.stats[0]), int(self.stats[1]), float(self.stats[2]))
+    def tick(self, x0: tuple[float, float], t0: float, reference: np.ndarray, mode: int,
+             initial_current: float, max_iterations: int) -> SolveResult:
+        """Sample the packed reference from t0 and solve (see `_tick` for the modes)."""
+        _tick(float(x0[0]), float(x0[1]), float(t0), reference, mode, float(initial_current),
+              self._ws, self.horizon, self.p, self.c, max_iterations, self.settings.tolerance,
+              self.stats)
+        return SolveResult(int(self.stats[0]), int(self.stats[1]), float(self.stats[2]),
+                           int(self.stats[4]))

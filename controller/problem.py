@@ -26,7 +26,14 @@ C_TORQUE_MAX = 12
 C_DRIVE_GAIN = 13
 C_FRICTION_SHARPNESS = 14
 C_DT = 15
-N_COST = 16
+# exp(-alpha upper) and exp(alpha lower) of each barrier, precomputed (see controller.cost)
+C_E_POSITION_HIGH = 16
+C_E_POSITION_LOW = 17
+C_E_VELOCITY_HIGH = 18
+C_E_VELOCITY_LOW = 19
+C_E_TORQUE_HIGH = 20
+C_E_TORQUE_LOW = 21
+N_COST = 22
 
 
 @dataclass(frozen=True)
@@ -90,4 +97,12 @@ def pack_cost(settings: OcpSettings, limits: Limits, drive_gain: float) -> np.nd
     c[C_DRIVE_GAIN] = drive_gain
     c[C_FRICTION_SHARPNESS] = settings.friction_sharpness
     c[C_DT] = settings.dt
+    for high, low, alpha, upper, lower in (
+            (C_E_POSITION_HIGH, C_E_POSITION_LOW, s.position, limits.position_max,
+             limits.position_min),
+            (C_E_VELOCITY_HIGH, C_E_VELOCITY_LOW, s.velocity, limits.velocity_max,
+             -limits.velocity_max),
+            (C_E_TORQUE_HIGH, C_E_TORQUE_LOW, s.torque, c[C_TORQUE_MAX], -c[C_TORQUE_MAX])):
+        c[high] = np.exp(-alpha * upper)
+        c[low] = np.exp(alpha * lower)
     return c

@@ -48,7 +48,7 @@ def smooth_acceleration(q, qd, current, p: np.ndarray, friction_sharpness: float
             p[P_DRIVE_GAIN] * inv_inertia)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def step(q: float, qd: float, current: float, p: np.ndarray, dt: float,
          substeps: int) -> tuple:
     """Advance (q, qd) by dt under a constant current, with set-valued dry friction.
@@ -84,7 +84,7 @@ def step(q: float, qd: float, current: float, p: np.ndarray, dt: float,
     return q, qd, qdd, dry
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def simulate(q0: float, qd0: float, currents: np.ndarray, p: np.ndarray, dt: float,
              substeps: int) -> np.ndarray:
     """States after each period for a current held constant over each period; row k is the
