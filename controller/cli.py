@@ -1,0 +1,198 @@
+"""`actuatord`: the 1 kHz iLQR loop on a CiA 402 drive, telemetry on Zenoh."""
+
+import argparse
+import json
+import os
+import signal
+import sys
+from pathlib import Path
+
+from controller.loop import ControlLoop, LoopOptions
+from controller.mpc import Mpc
+from controller.problem import OcpSettings, Weights
+from controller.reference import ReferenceError, Sinusoid, reference_from_dict
+from controller.zenoh_session import add_zenoh_arguments, open_session
+from model.parameters import ModelFileError, load_model, parse_payload
+from protocol import telemetry
+from protocol.bus_spec import BusSpecError, parse_bus_spec
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="actuatord",
+        description="Run the paper's iLQR (exponential barriers on position, velocity and "
+                    "motor torque) as an MPC on a CiA 402 drive and publish telemetry on Zenoh. "
+                    "SIGINT/SIGTERM disable the drive and exit 0.")
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--bus", default="vcan0",
+                       help="bus spec: vcan0, virtual:NAME, udp_multicast:GROUP[:PORT] "
+                            "(default: vcan0)")
+    where.add_argument("--sim", action="store_true",
+                       help="embedded virtual drive in this process (no bus needed)")
+    parser.add_argument("--node-id", type=int, default=2)
+    parser.add_argument("--model", help="model TOML (default: the packaged paper defaults)")
+    parser.add_argument("--payload-mass", type=float, default=0.0, metavar="KG",
+                        help="payload known to the controller (and carried by --sim's drive)")
+    parser.add_argument("--payload-position", metavar="X,Y", help="payload position (m)")
+    parser.add_argument("--lockstep", action="store_true",
+                        help="with --sim: run as fast as the virtual drive answers")
+    parser.add_argument("--duration", type=float, metavar="S",
+                        help="stop after S seconds of drive time")
+    parser.add_argument("--period-us", type=int, default=1000, help="control period (us)")
+    parser.add_argument("--horizon", type=int, default=OcpSettings.horizon,
+                        help="iLQR horizon in steps (default: %(default)s)")
+    parser.add_argument("--dt", type=float, default=OcpSettings.dt,
+                        help="iLQR step (s, default: %(default)s)")
+    parser.add_argument("--weight", action="append", default=[], metavar="NAME=VALUE",
+                        help=f"cost weight, one of {', '.join(Weights.__dataclass_fields__)} "
+                             "(repeatable)")
+    parser.add_argument("--no-current-barrier", action="store_true",
+                        help="drop the motor-torque barrier (the paper's Fig. 8 experiment)")
+    parser.add_argument("--reference", metavar="JSON",
+                        help='reference, e.g. \'{"kind": "setpoint", "position": -1.0}\' '
+                             "(default: the paper's sinusoid)")
+    parser.add_argument("--prefix", default=telemetry.DEFAULT_PREFIX,
+                        help="Zenoh key prefix (default: %(default)s)")
+    parser.add_argument("--plot", metavar="DIR", help="save position and current figures here")
+    parser.add_argument("--seed", type=int, default=0, help="--sim sensor-noise seed")
+    add_zenoh_arguments(parser)
+    return parser
+
+
+def _usage_error(message: str) -> int:
+    print(f"actuatord: error: {message}", file=sys.stderr)
+    return 2
+
+
+def _settings(args: argparse.Namespace) -> OcpSettings:
+    weights = {}
+    for item in args.weight:
+        name, sep, value = item.partition("=")
+        if not sep or name not in Weights.__dataclass_fields__:
+            raise ValueError(f"--weight {item!r}: expected NAME=VALUE with NAME one of "
+                             f"{', '.join(Weights.__dataclass_fields__)}")
+        try:
+            weights[name] = float(value)
+        except ValueError:
+            raise ValueError(f"--weight {item!r}: {value!r} is not a number") from None
+    if args.no_current_barrier:
+        weights["torque_barrier"] = 0.0
+    return OcpSettings(horizon=args.horizon, dt=args.dt).with_weights(**weights)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        model = load_model(args.model)
+        payload = parse_payload(args.payload_mass, args.payload_position)
+        if not args.sim:
+            parse_bus_spec(args.bus)
+        settings = _settings(args)
+        reference = (reference_from_dict(json.loads(args.reference), model.limits)
+                     if args.reference else Sinusoid())
+        if args.lockstep and not args.sim:
+            raise ValueError("--lockstep needs --sim (a real drive runs in real time)")
+        if not 100 <= args.period_us <= 100_000:
+            raise ValueError(f"--period-us {args.period_us}: expected 100..100000")
+        if args.duration is not None and not args.duration > 0:
+            raise ValueError(f"--duration {args.duration}: expected > 0")
+    except (ModelFileError, BusSpecError, ReferenceError, ValueError) as exc:
+        return _usage_error(str(exc))
+
+    from driver import DriveError
+    from driver.canopen_drive import CanOpenDrive
+
+    period = args.period_us * 1e-6
+    sim = None
+    bus = args.bus
+    if args.sim:
+        # the composition root is the one place the controller meets the virtual drive
+        import canopen
+
+        from sim_bus.drive import VirtualDrive
+        from sim_bus.plant import SensorNoise
+
+        bus = f"virtual:actuatord-{os.getpid()}"
+        sim_network = canopen.Network()
+        sim_network.NOTIFIER_CYCLE = 0.05
+        sim_network.connect(**parse_bus_spec(bus))
+        sim = VirtualDrive(sim_network, args.node_id, model, payload, SensorNoise(seed=args.seed))
+        sim.boot()
+    try:
+        session = open_session(args)
+    except ValueError as exc:
+        return _usage_error(str(exc))
+    from controller.telemetry import TelemetryPublisher
+
+    publisher = TelemetryPublisher(session, args.prefix)
+    mpc = Mpc(model, settings, payload, reference)
+    loop = ControlLoop(None, mpc, LoopOptions(period=period, lockstep=args.lockstep,
+                                              duration=args.duration,
+                                              keep_history=bool(args.plot)),
+                       publisher.publish, lambda: publisher.dropped)
+    _serve_queries(publisher, loop, mpc, model, payload)
+    signal.signal(signal.SIGINT, lambda *_: loop.stop())
+    signal.signal(signal.SIGTERM, lambda *_: loop.stop())
+    try:
+        drive = CanOpenDrive.open(bus, args.node_id, period=period)
+    except Exception as exc:
+        print(f"actuatord: error: cannot open bus {bus!r}: {exc}", file=sys.stderr)
+        return 1
+    loop.drive = drive
+    try:
+        drive.start()
+        print(f"actuatord: node {args.node_id} on {'--sim' if args.sim else bus} enabled; "
+              f"telemetry under {args.prefix}/", flush=True)
+        report = loop.run()
+    except DriveError as exc:
+        loop.fault(0.0, "drive", str(exc), "drive disabled")
+        print(f"actuatord: error: {exc}", file=sys.stderr)
+        report = loop.report
+        report.exit_code, report.reason = 1, str(exc)
+    finally:
+        drive.close()
+        publisher.close()
+        session.close()
+        if sim is not None:
+            sim.close()
+            sim.network.disconnect()
+    print(f"actuatord: {report.summary()}", flush=True)
+    if args.plot and report.history.get("t"):
+        from controller.plots import save_figures
+
+        title = "with current barrier" if not args.no_current_barrier else "no current barrier"
+        if payload.mass:
+            title = f"{payload.mass:g} kg payload, {title}"
+        for path in save_figures(report.history, model.limits, Path(args.plot), title):
+            print(f"actuatord: wrote {path}", flush=True)
+    return report.exit_code
+
+
+def _serve_queries(publisher, loop: ControlLoop, mpc: Mpc, model, payload) -> None:
+    def parameters(_: bytes | None) -> dict:
+        return {"parameters": vars(mpc.parameters), "limits": vars(model.limits),
+                "provenance": model.provenance, "payload": vars(payload),
+                "settings": {"horizon": mpc.settings.horizon, "dt": mpc.settings.dt,
+                             "weights": vars(mpc.settings.weights),
+                             "sharpness": vars(mpc.settings.sharpness),
+                             "friction_sharpness": mpc.settings.friction_sharpness},
+                "reference": {"kind": type(mpc.reference).__name__.lower(),
+                              **vars(mpc.reference)}}
+
+    def set_reference(payload_bytes: bytes | None) -> dict:
+        try:
+            spec = json.loads(payload_bytes or b"")
+            reference = reference_from_dict(spec, model.limits)
+        except (ValueError, ReferenceError) as exc:
+            reason = str(exc) if isinstance(exc, ReferenceError) else f"not JSON: {exc}"
+            loop.fault(0.0, "request", f"reference refused: {reason}", "reference unchanged")
+            return {"ok": False, "reason": reason}
+        loop.request(lambda m: m.set_reference(reference))
+        return {"ok": True, "reference": spec}
+
+    publisher.serve_json(telemetry.PARAMETERS, parameters)
+    publisher.serve_json(telemetry.REFERENCE, set_reference)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,77 @@
+"""Zenoh side of actuatord: publishers fed from a queue by their own thread (the control loop
+never waits on the network), and the queryables for parameters and the reference."""
+
+import json
+import logging
+import queue
+import threading
+from collections.abc import Callable
+
+import zenoh
+
+from protocol import telemetry as schema
+
+log = logging.getLogger(__name__)
+
+EXPRESS_TOPICS = ("state", "command")  # latency matters more than batching for these
+QUEUE_DEPTH = 4096
+
+
+class TelemetryPublisher:
+    """Publishes telemetry messages given as dicts; serialisation happens in the publisher
+    thread. When the queue is full, messages are dropped and counted, never waited for."""
+
+    def __init__(self, session: zenoh.Session, prefix: str = schema.DEFAULT_PREFIX):
+        self.session = session
+        self.prefix = prefix
+        self.dropped = 0
+        self._queue: queue.Queue = queue.Queue(QUEUE_DEPTH)
+        self._publishers = {
+            topic: session.declare_publisher(
+                schema.key_expr(prefix, topic), encoding=zenoh.Encoding.APPLICATION_PROTOBUF,
+                congestion_control=zenoh.CongestionControl.DROP,
+                express=topic in EXPRESS_TOPICS)
+            for topic in schema.TOPICS}
+        self._queryables: list = []
+        self._thread = threading.Thread(target=self._run, name="telemetry", daemon=True)
+        self._thread.start()
+
+    def publish(self, topic: str, fields: dict) -> None:
+        try:
+            self._queue.put_nowait((topic, fields))
+        except queue.Full:
+            self.dropped += 1
+
+    def serve_json(self, name: str, answer: Callable[[bytes | None], dict]) -> None:
+        """A queryable at {prefix}/{name} that replies with answer(payload) as JSON."""
+        def on_query(query: zenoh.Query) -> None:
+            payload = query.payload.to_bytes() if query.payload is not None else None
+            try:
+                reply = answer(payload)
+            except Exception as exc:  # a bad request must never take the service down
+                log.exception("query on %s failed", name)
+                reply = {"ok": False, "reason": f"internal error: {exc}"}
+            query.reply(query.key_expr, json.dumps(reply),
+                        encoding=zenoh.Encoding.APPLICATION_JSON)
+
+        self._queryables.append(
+            self.session.declare_queryable(schema.key_expr(self.prefix, name), on_query))
+
+    def _run(self) -> None:
+        classes = {topic: schema.message_class(name) for topic, name in schema.TOPICS.items()}
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            topic, fields = item
+            try:
+                self._publishers[topic].put(classes[topic](**fields).SerializeToString())
+            except Exception:
+                log.exception("publishing %s failed", topic)
+
+    def close(self) -> None:
+        """Flush what is queued, then undeclare everything."""
+        self._queue.put(None)
+        self._thread.join(5)
+        for entity in list(self._publishers.values()) + self._queryables:
+            entity.undeclare()

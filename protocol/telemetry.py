@@ -1,0 +1,153 @@
+"""Telemetry messages: one protobuf schema per message, the same bytes on Zenoh, in MCAP and
+over the Foxglove bridge. The schema is data (below); `telemetry.proto` beside this file is
+generated from it for people writing subscribers in other languages.
+
+Key expressions live under a prefix, e.g. `actuators/elbow`:
+    {prefix}/state       State        every control cycle
+    {prefix}/command     Command      every control cycle
+    {prefix}/plan        Plan         every `plan_every` cycles (predicted trajectory)
+    {prefix}/solver      SolverStats  every control cycle
+    {prefix}/fault       Fault        when something goes wrong (or a request is refused)
+    {prefix}/loop_stats  LoopStats    once a second and at exit
+    {prefix}/parameters  queryable: model parameters, limits and solver settings (JSON)
+    {prefix}/reference   queryable: set the reference, payload JSON; reply {"ok", "reason"}
+"""
+
+from functools import cache
+
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+PACKAGE = "actuator"
+DOUBLE = descriptor_pb2.FieldDescriptorProto.TYPE_DOUBLE
+UINT32 = descriptor_pb2.FieldDescriptorProto.TYPE_UINT32
+UINT64 = descriptor_pb2.FieldDescriptorProto.TYPE_UINT64
+BOOL = descriptor_pb2.FieldDescriptorProto.TYPE_BOOL
+STRING = descriptor_pb2.FieldDescriptorProto.TYPE_STRING
+REPEATED = "repeated"
+
+# message -> [(field, type, unit or meaning)], field numbers in order from 1.
+SCHEMAS: dict[str, list[tuple]] = {
+    "State": [
+        ("t", DOUBLE, "s, drive time (SYNC count x period)"),
+        ("position", DOUBLE, "rad"),
+        ("velocity", DOUBLE, "rad/s"),
+        ("motor_current", DOUBLE, "A"),
+        ("joint_torque", DOUBLE, "N.m, torque-sensor reading"),
+        ("statusword", UINT32, "CiA 402 statusword"),
+        ("drive_state", STRING, "CiA 402 state name"),
+    ],
+    "Command": [
+        ("t", DOUBLE, "s"),
+        ("current", DOUBLE, "A, sent to the drive"),
+        ("planned_current", DOUBLE, "A, what the solver asked for"),
+        ("reference_position", DOUBLE, "rad"),
+        ("reference_velocity", DOUBLE, "rad/s"),
+        ("current_limit", DOUBLE, "A"),
+        ("position_min", DOUBLE, "rad"),
+        ("position_max", DOUBLE, "rad"),
+        ("saturated", BOOL, "the command was clipped to the current limit"),
+        ("fallback", BOOL, "the safety net replaced the solver's command"),
+    ],
+    "Plan": [
+        ("t", DOUBLE, "s, time of the first point"),
+        ("dt", DOUBLE, "s between points"),
+        ("position", DOUBLE, "rad", REPEATED),
+        ("velocity", DOUBLE, "rad/s", REPEATED),
+        ("current", DOUBLE, "A", REPEATED),
+        ("reference_position", DOUBLE, "rad", REPEATED),
+    ],
+    "SolverStats": [
+        ("t", DOUBLE, "s"),
+        ("solve_time_us", DOUBLE, "us, wall time of the MPC tick"),
+        ("iterations", UINT32, "iLQR iterations"),
+        ("rollouts", UINT32, "trajectory simulations incl. line-search trials"),
+        ("status", STRING, "converged | max_iterations | line_search_failed | not_finite"),
+        ("cost", DOUBLE, "objective value"),
+    ],
+    "Fault": [
+        ("t", DOUBLE, "s"),
+        ("source", STRING, "drive | controller | solver | request"),
+        ("cause", STRING, "what happened"),
+        ("action", STRING, "what was done about it"),
+    ],
+    "LoopStats": [
+        ("t", DOUBLE, "s"),
+        ("cycles", UINT64, "control cycles run"),
+        ("missed_cycles", UINT64, "cycles whose work overran the period"),
+        ("period_jitter_p99_us", DOUBLE, "us, |actual - nominal period|"),
+        ("period_jitter_max_us", DOUBLE, "us"),
+        ("solve_median_us", DOUBLE, "us"),
+        ("solve_p99_us", DOUBLE, "us"),
+        ("solve_max_us", DOUBLE, "us"),
+        ("dropped_messages", UINT64, "telemetry messages dropped (publisher queue full)"),
+    ],
+}
+
+TOPICS = {"state": "State", "command": "Command", "plan": "Plan", "solver": "SolverStats",
+          "fault": "Fault", "loop_stats": "LoopStats"}
+PARAMETERS = "parameters"
+REFERENCE = "reference"
+DEFAULT_PREFIX = "actuators/elbow"
+
+
+def key_expr(prefix: str, topic: str) -> str:
+    return f"{prefix.rstrip('/')}/{topic}"
+
+
+@cache
+def file_descriptor() -> descriptor_pb2.FileDescriptorProto:
+    proto = descriptor_pb2.FileDescriptorProto(name="actuator/telemetry.proto", package=PACKAGE,
+                                               syntax="proto3")
+    for name, fields in SCHEMAS.items():
+        message = proto.message_type.add(name=name)
+        for number, spec in enumerate(fields, start=1):
+            label = (descriptor_pb2.FieldDescriptorProto.LABEL_REPEATED
+                     if len(spec) > 3 and spec[3] == REPEATED
+                     else descriptor_pb2.FieldDescriptorProto.LABEL_OPTIONAL)
+            message.field.add(name=spec[0], number=number, type=spec[1], label=label)
+    return proto
+
+
+@cache
+def _pool() -> descriptor_pool.DescriptorPool:
+    pool = descriptor_pool.DescriptorPool()
+    pool.Add(file_descriptor())
+    return pool
+
+
+@cache
+def message_class(name: str) -> type:
+    """The protobuf class of a message, e.g. message_class('State')."""
+    return message_factory.GetMessageClass(_pool().FindMessageTypeByName(f"{PACKAGE}.{name}"))
+
+
+def schema_name(name: str) -> str:
+    return f"{PACKAGE}.{name}"
+
+
+def file_descriptor_set() -> bytes:
+    """What MCAP and Foxglove want as a protobuf schema's data."""
+    return descriptor_pb2.FileDescriptorSet(file=[file_descriptor()]).SerializeToString()
+
+
+def proto_text() -> str:
+    """The schema as a .proto file (the shipped telemetry.proto is exactly this)."""
+    names = {DOUBLE: "double", UINT32: "uint32", UINT64: "uint64", BOOL: "bool",
+             STRING: "string"}
+    lines = ["// Generated from protocol/telemetry.py: the telemetry of actuatord.",
+             'syntax = "proto3";', f"package {PACKAGE};", ""]
+    for name, fields in SCHEMAS.items():
+        lines.append(f"message {name} {{")
+        for number, spec in enumerate(fields, start=1):
+            prefix = "repeated " if len(spec) > 3 and spec[3] == REPEATED else ""
+            lines.append(f"  {prefix}{names[spec[1]]} {spec[0]} = {number};  // {spec[2]}")
+        lines.append("}")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def decode(name: str, data: bytes):
+    """Parse bytes of message `name`; raises google.protobuf.message.DecodeError if malformed."""
+    message = message_class(name)()
+    message.ParseFromString(data)
+    return message
