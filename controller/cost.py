@@ -26,6 +26,7 @@ from controller.problem import (
     C_Q_POSITION,
     C_Q_VELOCITY,
     C_R_CURRENT,
+    C_TORQUE_MAX,
     C_W_POSITION,
     C_W_VELOCITY,
 )
@@ -72,3 +73,20 @@ def control_cost(u, c: np.ndarray) -> tuple:
     return (c[C_R_CURRENT] * u * u + bt, 2.0 * c[C_R_CURRENT] * u + gain * bt_d,
             2.0 * c[C_R_CURRENT] + gain * gain * bt_dd)
 
+
+
+BARRIER_REACH = 4.0  # alpha x overshoot where the solver's control box sits: Cs = e^4
+
+
+@register_jitable
+def control_box(c) -> float:
+    """Half-width (A) of the box the solver keeps its control steps in: the current where the
+    motor-torque barrier has risen to e^4, far outside where an optimum can sit.
+
+    With the paper's tiny effort weight R, the quadratic model alone proposes steps of hundreds
+    of amperes that the barrier's actual cost then rejects, and the line search crawls. Clamping
+    each stage's step to this box (control-limited DDP, Tassa 2014) keeps the model honest. No
+    box without the barrier."""
+    if c[C_P_TORQUE] <= 0.0:
+        return np.inf
+    return (c[C_TORQUE_MAX] + BARRIER_REACH / c[C_ALPHA_TORQUE]) / c[C_DRIVE_GAIN]

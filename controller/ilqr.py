@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from controller.cost import control_cost, state_cost
+from controller.cost import control_box, control_cost, state_cost
 from controller.problem import C_DT, C_FRICTION_SHARPNESS, OcpSettings
 from controller.reference import reference_at
 from model.dynamics import smooth_acceleration
@@ -106,10 +106,12 @@ def _rollout(q0, qd0, base, K, kff, alpha, out, ref_q, ref_qd, p, c):
 
 
 @numba.njit(**JIT)
-def _backward(traj, mu, K, kff):
+def _backward(traj, mu, K, kff, c):
     """Riccati sweep. Returns ok, the expected change alpha dv1 + alpha^2 dv2 of a step alpha,
-    and the value function's gradient and Hessian at the first state."""
-    _, _, A, B, LX, LXX, LU, LUU, _ = traj
+    and the value function's gradient and Hessian at the first state. A step that would leave
+    the control box is clamped to it, with no feedback at that stage (box-DDP)."""
+    _, U, A, B, LX, LXX, LU, LUU, _ = traj
+    box = control_box(c)
     n = LU.shape[0]
     vx1, vx2 = LX[n, 0], LX[n, 1]
     v11, v12, v22 = LXX[n, 0], 0.0, LXX[n, 1]
@@ -145,6 +147,10 @@ def _backward(traj, mu, K, kff):
         kk = -qu / quu_r
         k1 = -qux1_r / quu_r
         k2 = -qux2_r / quu_r
+        if abs(U[k] + kk) > box:
+            kk = (box if U[k] + kk > 0.0 else -box) - U[k]
+            k1 = 0.0
+            k2 = 0.0
         kff[k] = kk
         K[k, 0] = k1
         K[k, 1] = k2
@@ -196,7 +202,7 @@ def _iterate(q0, qd0, cur, trial, K, kff, cost, ref_q, ref_qd, p, c, max_iterati
     rollouts = 0
     while iteration < max_iterations:
         iteration += 1
-        ok, dv1, dv2, _, _, _, _, _ = _backward(cur, mu, K, kff)
+        ok, dv1, dv2, _, _, _, _, _ = _backward(cur, mu, K, kff, c)
         if not ok:
             mu = max(mu * 10.0, 1e-6)
             if mu > MU_MAX:
@@ -277,7 +283,7 @@ def _tick_warm(q0, qd0, cur, trial, K, kff, ref_q, ref_qd, p, c, max_iterations,
     """Real-time iteration from the shifted previous solution (see the module docstring)."""
     _shift(cur, K, ref_q, ref_qd, p, c)
     X = cur[0]
-    ok, dv1, dv2, vx1, vx2, v11, v12, v22 = _backward(cur, MU_MIN, K, kff)
+    ok, dv1, dv2, vx1, vx2, v11, v12, v22 = _backward(cur, MU_MIN, K, kff, c)
     stats[4] = 0
     if ok:
         d1, d2 = q0 - X[0, 0], qd0 - X[0, 1]

@@ -7,7 +7,7 @@ the same functions (`model.dynamics.smooth_acceleration`, `controller.cost`).
 
 import numpy as np
 
-from controller.cost import control_cost, state_cost
+from controller.cost import control_box, control_cost, state_cost
 from controller.problem import C_DT, C_FRICTION_SHARPNESS
 from model.dynamics import smooth_acceleration
 
@@ -64,6 +64,10 @@ def backward(X, U, A, B, ref, c, mu):
         Qux_r = B[k] @ Vreg @ A[k]
         kff[k] = -Qu / Quu_r
         K[k] = -Qux_r / Quu_r
+        box = control_box(c)
+        if abs(U[k] + kff[k]) > box:  # step clamped to the control box, no feedback there
+            kff[k] = np.sign(U[k] + kff[k]) * box - U[k]
+            K[k] = 0.0
         Vx = Qx + K[k] * Quu * kff[k] + K[k] * Qu + Qux * kff[k]
         Vxx = Qxx + np.outer(K[k], K[k]) * Quu + np.outer(K[k], Qux) + np.outer(Qux, K[k])
         dv += [kff[k] * Qu, 0.5 * kff[k] ** 2 * Quu]

@@ -45,6 +45,9 @@ class Mpc:
         self.set_reference(reference)
         self.solver = IlqrSolver(settings, self.parameters.packed(),
                                  pack_cost(settings, model.limits, self.parameters.drive_gain))
+        # load the compiled code now, not in the first control cycle
+        middle = 0.5 * (self.limits.position_min + self.limits.position_max)
+        self.solver.tick((middle, 0.0), 0.0, self._reference_packed, COLD, 0.0, 1)
 
     def set_reference(self, reference: Reference) -> None:
         check_reference(reference, self.limits)
@@ -77,7 +80,8 @@ class Mpc:
         if state_fault is not None:
             self._mode = COLD
             ref_q, ref_qd = reference_at(self._reference_packed, t)
-            safe = 0.0 if not math.isfinite(position) else self.hold_current(position)
+            finite = math.isfinite(position) and math.isfinite(velocity)
+            safe = self.hold_current(position) if finite else 0.0
             return TickResult(safe, math.nan, ref_q, ref_qd, SolveResult(3, 0, math.inf),
                               time.perf_counter() - start, state_fault)
         mode = self._mode

@@ -100,6 +100,10 @@ def reference_from_dict(spec: dict, limits: Limits) -> Reference:
 
 
 def check_reference(reference: Reference, limits: Limits) -> None:
+    for name, value in vars(reference).items():
+        if not math.isfinite(value):
+            raise ReferenceError(f"{type(reference).__name__.lower()}.{name}: expected a finite "
+                                 f"number, got {value!r}")
     low, high = reference.span()
     if low < limits.position_min - REFERENCE_MARGIN or high > limits.position_max + \
             REFERENCE_MARGIN:
