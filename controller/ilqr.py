@@ -16,7 +16,7 @@ must beat is the shifted cost corrected to the measured state by the value funct
 model, so the Armijo test stays meaningful. One simulation per tick instead of two.
 """
 
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -165,19 +165,6 @@ def _backward(traj, mu, K, kff, c):
 
 
 @numba.njit(**JIT)
-def _copy(src, dst):
-    dst[0][:, :] = src[0]
-    dst[1][:] = src[1]
-    dst[2][:, :] = src[2]
-    dst[3][:, :] = src[3]
-    dst[4][:, :] = src[4]
-    dst[5][:, :] = src[5]
-    dst[6][:] = src[6]
-    dst[7][:] = src[7]
-    dst[8][:] = src[8]
-
-
-@numba.njit(**JIT)
 def _line_search(q0, qd0, cur, trial, K, kff, dv1, dv2, merit, ref_q, ref_qd, p, c):
     """Backtrack alpha until the trial beats `merit` by the Armijo fraction of the predicted
     decrease; returns (accepted, new cost, rollouts)."""
@@ -194,8 +181,10 @@ def _line_search(q0, qd0, cur, trial, K, kff, dv1, dv2, merit, ref_q, ref_qd, p,
 @numba.njit(**JIT)
 def _iterate(q0, qd0, cur, trial, K, kff, cost, ref_q, ref_qd, p, c, max_iterations,
              tolerance, stats):
-    """iLQR iterations from `cur` (states, derivatives and `cost` valid); result in `cur`.
-    stats <- [status, iterations, cost, mu, rollouts] (rollouts added to what is there)."""
+    """iLQR iterations from `cur` (states, derivatives and `cost` valid). Accepting a trial
+    swaps the roles of the two buffers instead of copying; returns True when the result ends
+    up in `trial`. stats <- [status, iterations, cost, mu, rollouts] (rollouts added)."""
+    flipped = False
     mu = MU_MIN
     status = MAX_ITERATIONS
     iteration = 0
@@ -221,7 +210,8 @@ def _iterate(q0, qd0, cur, trial, K, kff, cost, ref_q, ref_qd, p, c, max_iterati
                 status = LINE_SEARCH_FAILED
                 break
             continue
-        _copy(trial, cur)
+        cur, trial = trial, cur
+        flipped = not flipped
         improvement = cost - new_cost
         cost = new_cost
         mu = mu / 10.0 if mu > MU_MIN * 10.0 else MU_MIN
@@ -230,20 +220,22 @@ def _iterate(q0, qd0, cur, trial, K, kff, cost, ref_q, ref_qd, p, c, max_iterati
             break
     stats[0], stats[1], stats[2], stats[3] = status, iteration, cost, mu
     stats[4] += rollouts
+    return flipped
 
 
 @numba.njit(**JIT)
 def _solve_from_controls(q0, qd0, cur, trial, K, kff, ref_q, ref_qd, p, c, max_iterations,
                          tolerance, stats):
-    """Classic iLQR: simulate the controls in cur.U open loop, then iterate."""
+    """Classic iLQR: simulate the controls in cur.U open loop, then iterate; returns True when
+    the result is in `trial`."""
     K[:, :] = 0.0
     cost = _rollout(q0, qd0, cur, K, kff, 0.0, cur, ref_q, ref_qd, p, c)
     stats[4] = 1
     if not np.isfinite(cost):
         stats[0], stats[1], stats[2], stats[3] = NOT_FINITE, 0, cost, MU_MIN
-        return
-    _iterate(q0, qd0, cur, trial, K, kff, cost, ref_q, ref_qd, p, c, max_iterations,
-             tolerance, stats)
+        return False
+    return _iterate(q0, qd0, cur, trial, K, kff, cost, ref_q, ref_qd, p, c, max_iterations,
+                    tolerance, stats)
 
 
 @numba.njit(**JIT)
@@ -280,7 +272,8 @@ def _shift(cur, K, ref_q, ref_qd, p, c):
 @numba.njit(**JIT)
 def _tick_warm(q0, qd0, cur, trial, K, kff, ref_q, ref_qd, p, c, max_iterations, tolerance,
                stats):
-    """Real-time iteration from the shifted previous solution (see the module docstring)."""
+    """Real-time iteration from the shifted previous solution (see the module docstring);
+    returns True when the result is in `trial`."""
     _shift(cur, K, ref_q, ref_qd, p, c)
     X = cur[0]
     ok, dv1, dv2, vx1, vx2, v11, v12, v22 = _backward(cur, MU_MIN, K, kff, c)
@@ -296,17 +289,18 @@ def _tick_warm(q0, qd0, cur, trial, K, kff, ref_q, ref_qd, p, c, max_iterations,
                                                   ref_q, ref_qd, p, c)
         stats[4] = trials
         if accepted:
-            _copy(trial, cur)
             stats[0], stats[1], stats[2], stats[3] = MAX_ITERATIONS, 1, new_cost, MU_MIN
-            if max_iterations > 1:
-                _iterate(q0, qd0, cur, trial, K, kff, new_cost, ref_q, ref_qd, p, c,
-                         max_iterations - 1, tolerance, stats)
-                stats[1] += 1
-            return
+            if max_iterations == 1:
+                return True
+            flipped = _iterate(q0, qd0, trial, cur, K, kff, new_cost, ref_q, ref_qd, p, c,
+                               max_iterations - 1, tolerance, stats)
+            stats[1] += 1
+            return not flipped
     rollouts = stats[4]
-    _solve_from_controls(q0, qd0, cur, trial, K, kff, ref_q, ref_qd, p, c, max_iterations,
-                         tolerance, stats)
+    flipped = _solve_from_controls(q0, qd0, cur, trial, K, kff, ref_q, ref_qd, p, c,
+                                   max_iterations, tolerance, stats)
     stats[4] += rollouts
+    return flipped
 
 
 @numba.njit(**JIT)
@@ -327,21 +321,25 @@ def _trajectory(ws, start, n):
 def _workspace(ws, n):
     """Named views into the one flat workspace (one array crosses the Python/numba border,
     which keeps the per-call dispatch cost low): the current and the trial trajectory, the
-    policy (K, kff), the reference over the horizon and the time it was sampled from."""
-    cur, end = _trajectory(ws, 0, n)
-    trial, end = _trajectory(ws, end, n)
+    policy (K, kff), the reference over the horizon, the time it was sampled from, and which
+    buffer holds the current solution."""
+    first, end = _trajectory(ws, 0, n)
+    second, end = _trajectory(ws, end, n)
     K = ws[end:end + 2 * n].reshape((n, 2))
     end += 2 * n
     kff = ws[end:end + n]
     end += n
     ref_q = ws[end:end + n + 1]
     ref_qd = ws[end + n + 1:end + 2 * n + 2]
-    return cur, trial, K, kff, ref_q, ref_qd, ws[end + 2 * n + 2:end + 2 * n + 3]
+    flags = ws[end + 2 * n + 2:end + 2 * n + 4]  # [last t0, 1.0 when `second` is current]
+    if flags[1] == 1.0:
+        return second, first, K, kff, ref_q, ref_qd, flags
+    return first, second, K, kff, ref_q, ref_qd, flags
 
 
 def workspace_size(n: int) -> int:
     trajectory = 2 * (n + 1) + n + 4 * n + 2 * n + 4 * (n + 1) + 2 * n + n + 1
-    return 2 * trajectory + 2 * n + n + 2 * (n + 1) + 1
+    return 2 * trajectory + 2 * n + n + 2 * (n + 1) + 2
 
 
 @numba.njit(**JIT)
@@ -351,17 +349,18 @@ def _tick(q0, qd0, t0, reference, mode, initial_current, ws, n, p, c, max_iterat
     exactly one step after the previous tick, a real-time iteration on the shifted solution;
     otherwise (a missed cycle) the shifted controls are re-simulated and iterated. mode
     RESAMPLE: the reference changed, so it is sampled anew before doing the latter."""
-    cur, trial, K, kff, ref_q, ref_qd, last_t0 = _workspace(ws, n)
+    cur, trial, K, kff, ref_q, ref_qd, flags = _workspace(ws, n)
     dt = c[C_DT]
-    contiguous = abs(t0 - last_t0[0] - dt) < 1e-6 * dt
-    last_t0[0] = t0
+    contiguous = abs(t0 - flags[0] - dt) < 1e-6 * dt
+    flags[0] = t0
     if mode == WARM and contiguous:
         for k in range(n):
             ref_q[k] = ref_q[k + 1]
             ref_qd[k] = ref_qd[k + 1]
         ref_q[n], ref_qd[n] = reference_at(reference, t0 + n * dt)
-        _tick_warm(q0, qd0, cur, trial, K, kff, ref_q, ref_qd, p, c, max_iterations, tolerance,
-                   stats)
+        if _tick_warm(q0, qd0, cur, trial, K, kff, ref_q, ref_qd, p, c, max_iterations,
+                      tolerance, stats):
+            flags[1] = 1.0 - flags[1]
         return
     for k in range(n + 1):
         ref_q[k], ref_qd[k] = reference_at(reference, t0 + k * dt)
@@ -371,12 +370,12 @@ def _tick(q0, qd0, t0, reference, mode, initial_current, ws, n, p, c, max_iterat
     else:
         for k in range(n - 1):
             U[k] = U[k + 1]
-    _solve_from_controls(q0, qd0, cur, trial, K, kff, ref_q, ref_qd, p, c, max_iterations,
-                         tolerance, stats)
+    if _solve_from_controls(q0, qd0, cur, trial, K, kff, ref_q, ref_qd, p, c, max_iterations,
+                            tolerance, stats):
+        flags[1] = 1.0 - flags[1]
 
 
-@dataclass
-class SolveResult:
+class SolveResult(NamedTuple):
     status: int
     iterations: int
     cost: float
@@ -403,10 +402,20 @@ class IlqrSolver:
         self.p = np.ascontiguousarray(dynamics_params, dtype=np.float64)
         self.c = np.ascontiguousarray(cost_params, dtype=np.float64)
         self._ws = np.zeros(workspace_size(n))
-        cur, _, self.K, _, self.reference_position, self.reference_velocity, _ = _workspace(
-            self._ws, n)
-        self.X, self.U = cur[0], cur[1]
+        first, second, self.K, _, self.reference_position, self.reference_velocity, \
+            self._flags = _workspace(self._ws, n)
+        self._buffers = (first, second)
         self.stats = np.zeros(5)
+
+    @property
+    def X(self) -> np.ndarray:
+        """Predicted states of the current solution, shape (N + 1, 2)."""
+        return self._buffers[int(self._flags[1])][0]
+
+    @property
+    def U(self) -> np.ndarray:
+        """Controls of the current solution (A), shape (N,)."""
+        return self._buffers[int(self._flags[1])][1]
 
     def tick(self, x0: tuple[float, float], t0: float, reference: np.ndarray, mode: int,
              initial_current: float, max_iterations: int) -> SolveResult:

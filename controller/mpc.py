@@ -3,7 +3,7 @@ iterations per tick, and the safety net between the solver and the drive."""
 
 import math
 import time
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -16,8 +16,9 @@ from model.parameters import ActuatorModel, Payload
 STATE_MARGIN = 0.5  # rad beyond the position limits where the state is still believed
 
 
-@dataclass(frozen=True)
-class TickResult:
+class TickResult(NamedTuple):
+    """What one MPC tick decided (a NamedTuple: built every millisecond, so kept cheap)."""
+
     current: float  # A, the command to send (within the current limit)
     planned_current: float  # A, what the solver asked for before the safety net
     reference_position: float
