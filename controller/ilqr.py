@@ -38,7 +38,7 @@ MU_MIN = 1e-8
 MU_MAX = 1e10
 ARMIJO = 1e-4
 LINE_SEARCH_STEPS = 10  # alpha = 1, 1/2, ..., 1/512
-JIT = {"cache": True, "error_model": "numpy"}
+JIT = {"cache": True, "error_model": "numpy", "nogil": True}
 
 
 @numba.njit(**JIT)

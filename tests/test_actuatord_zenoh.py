@@ -1,0 +1,108 @@
+"""`actuatord --sim --lockstep` in its own process, watched by a separate Zenoh session the way
+a dashboard would, with nothing but the documented schema."""
+
+import json
+import random
+import subprocess
+import sys
+import time
+
+import zenoh
+
+from protocol import telemetry
+
+PREFIX = "test/elbow"
+
+
+def dashboard_session(port: int) -> zenoh.Session:
+    config = zenoh.Config()
+    config.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(config)
+
+
+def start_actuatord(port: int, *extra: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "controller.cli", "--sim", "--lockstep", "--prefix", PREFIX,
+         "--listen", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting", *extra],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def test_dashboard_session_decodes_state_and_talks_to_the_queryables():
+    port = random.randint(20000, 60000)
+    proc = start_actuatord(port, "--duration", "30")
+    received: dict[str, list] = {topic: [] for topic in telemetry.TOPICS}
+    session = dashboard_session(port)
+    try:
+        subscribers = [session.declare_subscriber(
+            telemetry.key_expr(PREFIX, topic),
+            lambda sample, topic=topic: received[topic].append(sample.payload.to_bytes()))
+            for topic in telemetry.TOPICS]
+        deadline = time.monotonic() + 60
+        while len(received["state"]) < 200 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert len(received["state"]) >= 200, proc.stderr.read() if proc.poll() else "no state"
+
+        replies = list(session.get(telemetry.key_expr(PREFIX, telemetry.PARAMETERS)))
+        parameters = json.loads(replies[0].ok.payload.to_bytes())
+        assert parameters["limits"]["current_max"] == 6.0
+        assert parameters["settings"]["horizon"] == 100
+
+        refused = list(session.get(telemetry.key_expr(PREFIX, telemetry.REFERENCE),
+                                   payload=json.dumps({"kind": "setpoint", "position": -9})))
+        answer = json.loads(refused[0].ok.payload.to_bytes())
+        assert answer["ok"] is False and "spans" in answer["reason"]
+        accepted = list(session.get(telemetry.key_expr(PREFIX, telemetry.REFERENCE),
+                                    payload=json.dumps({"kind": "setpoint", "position": -1.0})))
+        assert json.loads(accepted[0].ok.payload.to_bytes())["ok"] is True
+        time.sleep(1.0)
+        for subscriber in subscribers:
+            subscriber.undeclare()
+    finally:
+        session.close()
+        proc.terminate()
+        out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    assert "cycles" in out and "drive" not in err
+
+    states = [telemetry.decode("State", data) for data in received["state"]]
+    assert all(s.drive_state == "operation enabled" for s in states)
+    assert all(-2.5 < s.position < 0.2 for s in states)
+    times = [s.t for s in states]
+    assert times == sorted(times)
+    commands = [telemetry.decode("Command", data) for data in received["command"]]
+    assert all(abs(c.current) <= c.current_limit == 6.0 for c in commands)
+    assert commands[-1].reference_position == -1.0  # the accepted reference took effect
+    faults = [telemetry.decode("Fault", data) for data in received["fault"]]
+    assert any("reference refused" in f.cause for f in faults)
+    plan = telemetry.decode("Plan", received["plan"][-1])
+    assert len(plan.position) == 101 and len(plan.current) == 100
+    solver = telemetry.decode("SolverStats", received["solver"][-1])
+    assert solver.status in ("converged", "max_iterations")
+
+
+def test_sigterm_disables_and_exits_zero_with_loop_statistics():
+    port = random.randint(20000, 60000)
+    proc = start_actuatord(port)
+    line = proc.stdout.readline()
+    assert "enabled" in line, proc.stderr.read()
+    time.sleep(1.0)
+    proc.terminate()
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    assert "stop requested" in out and "MPC tick median" in out
+
+
+def test_bad_input_exits_2_with_one_line(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "controller.cli", "--sim", "--reference",
+                           '{"kind": "setpoint", "position": "up"}'],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == ("actuatord: error: setpoint.position: expected a finite "
+                                   "number, got 'up'")
+
+
+def test_shipped_proto_file_matches_the_schema():
+    from importlib.resources import files
+
+    assert (files("protocol") / "telemetry.proto").read_text() == telemetry.proto_text()
