@@ -10,6 +10,7 @@ import logging
 import threading
 
 import canopen
+from canopen.nmt import NmtSlave
 from canopen.sdo import SdoAbortedError
 
 from model.parameters import ActuatorModel, Payload
@@ -33,6 +34,29 @@ SDO_ABORT_PDO_LENGTH = 0x06040042
 SDO_ABORT_WRONG_STATE = 0x08000022
 
 
+class DelayedHeartbeatNmt(NmtSlave):
+    """NMT slave whose first heartbeat comes one period after a state change, as on real
+    devices. canopen's NmtSlave sends it at once, right behind the boot-up message, and a
+    master waiting for the boot-up (canopen's own wait_for_bootup) can miss it in the race."""
+
+    _timer: threading.Timer | None = None
+
+    def start_heartbeat(self, heartbeat_time_ms: int) -> None:
+        self.stop_heartbeat()
+        self._heartbeat_time_ms = heartbeat_time_ms
+        if heartbeat_time_ms > 0:
+            self._timer = threading.Timer(heartbeat_time_ms / 1000.0, NmtSlave.start_heartbeat,
+                                          (self, heartbeat_time_ms))
+            self._timer.daemon = True
+            self._timer.start()
+
+    def stop_heartbeat(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        super().stop_heartbeat()
+
+
 class VirtualDrive:
     """A CiA 402 drive for the elbow, on any canopen Network (virtual, UDP multicast, SocketCAN).
 
@@ -51,6 +75,10 @@ class VirtualDrive:
         self.plant = Plant(model.parameters, payload, noise, initial_position)
         self._lock = threading.RLock()
         self.node = canopen.LocalNode(node_id, str(eds_path()))
+        stock_nmt = self.node.nmt
+        self.node.nmt = DelayedHeartbeatNmt(node_id, self.node)
+        self.node._write_callbacks.remove(stock_nmt.on_write)  # 0x1017 writes go to ours
+        self.node.add_write_callback(self.node.nmt.on_write)
         self.node.add_read_callback(self._on_sdo_read)
         self.node.add_write_callback(self._on_sdo_write)
         self.state = State.NOT_READY_TO_SWITCH_ON

@@ -1,5 +1,6 @@
 """`sim-bus` in its own process on udp_multicast; our master and a generic canopen master."""
 
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -71,12 +72,15 @@ def test_generic_canopen_master_drives_sim_bus_in_cyclic_synchronous_torque_mode
                 State.OPERATION_ENABLED)
             assert node.sdo["Modes of operation display"].raw == 10
             positions = []
+            arrived = threading.Event()  # armed before the SYNC: the TPDO can beat a late wait
+            node.tpdo[1].add_callback(lambda _: arrived.set())
             for _ in range(400):
                 node.rpdo[1]["Controlword"].raw = 0x0F
                 node.rpdo[1]["Target torque"].raw = -300  # -30 % of rated torque: arm goes down
                 node.rpdo[1].transmit()
+                arrived.clear()
                 network.sync.transmit()
-                node.tpdo[1].wait_for_reception(2.0)
+                assert arrived.wait(2.0)
                 positions.append(node.tpdo[1]["Position actual value"].raw)
             node.sdo["Controlword"].raw = 0x00
     finally:
