@@ -9,37 +9,13 @@ cycle, so the solver never sees a half-made change.
 import math
 import queue
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-import numpy as np
-
 from controller.mpc import Mpc, TickResult
 from driver import CommandRangeError, Drive, DriveError, Sample
+from driver.clock import CycleClock, RingStats
 from protocol import cia402
-
-SPIN_BEFORE_DEADLINE = 200e-6  # s: sleep until this close to the deadline, then spin
-STATS_WINDOW = 200_000  # cycles kept for percentiles (3 min at 1 kHz)
-
-
-class RingStats:
-    """Percentiles over the last STATS_WINDOW values, max and count over all of them, with
-    no allocation per value."""
-
-    def __init__(self, window: int = STATS_WINDOW):
-        self._values = np.zeros(window)
-        self.count = 0
-        self.max = 0.0
-
-    def add(self, value: float) -> None:
-        self._values[self.count % len(self._values)] = value
-        self.count += 1
-        self.max = max(self.max, value)
-
-    def percentile(self, q: float) -> float:
-        n = min(self.count, len(self._values))
-        return float(np.percentile(self._values[:n], q)) if n else math.nan
 
 
 @dataclass
@@ -55,14 +31,21 @@ class LoopOptions:
 @dataclass
 class LoopReport:
     cycles: int = 0
-    missed_cycles: int = 0
     fallbacks: int = 0
     cold_solve_us: float = math.nan
     exit_code: int = 0
     reason: str = "stopped"
-    jitter: RingStats = field(default_factory=RingStats)
+    clock: CycleClock | None = None
     solve: RingStats = field(default_factory=RingStats)
     history: dict = field(default_factory=dict)
+
+    @property
+    def missed_cycles(self) -> int:
+        return self.clock.missed_cycles if self.clock else 0
+
+    @property
+    def jitter(self) -> RingStats:
+        return self.clock.jitter_us if self.clock else RingStats(1)
 
     def summary(self) -> str:
         return (f"{self.cycles} cycles, {self.missed_cycles} missed, {self.fallbacks} safety "
@@ -104,23 +87,10 @@ class ControlLoop:
                                    "planned_current", "joint_torque")}
         if options.keep_history:
             report.history = history
-        period = options.period
+        clock = report.clock = CycleClock(options.period, options.lockstep)
         next_stats = options.stats_every
-        deadline = time.perf_counter()
-        last_wake = None
         while not self._stop.is_set():
-            if not options.lockstep:
-                deadline += period
-                now = time.perf_counter()
-                if now > deadline + period:
-                    late = int((now - deadline) / period)
-                    report.missed_cycles += late
-                    deadline += late * period
-                _sleep_until(deadline)
-            wake = time.perf_counter()
-            if last_wake is not None:
-                report.jitter.add(abs(wake - last_wake - period) * 1e6)
-            last_wake = wake
+            clock.wait()
             self._apply_requests()
             try:
                 sample = self.drive.sync()
@@ -141,10 +111,9 @@ class ControlLoop:
                 # the cold solve runs once before the rhythm starts: timed on its own, and the
                 # deadlines begin after it
                 report.cold_solve_us = result.solve_time * 1e6
-                deadline = last_wake = time.perf_counter()
+                clock.restart()
             else:
-                if not options.lockstep and time.perf_counter() > deadline + period:
-                    report.missed_cycles += 1
+                clock.check_overrun()
                 report.solve.add(result.solve_time * 1e6)
             report.cycles += 1
             self._publish_cycle(sample, state, result)
@@ -219,11 +188,3 @@ class ControlLoop:
             self.fault(t, source, reason, action or "")
         self.publish("loop_stats", self._stats_fields(t))
         return self.report
-
-
-def _sleep_until(deadline: float) -> None:
-    remaining = deadline - time.perf_counter()
-    if remaining > SPIN_BEFORE_DEADLINE:
-        time.sleep(remaining - SPIN_BEFORE_DEADLINE)
-    while time.perf_counter() < deadline:
-        pass

@@ -1,0 +1,69 @@
+"""The master's cycle clock: when to trigger the next SYNC. Real time sleeps to each period's
+deadline (and records how late it woke); lock-step returns at once, the drive's time being
+whatever the SYNC count says."""
+
+import math
+import time
+
+import numpy as np
+
+SPIN_BEFORE_DEADLINE = 200e-6  # s: sleep until this close to the deadline, then spin
+STATS_WINDOW = 200_000  # values kept for percentiles (3 min at 1 kHz)
+
+
+class RingStats:
+    """Percentiles over the last `window` values, max and count over all of them, with no
+    allocation per value."""
+
+    def __init__(self, window: int = STATS_WINDOW):
+        self._values = np.zeros(window)
+        self.count = 0
+        self.max = 0.0
+
+    def add(self, value: float) -> None:
+        self._values[self.count % len(self._values)] = value
+        self.count += 1
+        self.max = max(self.max, value)
+
+    def percentile(self, q: float) -> float:
+        n = min(self.count, len(self._values))
+        return float(np.percentile(self._values[:n], q)) if n else math.nan
+
+
+class CycleClock:
+    def __init__(self, period: float, lockstep: bool):
+        self.period = period
+        self.lockstep = lockstep
+        self.missed_cycles = 0
+        self.jitter_us = RingStats()  # |actual - nominal period| between wake-ups
+        self.restart()
+
+    def restart(self) -> None:
+        """Deadlines count from now (after a long first cycle, say)."""
+        self._deadline = time.perf_counter()
+        self._last_wake: float | None = None
+
+    def wait(self) -> None:
+        """Return at the next deadline; a deadline already more than a period past is skipped
+        and counted as missed."""
+        if not self.lockstep:
+            self._deadline += self.period
+            now = time.perf_counter()
+            if now > self._deadline + self.period:
+                late = int((now - self._deadline) / self.period)
+                self.missed_cycles += late
+                self._deadline += late * self.period
+            remaining = self._deadline - time.perf_counter()
+            if remaining > SPIN_BEFORE_DEADLINE:
+                time.sleep(remaining - SPIN_BEFORE_DEADLINE)
+            while time.perf_counter() < self._deadline:
+                pass
+        wake = time.perf_counter()
+        if self._last_wake is not None:
+            self.jitter_us.add(abs(wake - self._last_wake - self.period) * 1e6)
+        self._last_wake = wake
+
+    def check_overrun(self) -> None:
+        """Call when the cycle's work is done: counts it as missed if it overran its period."""
+        if not self.lockstep and time.perf_counter() > self._deadline + self.period:
+            self.missed_cycles += 1

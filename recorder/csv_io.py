@@ -1,0 +1,58 @@
+"""CSV recordings as in DESIGN.md's contract."""
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from recorder.recording import Recording, RecordingError
+
+COLUMNS = ("t", "q", "current", "joint_torque")
+
+
+def read_csv(path: Path) -> Recording:
+    metadata: dict[str, str] = {}
+    rows: list[list[float]] = []
+    with open(path, newline="") as fh:
+        lines = iter(enumerate(fh, start=1))
+        header = None
+        for number, line in lines:
+            if line.startswith("#"):
+                key, sep, value = line[1:].strip().partition("=")
+                if not sep or not key.strip():
+                    raise RecordingError(f"{path}:{number}: metadata line must be "
+                                         "'# key=value'")
+                metadata[key.strip()] = value.strip()
+                continue
+            if line.strip():
+                header = [c.strip() for c in next(csv.reader([line]))]
+                break
+        if header is None:
+            raise RecordingError(f"{path}: no header line; expected {','.join(COLUMNS)}")
+        if tuple(header[:4]) != COLUMNS:
+            raise RecordingError(f"{path}:{number}: header {','.join(header)!r}; expected "
+                                 f"the first columns to be {','.join(COLUMNS)}")
+        for number, line in lines:
+            if not line.strip():
+                continue
+            fields = next(csv.reader([line]))
+            if len(fields) < 4:
+                raise RecordingError(f"{path}:{number}: {len(fields)} fields, expected at "
+                                     "least 4")
+            try:
+                rows.append([float(v) for v in fields[:4]])
+            except ValueError:
+                raise RecordingError(f"{path}:{number}: not a number in {line.strip()!r}") \
+                    from None
+    data = np.array(rows, dtype=float).reshape(-1, 4)
+    return Recording(*data.T, metadata=metadata, source=str(path))
+
+
+def write_csv(recording: Recording, path: Path) -> None:
+    with open(path, "w", newline="") as fh:
+        for key, value in recording.metadata.items():
+            fh.write(f"# {key}={value}\n")
+        fh.write(",".join(COLUMNS) + "\n")
+        for row in zip(recording.t, recording.q, recording.current, recording.joint_torque,
+                       strict=True):
+            fh.write(f"{row[0]:.6f},{row[1]:.9f},{row[2]:.6f},{row[3]:.6f}\n")

@@ -1,0 +1,72 @@
+"""A recording in memory: the contract's columns as arrays, plus metadata.
+
+MCAP is the native format, CSV the interchange one (DESIGN.md: `t,q,current,joint_torque`,
+optional extra columns, optional `# key=value` lines before the header); every reader returns
+this class, so every tool accepts both.
+"""
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from model.parameters import Payload
+
+
+class RecordingError(ValueError):
+    """A recording that cannot be used; the message names the file and what is wrong."""
+
+
+@dataclass
+class Recording:
+    t: np.ndarray  # s
+    q: np.ndarray  # rad
+    current: np.ndarray  # A, measured motor current
+    joint_torque: np.ndarray  # N.m, torque-sensor reading
+    metadata: dict[str, str] = field(default_factory=dict)
+    source: str = ""
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def payload(self) -> Payload | None:
+        """The payload stored in the metadata, if any (`payload_mass`, `payload_position`)."""
+        if "payload_mass" not in self.metadata:
+            return None
+        try:
+            mass = float(self.metadata["payload_mass"])
+            x, y = (float(v) for v in self.metadata.get("payload_position", "0,0").split(","))
+            return Payload(mass, x, y)
+        except ValueError as exc:
+            raise RecordingError(f"{self.source}: metadata payload: {exc}") from None
+
+    def check(self) -> "Recording":
+        """Refuse what no tool can use: NaN, too short, time not increasing."""
+        for name in ("t", "q", "current", "joint_torque"):
+            column = getattr(self, name)
+            if not np.all(np.isfinite(column)):
+                row = int(np.argmin(np.isfinite(column)))
+                raise RecordingError(f"{self.source}: column {name}: non-finite value at "
+                                     f"sample {row}")
+        if len(self.t) < 2:
+            raise RecordingError(f"{self.source}: {len(self.t)} samples; a recording needs "
+                                 "at least 2")
+        if np.any(np.diff(self.t) <= 0):
+            row = int(np.argmax(np.diff(self.t) <= 0)) + 1
+            raise RecordingError(f"{self.source}: column t: time does not increase at "
+                                 f"sample {row}")
+        return self
+
+
+def load_recording(path: str | Path) -> Recording:
+    """Read MCAP (by extension .mcap) or CSV (anything else) and check it."""
+    path = Path(path)
+    if not path.exists():
+        raise RecordingError(f"{path}: no such file")
+    if path.suffix == ".mcap":
+        from recorder.mcap_io import read_mcap
+
+        return read_mcap(path).check()
+    from recorder.csv_io import read_csv
+
+    return read_csv(path).check()
