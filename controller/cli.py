@@ -2,7 +2,6 @@
 
 import argparse
 import json
-import os
 import signal
 import sys
 from pathlib import Path
@@ -107,17 +106,11 @@ def main(argv: list[str] | None = None) -> int:
     bus = args.bus
     if args.sim:
         # the composition root is the one place the controller meets the virtual drive
-        import canopen
-
-        from sim_bus.drive import VirtualDrive
+        from sim_bus.embedded import EmbeddedDrive
         from sim_bus.plant import SensorNoise
 
-        bus = f"virtual:actuatord-{os.getpid()}"
-        sim_network = canopen.Network()
-        sim_network.NOTIFIER_CYCLE = 0.05
-        sim_network.connect(**parse_bus_spec(bus))
-        sim = VirtualDrive(sim_network, args.node_id, model, payload, SensorNoise(seed=args.seed))
-        sim.boot()
+        sim = EmbeddedDrive(model, payload, SensorNoise(seed=args.seed), args.node_id)
+        bus = sim.bus_spec
     try:
         session = open_session(args)
     except ValueError as exc:
@@ -155,7 +148,6 @@ def main(argv: list[str] | None = None) -> int:
         session.close()
         if sim is not None:
             sim.close()
-            sim.network.disconnect()
     print(f"actuatord: {report.summary()}", flush=True)
     if args.plot and report.history.get("t"):
         from controller.plots import save_figures

@@ -1,0 +1,244 @@
+"""`recorder`: run the exciting trajectory and record it, record live Zenoh telemetry, or
+export a recording to CSV.
+
+    recorder --exciting-trajectory [--bus vcan0 | --sim [--lockstep]] -o FILE.mcap
+    recorder --zenoh KEYEXPR -o FILE.mcap [--duration S]
+    recorder export FILE.mcap -o FILE.csv
+"""
+
+import argparse
+import datetime
+import queue
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+from model.parameters import ModelFileError, load_model, parse_payload
+from protocol import cia402, telemetry
+from protocol.bus_spec import BusSpecError, parse_bus_spec
+from recorder.exciting import ExcitingTrajectory
+from recorder.recording import RecordingError
+
+
+def _usage_error(message: str) -> int:
+    print(f"recorder: error: {message}", file=sys.stderr)
+    return 2
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from controller.zenoh_session import add_zenoh_arguments
+
+    parser = argparse.ArgumentParser(
+        prog="recorder", description=__doc__.splitlines()[0],
+        epilog="`recorder export FILE.mcap -o FILE.csv` writes the CSV interchange format.")
+    job = parser.add_mutually_exclusive_group(required=True)
+    job.add_argument("--exciting-trajectory", action="store_true",
+                     help="run the paper's exciting trajectory on the drive and record it")
+    job.add_argument("--zenoh", metavar="KEYEXPR",
+                     help="record live telemetry, e.g. 'actuators/elbow/**'")
+    parser.add_argument("-o", "--output", required=True, metavar="FILE.mcap")
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--bus", default="vcan0", help="bus spec (default: vcan0)")
+    where.add_argument("--sim", action="store_true", help="embedded virtual drive")
+    parser.add_argument("--lockstep", action="store_true", help="with --sim: faster than real time")
+    parser.add_argument("--node-id", type=int, default=2)
+    parser.add_argument("--model", help="nominal model TOML for the tracking feedforward "
+                                        "(and for --sim's drive)")
+    parser.add_argument("--payload-mass", type=float, default=0.0, metavar="KG")
+    parser.add_argument("--payload-position", metavar="X,Y")
+    defaults = ExcitingTrajectory()
+    parser.add_argument("--position-low", type=float, default=defaults.position_low)
+    parser.add_argument("--position-high", type=float, default=defaults.position_high)
+    parser.add_argument("--velocity-min", type=float, default=defaults.velocity_min)
+    parser.add_argument("--velocity-max", type=float, default=defaults.velocity_max)
+    parser.add_argument("--steps", type=int, default=defaults.steps,
+                        help="cruise velocities from min to max (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=0, help="--sim sensor-noise seed")
+    parser.add_argument("--duration", type=float, help="--zenoh: stop after S seconds")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_zenoh_arguments(parser)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] == "export":
+        return _export(argv[1:])
+    args = build_parser().parse_args(argv)
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    if args.zenoh:
+        return _record_zenoh(args, stop)
+    return _record_exciting(args, stop)
+
+
+def _record_exciting(args: argparse.Namespace, stop: threading.Event) -> int:
+    try:
+        model = load_model(args.model)
+        payload = parse_payload(args.payload_mass, args.payload_position)
+        trajectory = ExcitingTrajectory(args.position_low, args.position_high,
+                                        args.velocity_min, args.velocity_max, args.steps)
+        if not args.sim:
+            parse_bus_spec(args.bus)
+        if args.lockstep and not args.sim:
+            raise ValueError("--lockstep needs --sim")
+        limits = model.limits
+        if not (limits.position_min <= trajectory.position_low
+                and trajectory.position_high <= limits.position_max):
+            raise ValueError(f"trajectory [{trajectory.position_low}, "
+                             f"{trajectory.position_high}] rad leaves the model's limits "
+                             f"[{limits.position_min}, {limits.position_max}] rad")
+    except (ModelFileError, BusSpecError, ValueError) as exc:
+        return _usage_error(str(exc))
+
+    from driver import DriveError
+    from driver.canopen_drive import CanOpenDrive
+    from recorder.experiment import run_exciting_trajectory
+    from recorder.mcap_io import McapRecorder
+    from recorder.tracking import TrackingLaw
+
+    sim = None
+    bus = args.bus
+    if args.sim:
+        from sim_bus.embedded import EmbeddedDrive
+        from sim_bus.plant import SensorNoise
+
+        sim = EmbeddedDrive(model, payload, SensorNoise(seed=args.seed), args.node_id)
+        bus = sim.bus_spec
+    metadata = {
+        "payload_mass": payload.mass, "payload_position": f"{payload.x},{payload.y}",
+        "experiment": "exciting_trajectory", "trajectory": repr(trajectory),
+        "model": model.source, "bus": "sim" if args.sim else args.bus,
+        "node_id": args.node_id, "period_s": 1e-3,
+        "recorded_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
+    try:
+        drive = CanOpenDrive.open(bus, args.node_id)
+    except Exception as exc:
+        print(f"recorder: error: cannot open bus {bus!r}: {exc}", file=sys.stderr)
+        return 1
+    writer = McapRecorder(args.output, metadata)
+    state_channel = writer.channel("state", "State")
+    command_channel = writer.channel("command", "Command")
+    state_class, command_class = (telemetry.message_class("State"),
+                                  telemetry.message_class("Command"))
+    law = TrackingLaw(model.parameters.with_payload(payload), model.limits.current_max)
+    bar = _progress(args.no_progress, trajectory.duration)
+
+    def sink(sample, current, reference) -> None:
+        log_time = int(round(sample.t * 1e9))
+        state = cia402.state_from_statusword(sample.statusword)
+        writer.write(state_channel, log_time, state_class(
+            t=sample.t, position=sample.position, velocity=sample.velocity,
+            motor_current=sample.motor_current, joint_torque=sample.joint_torque,
+            statusword=sample.statusword, drive_state=state.value).SerializeToString())
+        writer.write(command_channel, log_time, command_class(
+            t=sample.t, current=current, planned_current=current,
+            reference_position=reference[0], reference_velocity=reference[1],
+            current_limit=model.limits.current_max, position_min=model.limits.position_min,
+            position_max=model.limits.position_max).SerializeToString())
+
+    started = time.perf_counter()
+    code, samples = 0, 0
+    try:
+        drive.start()
+        samples = run_exciting_trajectory(drive, trajectory, law, sink, args.lockstep,
+                                          bar, stop.is_set)
+        if stop.is_set():
+            code = 1
+            print(f"recorder: interrupted after {samples} samples", file=sys.stderr)
+    except DriveError as exc:
+        code = 1
+        print(f"recorder: error: {exc}", file=sys.stderr)
+    finally:
+        drive.close()
+        writer.close()
+        if sim is not None:
+            sim.close()
+    elapsed = time.perf_counter() - started
+    bar(None)
+    print(f"recorder: {samples} samples ({samples / 1000:.1f} s of drive time) in {elapsed:.1f} s "
+          f"(real-time factor {samples / 1000 / elapsed:.2f}) -> {args.output}", flush=True)
+    return code
+
+
+def _progress(disabled: bool, total: float):
+    """A tqdm bar fed with fractions; None closes it."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=round(total, 1), unit="s", disable=disabled, file=sys.stderr,
+               desc="exciting trajectory", leave=False)
+
+    def update(fraction: float | None) -> None:
+        if fraction is None:
+            bar.close()
+            return
+        bar.n = round(fraction * total, 1)
+        bar.refresh()
+
+    return update
+
+
+def _record_zenoh(args: argparse.Namespace, stop: threading.Event) -> int:
+    from controller.zenoh_session import open_session
+    from recorder.mcap_io import McapRecorder
+
+    try:
+        session = open_session(args)
+    except ValueError as exc:
+        return _usage_error(str(exc))
+    received: queue.Queue = queue.Queue()
+    subscriber = session.declare_subscriber(
+        args.zenoh, lambda sample: received.put((str(sample.key_expr),
+                                                 sample.payload.to_bytes(), time.time_ns())))
+    writer = McapRecorder(args.output, {"source": f"zenoh {args.zenoh}"})
+    print(f"recorder: recording {args.zenoh} -> {args.output}", flush=True)
+    deadline = time.monotonic() + args.duration if args.duration else None
+    skipped = 0
+    try:
+        while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+            try:
+                key, data, log_time = received.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            message = telemetry.TOPICS.get(key.rsplit("/", 1)[-1])
+            if message is None:
+                skipped += 1
+                continue
+            writer.write(writer.channel(key, message), log_time, data)
+    finally:
+        subscriber.undeclare()
+        session.close()
+        while not received.empty():
+            key, data, log_time = received.get()
+            message = telemetry.TOPICS.get(key.rsplit("/", 1)[-1])
+            if message is not None:
+                writer.write(writer.channel(key, message), log_time, data)
+        writer.close()
+    print(f"recorder: {writer.messages} messages ({skipped} on keys without a schema skipped) "
+          f"-> {args.output}", flush=True)
+    return 0
+
+
+def _export(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="recorder export",
+                                     description="MCAP recording to the CSV contract")
+    parser.add_argument("recording", metavar="FILE.mcap")
+    parser.add_argument("-o", "--output", required=True, metavar="FILE.csv")
+    args = parser.parse_args(argv)
+    from recorder.csv_io import write_csv
+    from recorder.recording import load_recording
+
+    try:
+        recording = load_recording(args.recording)
+    except RecordingError as exc:
+        return _usage_error(str(exc))
+    write_csv(recording, Path(args.output))
+    print(f"recorder: {len(recording)} samples -> {args.output}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
