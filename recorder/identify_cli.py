@@ -1,0 +1,131 @@
+"""`identify NOLOAD LOAD`: the actuator model from two recordings (MCAP or CSV), by the
+paper's total least squares, written as a model TOML that sim-bus, actuatord and model-gap
+accept."""
+
+import argparse
+import datetime
+import sys
+from pathlib import Path
+
+import tomli_w
+
+from model.identify import (
+    PARAMETERS,
+    Experiment,
+    IdentificationError,
+    Identified,
+    identify,
+)
+from model.parameters import ActuatorModel, ModelFileError, load_model, parse_payload
+from recorder.recording import Recording, RecordingError, load_recording
+
+
+def _usage_error(message: str) -> int:
+    print(f"identify: error: {message}", file=sys.stderr)
+    return 2
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="identify", description=__doc__.splitlines()[0])
+    parser.add_argument("no_load", metavar="NOLOAD", help="recording without payload")
+    parser.add_argument("load", metavar="LOAD", help="recording with the known payload")
+    parser.add_argument("--payload-mass", type=float, metavar="KG",
+                        help="payload of LOAD (default: from LOAD's metadata)")
+    parser.add_argument("--payload-position", metavar="X,Y")
+    parser.add_argument("-o", "--output", required=True, metavar="MODEL.toml")
+    parser.add_argument("--model", help="nominal model: limits, and the defaults shown beside "
+                                        "the identified values (default: packaged)")
+    parser.add_argument("--cutoff", type=float, default=25.0, metavar="HZ",
+                        help="zero-phase low-pass cutoff (default: %(default)s Hz)")
+    parser.add_argument("--plots", metavar="DIR", help="save measured vs predicted torques")
+    return parser
+
+
+def _experiment(recording: Recording, payload) -> Experiment:
+    return Experiment(recording.t, recording.q, recording.current, recording.joint_torque,
+                      payload, recording.source)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        nominal = load_model(args.model)
+        no_load = load_recording(args.no_load)
+        load = load_recording(args.load)
+        if args.payload_mass is not None:
+            payload = parse_payload(args.payload_mass, args.payload_position)
+        else:
+            payload = load.payload()
+            if payload is None:
+                raise ValueError(f"{args.load}: no payload given: use --payload-mass and "
+                                 "--payload-position, or record with them (metadata)")
+        no_load_payload = no_load.payload() or parse_payload(0.0, None)
+        result = identify(_experiment(no_load, no_load_payload), _experiment(load, payload),
+                          args.cutoff)
+    except (ModelFileError, RecordingError, IdentificationError, ValueError) as exc:
+        return _usage_error(str(exc))
+    write_model(Path(args.output), result, nominal, args.no_load, args.load)
+    print(table(result, nominal))
+    print(f"condition number {result.condition_number:.1f} (paper: 36); torque-fit RMSD motor "
+          f"{result.rmsd_motor:.3f} N.m, joint {result.rmsd_joint:.3f} N.m (paper: 0.6 N.m); "
+          f"{result.rows} rows -> {args.output}")
+    if args.plots:
+        for path in save_fit_plots(result, Path(args.plots)):
+            print(f"identify: wrote {path}")
+    return 0
+
+
+def table(result: Identified, nominal: ActuatorModel) -> str:
+    lines = [f"{'parameter':26s} {'default':>9s} {'identified':>11s} {'rel. std':>9s}"]
+    for name in PARAMETERS:
+        lines.append(f"{name:26s} {getattr(nominal.parameters, name):9.4f} "
+                     f"{getattr(result.parameters, name):11.4f} "
+                     f"{result.relative_std[name]:8.2f}%")
+    return "\n".join(lines)
+
+
+def write_model(path: Path, result: Identified, nominal: ActuatorModel, no_load: str,
+                load: str) -> None:
+    date = datetime.date.today().isoformat()
+    origin = (f"identified from {no_load} and {load} on {date} (total least squares, "
+              f"condition number {result.condition_number:.1f})")
+    doc = {
+        "meta": {"name": f"identified from {Path(no_load).name} and {Path(load).name}"},
+        "parameters": {name: float(getattr(result.parameters, name)) for name in PARAMETERS},
+        "provenance": {name: origin for name in PARAMETERS},
+        "std": {name: float(result.std[name]) for name in PARAMETERS},
+        "limits": vars(nominal.limits),
+        "limits_provenance": {key.removeprefix("limits."): value
+                              for key, value in nominal.provenance.items()
+                              if key.startswith("limits.")},
+    }
+    path.write_text(tomli_w.dumps(doc))
+
+
+def save_fit_plots(result: Identified, directory: Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    directory.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for index, (name, fit) in enumerate(result.fits.items()):
+        fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+        for ax, side in zip(axes, ("motor", "joint"), strict=True):
+            ax.plot(fit["t"], fit[f"measured_{side}"], ".", markersize=2, label="measured")
+            ax.plot(fit["t"], fit[f"predicted_{side}"], ".", markersize=2, label="model")
+            ax.set_ylabel(f"{side} torque (N.m)")
+            ax.legend(loc="upper right")
+            ax.grid(alpha=0.3)
+        axes[-1].set_xlabel("time (s)")
+        fig.suptitle(f"identification fit: {Path(name).name}")
+        fig.tight_layout()
+        paths.append(directory / f"fit_{index}_{Path(name).stem}.png")
+        fig.savefig(paths[-1], dpi=100)
+        plt.close(fig)
+    return paths
+
+
+if __name__ == "__main__":
+    sys.exit(main())
