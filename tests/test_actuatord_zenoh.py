@@ -106,3 +106,30 @@ def test_shipped_proto_file_matches_the_schema():
     from importlib.resources import files
 
     assert (files("protocol") / "telemetry.proto").read_text() == telemetry.proto_text()
+
+
+def test_recorder_writes_live_telemetry_to_mcap(tmp_path):
+    from pathlib import Path
+
+    from recorder.mcap_io import iter_mcap
+    from recorder.recording import load_recording
+
+    port = random.randint(20000, 60000)
+    proc = start_actuatord(port, "--duration", "60")
+    output = tmp_path / "live.mcap"
+    try:
+        assert "enabled" in proc.stdout.readline()
+        rec = subprocess.run(
+            [sys.executable, "-m", "recorder.cli", "--zenoh", f"{PREFIX}/**", "-o", str(output),
+             "--duration", "2", "--connect", f"tcp/127.0.0.1:{port}",
+             "--no-multicast-scouting"], capture_output=True, text=True, timeout=60)
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=30)
+    assert rec.returncode == 0, rec.stderr
+    topics = {topic for topic, *_ in iter_mcap(Path(output)) if topic != "metadata"}
+    assert {f"{PREFIX}/state", f"{PREFIX}/command", f"{PREFIX}/solver"} <= topics
+    recording = load_recording(output)
+    assert len(recording) > 100
+    assert all(telemetry.decode("Command", data).current_limit == 6.0
+               for topic, _, _, data in iter_mcap(Path(output)) if topic.endswith("/command"))
