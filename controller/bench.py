@@ -31,7 +31,7 @@ def _closed_loop_ticks(mpc: Mpc, ticks: int, dt: float) -> np.ndarray:
     result = mpc.tick(q, qd, 0.0)
     times = np.empty(ticks)
     for k in range(ticks):
-        q, qd, _, _ = dynamics.step(q, qd, result.current, p, dt, SUBSTEPS)
+        q, qd, *_ = dynamics.step(q, qd, result.current, p, dt, SUBSTEPS)
         start = time.perf_counter()
         result = mpc.tick(q, qd, (k + 1) * dt)
         times[k] = time.perf_counter() - start
@@ -55,7 +55,7 @@ def _numpy_ticks(settings: OcpSettings, ticks: int) -> np.ndarray:
                                          p, c, settings.max_iterations)
     times = np.empty(ticks)
     for k in range(ticks):
-        q, qd, _, _ = dynamics.step(q, qd, float(np.clip(U[0], -6, 6)), p, dt, SUBSTEPS)
+        q, qd, *_ = dynamics.step(q, qd, float(np.clip(U[0], -6, 6)), p, dt, SUBSTEPS)
         start = time.perf_counter()
         U = np.concatenate((U[1:], U[-1:]))
         ref = np.stack(reference_at(packed, (k + 1) * dt + offsets), 1)

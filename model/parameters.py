@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from model import dynamics
+from model.effects import EFFECT_KEYS, Effects, effects_from_tables
 
 GRAVITY = 9.81  # m/s^2, standard gravity as used in the paper's g (MY sin q + MX cos q)
 
@@ -37,6 +38,7 @@ class ActuatorParameters:
     dry_friction_joint: float
     torque_offset_motor: float
     torque_offset_joint: float
+    effects: Effects = Effects()
 
     @property
     def inertia(self) -> float:
@@ -74,7 +76,19 @@ class ActuatorParameters:
         p[dynamics.P_VISCOUS] = self.viscous_friction
         p[dynamics.P_DRY] = self.dry_friction
         p[dynamics.P_OFFSET] = self.torque_offset
+        e = self.effects
+        p[dynamics.P_STRIBECK_EXTRA] = e.stribeck_breakaway
+        p[dynamics.P_STRIBECK_VELOCITY] = e.stribeck_velocity
+        p[dynamics.P_RIPPLE_SIN] = e.ripple_amplitude * math.cos(e.ripple_phase)
+        p[dynamics.P_RIPPLE_COS] = e.ripple_amplitude * math.sin(e.ripple_phase)
+        p[dynamics.P_RIPPLE_WAVENUMBER] = 2.0 * math.pi * e.ripple_frequency
+        p[dynamics.P_LOAD_FRICTION] = e.load_friction
         return p
+
+    def with_effect(self, name: str, table: dict[str, float]) -> "ActuatorParameters":
+        """These parameters with one effect set (others kept)."""
+        merged = {**{n: self.effects.section(n) for n in self.effects.enabled()}, name: table}
+        return replace(self, effects=effects_from_tables(merged))
 
 
 @dataclass(frozen=True)
@@ -133,12 +147,13 @@ def load_model(path: str | Path | None = None) -> ActuatorModel:
     except OSError as exc:
         raise ModelFileError(f"{path}: cannot read: {exc.strerror}") from None
 
-    known_tables = {"meta", "parameters", "provenance", "std", "limits", "limits_provenance"}
+    known_tables = {"meta", "parameters", "provenance", "std", "limits", "limits_provenance",
+                    "effects"}
     for table in doc:
         if table not in known_tables:
             raise ModelFileError(f"{path}: unknown table [{table}]; expected one of "
                                  f"{', '.join(sorted(known_tables))}")
-    param_names = [f.name for f in fields(ActuatorParameters)]
+    param_names = [f.name for f in fields(ActuatorParameters) if f.name != "effects"]
     values = _numbers(path, doc, "parameters", param_names)
     for name in _POSITIVE:
         if values[name] <= 0:
@@ -157,10 +172,34 @@ def load_model(path: str | Path | None = None) -> ActuatorModel:
     provenance.update({f"limits.{k}": v for k, v in
                        _strings(path, doc, "limits_provenance", limit_names, False).items()})
     std = _numbers(path, doc, "std", param_names, required=False)
+    effects, effect_provenance = _effects(path, doc)
+    provenance.update(effect_provenance)
     meta = doc.get("meta", {})
-    return ActuatorModel(parameters=ActuatorParameters(**values), limits=limits,
+    return ActuatorModel(parameters=ActuatorParameters(**values, effects=effects), limits=limits,
                          provenance=provenance, std=std, name=str(meta.get("name", "")),
                          source=str(path))
+
+
+def _effects(path: Path, doc: dict) -> tuple[Effects, dict[str, str]]:
+    """[effects.NAME] tables: numbers per the effect's keys plus a `provenance` string."""
+    section = _table(path, doc, "effects", required=False)
+    tables, provenance = {}, {}
+    for name, table in section.items():
+        if name not in EFFECT_KEYS or not isinstance(table, dict):
+            raise ModelFileError(f"{path}: [effects.{name}]: unknown effect; expected one of "
+                                 f"{', '.join(EFFECT_KEYS)}")
+        table = dict(table)
+        note = table.pop("provenance", None)
+        if not isinstance(note, str) or not note.strip():
+            raise ModelFileError(f"{path}: [effects.{name}].provenance: expected a provenance "
+                                 "string")
+        provenance[f"effects.{name}"] = note
+        tables[name] = _numbers(path, {f"effects.{name}": table}, f"effects.{name}",
+                                list(EFFECT_KEYS[name]), required=True)
+    try:
+        return effects_from_tables(tables), provenance
+    except ValueError as exc:
+        raise ModelFileError(f"{path}: [effects]: {exc}") from None
 
 
 def _table(path: Path, doc: dict, table: str, required: bool) -> dict:

@@ -45,6 +45,7 @@ class Plant:
         self.time = 0.0
         self._acceleration = 0.0
         self._dry = 0.0
+        self._dry_level = parameters.dry_friction
         self._current = 0.0
 
     def set_payload(self, payload: Payload) -> None:
@@ -53,16 +54,20 @@ class Plant:
         self._packed = self.parameters.packed()
 
     def advance(self, current: float, dt: float) -> None:
-        self.position, self.velocity, self._acceleration, self._dry = dynamics.step(
-            self.position, self.velocity, current, self._packed, dt, PHYSICS_SUBSTEPS)
+        (self.position, self.velocity, self._acceleration, self._dry,
+         self._dry_level) = dynamics.step(self.position, self.velocity, current, self._packed,
+                                          dt, PHYSICS_SUBSTEPS)
         self._current = current
         self.time += dt
 
     def joint_torque(self) -> float:
         """What the link side transmits: link inertia, gravity of link and payload, and the
-        joint's share of the friction (its dry part pro rata of the total dry friction)."""
+        joint's share of the friction. Sliding, the joint side carries its own Coulomb part
+        (Fsj); stuck, its share of the holding friction. The optional effects (Stribeck,
+        ripple, load-dependent friction) sit in the transmission, on the motor side of the
+        sensor, so the sensor does not see them directly."""
         p = self.parameters
-        share = p.dry_friction_joint / p.dry_friction if p.dry_friction > 0 else 0.0
+        share = p.dry_friction_joint / self._dry_level if self._dry_level > 0 else 0.0
         gravity = GRAVITY * (p.first_moment_y * np.sin(self.position)
                              + p.first_moment_x * np.cos(self.position))
         return (p.link_inertia * self._acceleration + gravity

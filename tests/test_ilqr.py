@@ -57,7 +57,7 @@ def closed_loop(mpc, steps, q=-0.4, qd=0.0):
         r = mpc.tick(q, qd, k * 1e-3)
         qs.append(q)
         us.append(r.current)
-        q, qd, _, _ = dynamics.step(q, qd, r.current, P, 1e-3, 20)
+        q, qd, *_ = dynamics.step(q, qd, r.current, P, 1e-3, 20)
     return np.array(qs), np.array(us)
 
 

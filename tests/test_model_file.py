@@ -20,7 +20,9 @@ def test_default_model_has_provenance_for_every_parameter():
     assert model.limits.current_max == 6.0
     assert model.limits.position_min == -2.35
     for name in model.parameters.__dataclass_fields__:
-        assert model.provenance[name].strip()
+        if name != "effects":
+            assert model.provenance[name].strip()
+    assert model.parameters.effects.enabled() == []
 
 
 @pytest.mark.parametrize("edit,message", [
@@ -39,6 +41,24 @@ def test_bad_model_files_name_file_and_field(tmp_path, edit, message):
     with pytest.raises(ModelFileError, match=message) as info:
         load_model(path)
     assert str(path) in str(info.value)
+
+
+def test_effect_tables_load_and_reach_the_dynamics(tmp_path):
+    path = write(tmp_path, DEFAULT + """
+[effects.stribeck]
+breakaway_friction = 1.2
+velocity = 0.04
+provenance = "test"
+""")
+    model = load_model(path)
+    assert model.parameters.effects.enabled() == ["stribeck"]
+    assert model.provenance["effects.stribeck"] == "test"
+    from model import dynamics
+
+    assert model.parameters.packed()[dynamics.P_STRIBECK_EXTRA] == 1.2
+    bad = write(tmp_path, DEFAULT + "\n[effects.backlash]\nwidth = 1\nprovenance = 'x'\n")
+    with pytest.raises(ModelFileError, match=r"\[effects.backlash\]: unknown effect"):
+        load_model(bad)
 
 
 def test_missing_model_file(tmp_path):
