@@ -11,6 +11,7 @@ from controller.mpc import Mpc
 from controller.problem import OcpSettings, Weights
 from controller.reference import ReferenceError, Sinusoid, reference_from_dict
 from controller.zenoh_session import add_zenoh_arguments, open_session
+from model.effects import with_truth_effects
 from model.parameters import ModelFileError, load_model, parse_payload
 from protocol import telemetry
 from protocol.bus_spec import BusSpecError, parse_bus_spec
@@ -54,6 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="Zenoh key prefix (default: %(default)s)")
     parser.add_argument("--plot", metavar="DIR", help="save position and current figures here")
     parser.add_argument("--seed", type=int, default=0, help="--sim sensor-noise seed")
+    parser.add_argument("--truth-effect", action="append", default=[], metavar="NAME:K=V,...",
+                        help="--sim: hidden effect in the virtual drive's physics (as sim-bus)")
     add_zenoh_arguments(parser)
     return parser
 
@@ -83,6 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         model = load_model(args.model)
+        sim_model = with_truth_effects(model, args.truth_effect)
         payload = parse_payload(args.payload_mass, args.payload_position)
         if not args.sim:
             parse_bus_spec(args.bus)
@@ -109,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
         from sim_bus.embedded import EmbeddedDrive
         from sim_bus.plant import SensorNoise
 
-        sim = EmbeddedDrive(model, payload, SensorNoise(seed=args.seed), args.node_id)
+        sim = EmbeddedDrive(sim_model, payload, SensorNoise(seed=args.seed), args.node_id)
         bus = sim.bus_spec
     try:
         session = open_session(args)

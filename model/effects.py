@@ -87,3 +87,19 @@ def parse_effect_option(text: str) -> tuple[str, dict[str, float]]:
         except ValueError:
             raise ValueError(f"effect {name}.{key}: {value!r} is not a number") from None
     return name, table
+
+
+def with_truth_effects(model, options: list[str]):
+    """The model with effects given as CLI options (`NAME:KEY=VALUE,...`) added: the hidden
+    "truth" a virtual drive can carry. ValueError names the option at fault."""
+    from dataclasses import replace
+
+    parameters = model.parameters
+    for option in options:
+        name, table = parse_effect_option(option)
+        try:
+            parameters = parameters.with_effect(name, {**parameters.effects.section(name),
+                                                       **table})
+        except (KeyError, ValueError) as exc:
+            raise ValueError(f"--truth-effect {option}: {exc}") from None
+    return replace(model, parameters=parameters)

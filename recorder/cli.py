@@ -15,10 +15,11 @@ import threading
 import time
 from pathlib import Path
 
+from model.effects import with_truth_effects
 from model.parameters import ModelFileError, load_model, parse_payload
 from protocol import cia402, telemetry
 from protocol.bus_spec import BusSpecError, parse_bus_spec
-from recorder.exciting import ExcitingTrajectory
+from recorder.exciting import ExcitingTrajectory, SlowSinusoid
 from recorder.recording import RecordingError
 
 
@@ -36,6 +37,9 @@ def build_parser() -> argparse.ArgumentParser:
     job = parser.add_mutually_exclusive_group(required=True)
     job.add_argument("--exciting-trajectory", action="store_true",
                      help="run the paper's exciting trajectory on the drive and record it")
+    job.add_argument("--sinusoid", action="store_true",
+                     help="track a slow sinusoid (-1.2 +/- 0.9 rad at 0.1 Hz) for --duration "
+                          "(default 20 s) and record it")
     job.add_argument("--zenoh", metavar="KEYEXPR",
                      help="record live telemetry, e.g. 'actuators/elbow/**'")
     parser.add_argument("-o", "--output", required=True, metavar="FILE.mcap")
@@ -56,7 +60,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--steps", type=int, default=defaults.steps,
                         help="cruise velocities from min to max (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="--sim sensor-noise seed")
-    parser.add_argument("--duration", type=float, help="--zenoh: stop after S seconds")
+    parser.add_argument("--truth-effect", action="append", default=[], metavar="NAME:K=V,...",
+                        help="--sim: hidden effect in the virtual drive's physics (as sim-bus)")
+    parser.add_argument("--duration", type=float,
+                        help="--zenoh: stop after S seconds; --sinusoid: its length")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_zenoh_arguments(parser)
     return parser
@@ -72,31 +79,38 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     if args.zenoh:
         return _record_zenoh(args, stop)
-    return _record_exciting(args, stop)
+    return _record_trajectory(args, stop)
 
 
-def _record_exciting(args: argparse.Namespace, stop: threading.Event) -> int:
+def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     try:
         model = load_model(args.model)
+        sim_model = with_truth_effects(model, args.truth_effect)
         payload = parse_payload(args.payload_mass, args.payload_position)
-        trajectory = ExcitingTrajectory(args.position_low, args.position_high,
-                                        args.velocity_min, args.velocity_max, args.steps)
+        if args.sinusoid:
+            trajectory = SlowSinusoid(duration=args.duration or SlowSinusoid.duration)
+            trajectory_range = (trajectory.center - trajectory.amplitude,
+                                trajectory.center + trajectory.amplitude)
+        else:
+            trajectory = ExcitingTrajectory(args.position_low, args.position_high,
+                                            args.velocity_min, args.velocity_max, args.steps)
+            trajectory_range = (trajectory.position_low, trajectory.position_high)
         if not args.sim:
             parse_bus_spec(args.bus)
         if args.lockstep and not args.sim:
             raise ValueError("--lockstep needs --sim")
         limits = model.limits
-        if not (limits.position_min <= trajectory.position_low
-                and trajectory.position_high <= limits.position_max):
-            raise ValueError(f"trajectory [{trajectory.position_low}, "
-                             f"{trajectory.position_high}] rad leaves the model's limits "
-                             f"[{limits.position_min}, {limits.position_max}] rad")
+        if not (limits.position_min <= trajectory_range[0]
+                and trajectory_range[1] <= limits.position_max):
+            raise ValueError(f"trajectory [{trajectory_range[0]}, {trajectory_range[1]}] rad "
+                             f"leaves the model's limits [{limits.position_min}, "
+                             f"{limits.position_max}] rad")
     except (ModelFileError, BusSpecError, ValueError) as exc:
         return _usage_error(str(exc))
 
     from driver import DriveError
     from driver.canopen_drive import CanOpenDrive
-    from recorder.experiment import run_exciting_trajectory
+    from recorder.experiment import run_trajectory
     from recorder.mcap_io import McapRecorder
     from recorder.tracking import TrackingLaw
 
@@ -106,11 +120,12 @@ def _record_exciting(args: argparse.Namespace, stop: threading.Event) -> int:
         from sim_bus.embedded import EmbeddedDrive
         from sim_bus.plant import SensorNoise
 
-        sim = EmbeddedDrive(model, payload, SensorNoise(seed=args.seed), args.node_id)
+        sim = EmbeddedDrive(sim_model, payload, SensorNoise(seed=args.seed), args.node_id)
         bus = sim.bus_spec
     metadata = {
         "payload_mass": payload.mass, "payload_position": f"{payload.x},{payload.y}",
-        "experiment": "exciting_trajectory", "trajectory": repr(trajectory),
+        "experiment": "sinusoid" if args.sinusoid else "exciting_trajectory",
+        "trajectory": repr(trajectory), "truth_effects": ";".join(args.truth_effect),
         "model": model.source, "bus": "sim" if args.sim else args.bus,
         "node_id": args.node_id, "period_s": 1e-3,
         "recorded_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
@@ -144,7 +159,7 @@ def _record_exciting(args: argparse.Namespace, stop: threading.Event) -> int:
     code, samples = 0, 0
     try:
         drive.start()
-        samples = run_exciting_trajectory(drive, trajectory, law, sink, args.lockstep,
+        samples = run_trajectory(drive, trajectory, law, sink, args.lockstep,
                                           bar, stop.is_set)
         if stop.is_set():
             code = 1
@@ -169,7 +184,7 @@ def _progress(disabled: bool, total: float):
     from tqdm import tqdm
 
     bar = tqdm(total=round(total, 1), unit="s", disable=disabled, file=sys.stderr,
-               desc="exciting trajectory", leave=False)
+               desc="trajectory", leave=False)
 
     def update(fraction: float | None) -> None:
         if fraction is None:

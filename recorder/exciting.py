@@ -66,3 +66,19 @@ def _double_s(t: float, phase: float, v: float) -> tuple[float, float, float]:
     u = t - 2.0 * phase
     return (1.5 * v * phase + v * u - 0.5 * v * (u - math.sin(w * u) / w),
             v - 0.5 * v * (1.0 - math.cos(w * u)), -0.5 * v * w * math.sin(w * u))
+
+
+@dataclass(frozen=True)
+class SlowSinusoid:
+    """q* = center + amplitude sin(2 pi f t): slow, so the joint spends long stretches near
+    zero velocity at each turn (where Stribeck friction shows). Values assumed."""
+
+    center: float = -1.2
+    amplitude: float = 0.9
+    frequency: float = 0.1
+    duration: float = 20.0
+
+    def sample(self, t: float) -> tuple[float, float, float]:
+        w = 2.0 * math.pi * self.frequency
+        return (self.center + self.amplitude * math.sin(w * t),
+                self.amplitude * w * math.cos(w * t), -self.amplitude * w * w * math.sin(w * t))

@@ -1,16 +1,16 @@
-"""Run an exciting trajectory on a drive and hand every sample to a sink."""
+"""Run a reference trajectory on a drive and hand every sample to a sink."""
 
 from collections.abc import Callable
 
 from driver import Drive, Sample
 from driver.clock import CycleClock
-from recorder.exciting import ExcitingTrajectory
+from recorder.exciting import ExcitingTrajectory, SlowSinusoid
 from recorder.tracking import TrackingLaw
 
 SampleSink = Callable[[Sample, float, tuple[float, float, float]], None]
 
 
-def run_exciting_trajectory(drive: Drive, trajectory: ExcitingTrajectory, law: TrackingLaw,
+def run_trajectory(drive: Drive, trajectory: ExcitingTrajectory | SlowSinusoid, law: TrackingLaw,
                             sink: SampleSink, lockstep: bool,
                             progress: Callable[[float], None] = lambda fraction: None,
                             should_stop: Callable[[], bool] = lambda: False) -> int:

@@ -8,6 +8,7 @@ import threading
 import can
 import canopen
 
+from model.effects import with_truth_effects
 from model.parameters import ModelFileError, load_model, parse_payload
 from protocol.bus_spec import BusSpecError, parse_bus_spec
 from sim_bus.drive import VirtualDrive
@@ -37,6 +38,10 @@ def build_parser() -> argparse.ArgumentParser:
                         metavar="NM", help="std of the torque-sensor reading "
                                            "(default: %(default)s N.m)")
     parser.add_argument("--seed", type=int, default=0, help="sensor-noise seed (default: 0)")
+    parser.add_argument("--truth-effect", action="append", default=[], metavar="NAME:K=V,...",
+                        help="hidden effect in the drive's physics, e.g. "
+                             "stribeck:breakaway_friction=1.5,velocity=0.05 (repeatable; "
+                             "effects: stribeck, position_ripple, load_dependent_friction)")
     return parser
 
 
@@ -49,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         parse_bus_spec(args.bus)
-        model = load_model(args.model)
+        model = with_truth_effects(load_model(args.model), args.truth_effect)
         payload = parse_payload(args.payload_mass, args.payload_position)
     except (BusSpecError, ModelFileError, ValueError) as exc:
         return _usage_error(str(exc))
