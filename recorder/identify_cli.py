@@ -7,8 +7,6 @@ import datetime
 import sys
 from pathlib import Path
 
-import tomli_w
-
 from model.identify import (
     PARAMETERS,
     Experiment,
@@ -17,6 +15,7 @@ from model.identify import (
     identify,
 )
 from model.parameters import ActuatorModel, ModelFileError, load_model, parse_payload
+from recorder.model_file import write_model
 from recorder.recording import Recording, RecordingError, load_recording
 
 
@@ -64,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
                           args.cutoff)
     except (ModelFileError, RecordingError, IdentificationError, ValueError) as exc:
         return _usage_error(str(exc))
-    write_model(Path(args.output), result, nominal, args.no_load, args.load)
+    write_identified(Path(args.output), result, nominal, args.no_load, args.load)
     print(table(result, nominal))
     print(f"condition number {result.condition_number:.1f} (paper: 36); torque-fit RMSD motor "
           f"{result.rmsd_motor:.3f} N.m, joint {result.rmsd_joint:.3f} N.m (paper: 0.6 N.m); "
@@ -84,22 +83,14 @@ def table(result: Identified, nominal: ActuatorModel) -> str:
     return "\n".join(lines)
 
 
-def write_model(path: Path, result: Identified, nominal: ActuatorModel, no_load: str,
-                load: str) -> None:
+def write_identified(path: Path, result: Identified, nominal: ActuatorModel, no_load: str,
+                     load: str) -> None:
     date = datetime.date.today().isoformat()
     origin = (f"identified from {no_load} and {load} on {date} (total least squares, "
               f"condition number {result.condition_number:.1f})")
-    doc = {
-        "meta": {"name": f"identified from {Path(no_load).name} and {Path(load).name}"},
-        "parameters": {name: float(getattr(result.parameters, name)) for name in PARAMETERS},
-        "provenance": {name: origin for name in PARAMETERS},
-        "std": {name: float(result.std[name]) for name in PARAMETERS},
-        "limits": vars(nominal.limits),
-        "limits_provenance": {key.removeprefix("limits."): value
-                              for key, value in nominal.provenance.items()
-                              if key.startswith("limits.")},
-    }
-    path.write_text(tomli_w.dumps(doc))
+    write_model(path, result.parameters, nominal,
+                f"identified from {Path(no_load).name} and {Path(load).name}",
+                {name: origin for name in PARAMETERS}, result.std)
 
 
 def save_fit_plots(result: Identified, directory: Path) -> list[Path]:
