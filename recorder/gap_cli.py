@@ -143,20 +143,24 @@ def save_plots(result: GapResult, directory: Path) -> list[Path]:
     fig.savefig(paths[-1], dpi=100)
     plt.close(fig)
 
-    fig, ax = plt.subplots(figsize=(11, 4))
-    for index, ((t, measured, before), (_, _, after)) in enumerate(
-            zip(result.traces_before[:12], result.traces_after[:12], strict=False)):
-        ax.plot(t, measured, color="black", linewidth=1.2,
-                label="measured" if index == 0 else None)
-        ax.plot(t, before, color="C3", linewidth=0.9, label="simulated, before" if index == 0
-                else None)
-        ax.plot(t, after, color="C2", linewidth=0.9, linestyle="--",
-                label="simulated, after" if index == 0 else None)
-    ax.set(xlabel="time (s)", ylabel="position (rad)",
-           title=f"simulation restarted every {result.horizon} s from the measured state: "
-                 f"RMSD {result.sim_rmsd_before:.4f} -> {result.sim_rmsd_after:.4f} rad")
-    ax.legend()
-    ax.grid(alpha=0.3)
+    # the windows where the old model was most wrong: that is where the gap shows
+    worst = sorted(range(len(result.traces_before)), reverse=True,
+                   key=lambda i: float(np.sum((result.traces_before[i][2]
+                                               - result.traces_before[i][1]) ** 2)))[:6]
+    fig, axes = plt.subplots(2, 3, figsize=(12, 6))
+    for ax, index in zip(axes.flat, sorted(worst), strict=False):
+        t, measured, before = result.traces_before[index]
+        after = result.traces_after[index][2]
+        ax.plot(t, measured, color="black", linewidth=1.4, label="measured")
+        ax.plot(t, before, color="C3", linewidth=1.0, label="simulated, before")
+        ax.plot(t, after, color="C2", linewidth=1.0, linestyle="--", label="simulated, after")
+        ax.set_xlabel("time (s)")
+        ax.grid(alpha=0.3)
+    axes[0, 0].set_ylabel("position (rad)")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle(f"simulations restarted every {result.horizon} s from the measured state "
+                 f"(the 6 worst windows): RMSD {result.sim_rmsd_before:.4f} -> "
+                 f"{result.sim_rmsd_after:.4f} rad")
     fig.tight_layout()
     paths.append(directory / "simulation.png")
     fig.savefig(paths[-1], dpi=100)
