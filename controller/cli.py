@@ -1,6 +1,7 @@
 """`actuatord`: the 1 kHz iLQR loop on a CiA 402 drive, telemetry on Zenoh."""
 
 import argparse
+import dataclasses
 import json
 import signal
 import sys
@@ -166,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _serve_queries(publisher, loop: ControlLoop, mpc: Mpc, model, payload) -> None:
     def parameters(_: bytes | None) -> dict:
-        return {"parameters": vars(mpc.parameters), "limits": vars(model.limits),
+        return {"parameters": dataclasses.asdict(mpc.parameters), "limits": vars(model.limits),
                 "provenance": model.provenance, "payload": vars(payload),
                 "settings": {"horizon": mpc.settings.horizon, "dt": mpc.settings.dt,
                              "weights": vars(mpc.settings.weights),

@@ -47,12 +47,11 @@ class TelemetryPublisher:
         def on_query(query: zenoh.Query) -> None:
             payload = query.payload.to_bytes() if query.payload is not None else None
             try:
-                reply = answer(payload)
+                reply = json.dumps(answer(payload))
             except Exception as exc:  # a bad request must never take the service down
                 log.exception("query on %s failed", name)
-                reply = {"ok": False, "reason": f"internal error: {exc}"}
-            query.reply(query.key_expr, json.dumps(reply),
-                        encoding=zenoh.Encoding.APPLICATION_JSON)
+                reply = json.dumps({"ok": False, "reason": f"internal error: {exc}"})
+            query.reply(query.key_expr, reply, encoding=zenoh.Encoding.APPLICATION_JSON)
 
         self._queryables.append(
             self.session.declare_queryable(schema.key_expr(self.prefix, name), on_query))
