@@ -1,7 +1,6 @@
 """`actuatord`: the 1 kHz iLQR loop on a CiA 402 drive, telemetry on Zenoh."""
 
 import argparse
-import dataclasses
 import json
 import signal
 import sys
@@ -11,6 +10,7 @@ from controller.loop import ControlLoop, LoopOptions
 from controller.mpc import Mpc
 from controller.problem import OcpSettings, Weights
 from controller.reference import ReferenceError, Sinusoid, reference_from_dict
+from controller.requests import RequestHandler
 from controller.zenoh_session import add_zenoh_arguments, open_session
 from model.effects import with_truth_effects
 from model.parameters import ModelFileError, load_model, parse_payload
@@ -128,7 +128,10 @@ def main(argv: list[str] | None = None) -> int:
                                               duration=args.duration,
                                               keep_history=bool(args.plot)),
                        publisher.publish, lambda: publisher.dropped)
-    _serve_queries(publisher, loop, mpc, model, payload)
+    requests = RequestHandler(loop, mpc, model, payload, publisher.publish_audit)
+    publisher.serve_json(telemetry.PARAMETERS, requests.parameters)
+    publisher.serve_json(telemetry.REFERENCE, requests.set_reference)
+    publisher.serve_json(telemetry.WEIGHTS, requests.set_weights)
     signal.signal(signal.SIGINT, lambda *_: loop.stop())
     signal.signal(signal.SIGTERM, lambda *_: loop.stop())
     try:
@@ -163,32 +166,6 @@ def main(argv: list[str] | None = None) -> int:
         for path in save_figures(report.history, model.limits, Path(args.plot), title):
             print(f"actuatord: wrote {path}", flush=True)
     return report.exit_code
-
-
-def _serve_queries(publisher, loop: ControlLoop, mpc: Mpc, model, payload) -> None:
-    def parameters(_: bytes | None) -> dict:
-        return {"parameters": dataclasses.asdict(mpc.parameters), "limits": vars(model.limits),
-                "provenance": model.provenance, "payload": vars(payload),
-                "settings": {"horizon": mpc.settings.horizon, "dt": mpc.settings.dt,
-                             "weights": vars(mpc.settings.weights),
-                             "sharpness": vars(mpc.settings.sharpness),
-                             "friction_sharpness": mpc.settings.friction_sharpness},
-                "reference": {"kind": type(mpc.reference).__name__.lower(),
-                              **vars(mpc.reference)}}
-
-    def set_reference(payload_bytes: bytes | None) -> dict:
-        try:
-            spec = json.loads(payload_bytes or b"")
-            reference = reference_from_dict(spec, model.limits)
-        except (ValueError, ReferenceError) as exc:
-            reason = str(exc) if isinstance(exc, ReferenceError) else f"not JSON: {exc}"
-            loop.fault(0.0, "request", f"reference refused: {reason}", "reference unchanged")
-            return {"ok": False, "reason": reason}
-        loop.request(lambda m: m.set_reference(reference))
-        return {"ok": True, "reference": spec}
-
-    publisher.serve_json(telemetry.PARAMETERS, parameters)
-    publisher.serve_json(telemetry.REFERENCE, set_reference)
 
 
 if __name__ == "__main__":

@@ -33,6 +33,8 @@ class TelemetryPublisher:
                 express=topic in EXPRESS_TOPICS)
             for topic in schema.TOPICS}
         self._queryables: list = []
+        self._audit = session.declare_publisher(schema.key_expr(prefix, schema.AUDIT),
+                                                encoding=zenoh.Encoding.APPLICATION_JSON)
         self._thread = threading.Thread(target=self._run, name="telemetry", daemon=True)
         self._thread.start()
 
@@ -41,6 +43,11 @@ class TelemetryPublisher:
             self._queue.put_nowait((topic, fields))
         except queue.Full:
             self.dropped += 1
+
+    def publish_audit(self, line: dict) -> None:
+        """Audit lines are rare and must not be dropped: published directly."""
+        self._audit.put(json.dumps(line))
+        log.info("audit: %s", line)
 
     def serve_json(self, name: str, answer: Callable[[bytes | None], dict]) -> None:
         """A queryable at {prefix}/{name} that replies with answer(payload) as JSON."""
@@ -72,5 +79,5 @@ class TelemetryPublisher:
         """Flush what is queued, then undeclare everything."""
         self._queue.put(None)
         self._thread.join(5)
-        for entity in list(self._publishers.values()) + self._queryables:
+        for entity in [*self._publishers.values(), *self._queryables, self._audit]:
             entity.undeclare()

@@ -11,6 +11,8 @@ Key expressions live under a prefix, e.g. `actuators/elbow`:
     {prefix}/loop_stats  LoopStats    once a second and at exit
     {prefix}/parameters  queryable: model parameters, limits and solver settings (JSON)
     {prefix}/reference   queryable: set the reference, payload JSON; reply {"ok", "reason"}
+    {prefix}/weights     queryable: set cost weights, e.g. {"position": 300}; same reply
+    {prefix}/audit       JSON line for every change request, accepted or refused
 """
 
 from functools import cache
@@ -87,6 +89,8 @@ TOPICS = {"state": "State", "command": "Command", "plan": "Plan", "solver": "Sol
           "fault": "Fault", "loop_stats": "LoopStats"}
 PARAMETERS = "parameters"
 REFERENCE = "reference"
+WEIGHTS = "weights"
+AUDIT = "audit"
 DEFAULT_PREFIX = "actuators/elbow"
 
 

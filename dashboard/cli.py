@@ -1,0 +1,111 @@
+"""`dashboard`: watch and steer actuatord over Zenoh.
+
+    dashboard foxglove [--key KEYEXPR] [--port 8765]   Foxglove WebSocket bridge
+    dashboard tui [--prefix actuators/elbow]           terminal dashboard
+    dashboard set reference '{"kind": "setpoint", "position": -1.0}'
+    dashboard set weights position=300 torque_barrier=50
+"""
+
+import argparse
+import json
+import signal
+import sys
+import threading
+
+from controller.zenoh_session import add_zenoh_arguments, open_session
+from protocol import telemetry
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="dashboard", description=__doc__.splitlines()[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     epilog="\n".join(__doc__.splitlines()[2:]))
+    jobs = parser.add_subparsers(dest="job", required=True)
+    fox = jobs.add_parser("foxglove", help="serve the telemetry to Foxglove")
+    fox.add_argument("--key", default=f"{telemetry.DEFAULT_PREFIX}/**",
+                     help="key expression to bridge (default: %(default)s)")
+    fox.add_argument("--host", default="127.0.0.1")
+    fox.add_argument("--port", type=int, default=8765)
+    tui = jobs.add_parser("tui", help="terminal dashboard")
+    tui.add_argument("--prefix", default=telemetry.DEFAULT_PREFIX)
+    change = jobs.add_parser("set", help="change the reference or the weights")
+    change.add_argument("what", choices=("reference", "weights"))
+    change.add_argument("values", nargs="+",
+                        help="reference: one JSON object; weights: NAME=VALUE ...")
+    change.add_argument("--prefix", default=telemetry.DEFAULT_PREFIX)
+    for sub in (fox, tui, change):
+        add_zenoh_arguments(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        if args.job == "set":
+            payload = _request_payload(args.what, args.values)
+        session = open_session(args)
+    except ValueError as exc:
+        print(f"dashboard: error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        if args.job == "foxglove":
+            return _foxglove(session, args)
+        if args.job == "tui":
+            from dashboard.tui import run_tui
+
+            run_tui(session, args.prefix)
+            return 0
+        return _set(session, args, payload)
+    finally:
+        session.close()
+
+
+def _request_payload(what: str, values: list[str]) -> str:
+    if what == "reference":
+        if len(values) != 1:
+            raise ValueError("reference: give one JSON object")
+        return values[0]
+    weights = {}
+    for item in values:
+        name, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"weights: {item!r} is not NAME=VALUE")
+        try:
+            weights[name] = float(value)
+        except ValueError:
+            raise ValueError(f"weights: {item!r}: {value!r} is not a number") from None
+    return json.dumps(weights)
+
+
+def _set(session, args: argparse.Namespace, payload: str) -> int:
+    key = telemetry.key_expr(args.prefix, args.what)
+    replies = list(session.get(key, payload=payload, timeout=5.0))
+    answers = [json.loads(r.ok.payload.to_bytes()) for r in replies if r.ok is not None]
+    if not answers:
+        print(f"dashboard: error: no actuatord answered on {key}", file=sys.stderr)
+        return 1
+    for answer in answers:
+        if answer.get("ok"):
+            print(f"dashboard: {args.what} accepted: {json.dumps(answer[args.what])}")
+        else:
+            print(f"dashboard: {args.what} refused: {answer.get('reason')}", file=sys.stderr)
+    return 0 if all(a.get("ok") for a in answers) else 1
+
+
+def _foxglove(session, args: argparse.Namespace) -> int:
+    from dashboard.foxglove_bridge import FoxgloveBridge
+
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    bridge = FoxgloveBridge(session, args.key, args.host, args.port)
+    print(f"dashboard: Foxglove bridge on ws://{args.host}:{args.port} for {args.key}",
+          flush=True)
+    stop.wait()
+    bridge.close()
+    print(f"dashboard: forwarded {bridge.forwarded} messages", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
