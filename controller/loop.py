@@ -95,8 +95,12 @@ class ControlLoop:
             try:
                 sample = self.drive.sync()
             except DriveError as exc:
+                last = self.drive.read()
                 return self._finish(1, f"drive failed: {exc}", "drive",
-                                    "stopped commanding; drive disabled on exit")
+                                    "stopped commanding; drive disabled on exit",
+                                    last.t + options.period if last is not None else 0.0)
+            for warning in self.drive.warnings():
+                self.fault(sample.t, "drive", warning, "continuing: the command does not use it")
             state = cia402.state_from_statusword(sample.statusword)
             if state is not cia402.State.OPERATION_ENABLED:
                 return self._finish(1, f"drive left operation enabled: {state.value}", "drive",
@@ -105,7 +109,8 @@ class ControlLoop:
             try:
                 self.drive.command_current(result.current)
             except (CommandRangeError, DriveError) as exc:
-                return self._finish(1, f"command refused: {exc}", "controller",
+                source = "controller" if isinstance(exc, CommandRangeError) else "drive"
+                return self._finish(1, f"command refused: {exc}", source,
                                     "stopped commanding; drive disabled on exit", sample.t)
             if report.cycles == 0:
                 # the cold solve runs once before the rhythm starts: timed on its own, and the

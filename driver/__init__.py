@@ -7,8 +7,9 @@ from driver.interface import (
     DriveFault,
     DriveLost,
     DriveTimeout,
+    EncoderGlitch,
     Sample,
 )
 
 __all__ = ["CommandRangeError", "Drive", "DriveError", "DriveFault", "DriveLost", "DriveTimeout",
-           "Sample"]
+           "EncoderGlitch", "Sample"]

@@ -18,6 +18,7 @@ from driver.interface import (
     DriveFault,
     DriveLost,
     DriveTimeout,
+    EncoderGlitch,
     Sample,
 )
 from protocol import cia402, eds_path, objects
@@ -32,6 +33,11 @@ HEARTBEAT_BASE = 0x700
 DEFAULT_HEARTBEAT_MS = 100
 NOTIFIER_CYCLE = 0.05  # s; bounds how long closing the network waits for the receive thread
 ENABLE_STEP_TIMEOUT = 0.5  # s for the drive to show each CiA 402 transition
+# 20 rad/s at 1 kHz: four times the elbow's velocity limit; a bigger step is not motion
+MAX_POSITION_STEP = 0.02  # rad per cycle
+# a 1 Mbit/s CAN bus carries at most ~8 full frames per millisecond: far more is a flood
+MAX_FRAMES_PER_CYCLE = 32
+SENSOR_CEILING = 2**31 - 1  # the INT32 limits of a reading mean "saturated"
 
 
 def open_network(bus_spec: str) -> canopen.Network:
@@ -82,10 +88,17 @@ class CanOpenDrive(Drive):
         self._watchdog: threading.Thread | None = None
         self._started = False
         self._booted = threading.Event()  # set by the boot-up message (heartbeat state 0)
+        self.max_position_step = MAX_POSITION_STEP * period / 1e-3
+        self._warnings: list[str] = []
+        self.unexpected_tpdos = 0
+        self._frames = 0
+        self._frames_at_sync = 0
         network.subscribe(HEARTBEAT_BASE + node_id, self._on_heartbeat)
         self.node.emcy.add_callback(self._on_emcy)
         for cob_id in self._tpdos:
             network.subscribe(cob_id, self._on_tpdo)
+        if network.notifier is not None:
+            network.notifier.add_listener(_FrameCounter(self))
 
     @classmethod
     def open(cls, bus_spec: str, node_id: int = 2, **kwargs) -> "CanOpenDrive":
@@ -99,6 +112,7 @@ class CanOpenDrive(Drive):
         self.node.nmt.state = "OPERATIONAL"
         self.enable()
         self._started = True
+        self._frames_at_sync = self._frames  # bring-up traffic is not load
 
     def boot(self, timeout: float = 5.0) -> None:
         """NMT reset communication and wait for the boot-up message."""
@@ -188,7 +202,11 @@ class CanOpenDrive(Drive):
             self._pending = set(self._tpdos)
         self.network.send_message(SYNC_COB_ID, b"")
         with self._arrived:
-            if not self._arrived.wait_for(lambda: not self._pending, self.response_timeout):
+            arrived = self._arrived.wait_for(
+                lambda: not self._pending or self.fault is not None, self.response_timeout)
+            if self.fault is not None and self._pending:
+                raise self.fault  # a reboot, EMCY or lost heartbeat ended the wait
+            if not arrived:
                 missing = ", ".join(f"0x{c:03X}" for c in sorted(self._pending))
                 error = DriveTimeout(f"node {self.node_id}: no TPDO {missing} within "
                                      f"{self.response_timeout * 1e3:.0f} ms of SYNC "
@@ -197,21 +215,42 @@ class CanOpenDrive(Drive):
                 raise error
             values = dict(self._values)
         self.cycle += 1
+        frames, self._frames_at_sync = self._frames - self._frames_at_sync, self._frames
+        if frames > MAX_FRAMES_PER_CYCLE:
+            self._warnings.append(f"bus overloaded: {frames} frames in one cycle (at most "
+                                  f"{MAX_FRAMES_PER_CYCLE} expected)")
+        reading = values[objects.JOINT_TORQUE_SENSOR]
+        joint_torque = reading / objects.MILLI
+        if abs(reading) >= SENSOR_CEILING:
+            joint_torque = math.nan
+            self._warnings.append(f"joint torque sensor reading saturated ({reading} mN.m)")
         sample = Sample(
             t=self.cycle * self.period,
             position=objects.increments_to_position(values[objects.POSITION_ACTUAL]),
             velocity=objects.increments_to_position(values[objects.VELOCITY_ACTUAL]),
             motor_current=values[objects.MOTOR_CURRENT_ACTUAL] / objects.MILLI,
-            joint_torque=values[objects.JOINT_TORQUE_SENSOR] / objects.MILLI,
+            joint_torque=joint_torque,
             statusword=values[objects.STATUSWORD],
         )
-        self._latest = sample
+        previous, self._latest = self._latest, sample
+        if previous is not None and abs(sample.position - previous.position) > (
+                self.max_position_step):
+            error = EncoderGlitch(
+                f"node {self.node_id}: position jumped {sample.position - previous.position:+.4f}"
+                f" rad in one cycle (at most {self.max_position_step} rad is motion): encoder "
+                "glitch")
+            self.fault = error
+            raise error
         if cia402.state_from_statusword(sample.statusword) is State.FAULT and self.fault is None:
             self.fault = DriveFault(self._fault_text(), self._emcy_code())
         return sample
 
     def read(self) -> Sample | None:
         return self._latest
+
+    def warnings(self) -> list[str]:
+        out, self._warnings = self._warnings, []
+        return out
 
     def command_current(self, current: float) -> None:
         if not isinstance(current, int | float) or not math.isfinite(current):
@@ -237,6 +276,11 @@ class CanOpenDrive(Drive):
             log.warning("node %d: %s", self.node_id, exc)
             return
         with self._arrived:
+            if can_id not in self._pending:
+                # a second copy, or a frame from a cycle already given up on: never mix it in
+                self.unexpected_tpdos += 1
+                self._warnings.append(f"unexpected TPDO 0x{can_id:03X} (duplicate or late)")
+                return
             self._values.update(decoded)
             self._pending.discard(can_id)
             if not self._pending:
@@ -244,12 +288,18 @@ class CanOpenDrive(Drive):
 
     # --- health -----------------------------------------------------------------------------
 
+    def _raise_fault(self, error: DriveError) -> None:
+        """Record a fault and wake a sync() waiting for TPDOs that will not come."""
+        with self._arrived:
+            self.fault = error
+            self._arrived.notify_all()
+
     def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if data and data[0] == 0:
             self._booted.set()
             if self._started:
-                self.fault = DriveLost(f"node {self.node_id}: drive rebooted (boot-up message) "
-                                       "while in use")
+                self._raise_fault(DriveLost(f"node {self.node_id}: drive rebooted (boot-up "
+                                            "message) while in use"))
         self._last_heartbeat = time.monotonic()
 
     def _on_emcy(self, error: EmcyError) -> None:
@@ -257,7 +307,7 @@ class CanOpenDrive(Drive):
             return
         self.last_emcy = error
         log.error("node %d: EMCY 0x%04X %s", self.node_id, error.code, error.get_desc())
-        self.fault = DriveFault(self._fault_text(), error.code)
+        self._raise_fault(DriveFault(self._fault_text(), error.code))
 
     def _fault_text(self) -> str:
         if self.last_emcy is None:
@@ -285,9 +335,9 @@ class CanOpenDrive(Drive):
                 continue
             silent = time.monotonic() - last
             if silent > self.heartbeat_timeout:
-                self.fault = DriveLost(f"node {self.node_id}: heartbeat missing for "
-                                       f"{silent * 1e3:.0f} ms (producer period "
-                                       f"{self.heartbeat_ms} ms)")
+                self._raise_fault(DriveLost(f"node {self.node_id}: heartbeat missing for "
+                                            f"{silent * 1e3:.0f} ms (producer period "
+                                            f"{self.heartbeat_ms} ms)"))
                 log.error("%s", self.fault)
 
     def _raise_if_unhealthy(self) -> None:
@@ -311,7 +361,9 @@ class CanOpenDrive(Drive):
 
     def close(self) -> None:
         """Leave the drive disabled: zero current by RPDO, disable voltage by SDO, NMT pre-op.
-        Each step is best effort so a dead drive does not stop the rest."""
+        Each step is best effort so a dead drive does not stop the rest. Idempotent."""
+        if self._watchdog_stop.is_set():
+            return
         self._watchdog_stop.set()
         try:
             self._send_command(cia402.Command.DISABLE_VOLTAGE.value, 0.0)
@@ -321,3 +373,13 @@ class CanOpenDrive(Drive):
             log.warning("node %d: could not confirm disable on close: %s", self.node_id, exc)
         finally:
             self.network.disconnect()
+
+
+class _FrameCounter(can.Listener):
+    """Counts every frame on the bus (ours or not) for the overload check."""
+
+    def __init__(self, drive: CanOpenDrive):
+        self._drive = drive
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self._drive._frames += 1

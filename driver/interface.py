@@ -44,6 +44,10 @@ class DriveTimeout(DriveError):
     """A SYNC went unanswered: the sample did not arrive in time."""
 
 
+class EncoderGlitch(DriveError):
+    """The position jumped further in one cycle than the joint can move."""
+
+
 class CommandRangeError(ValueError):
     """A command outside what the drive accepts; nothing was sent."""
 
@@ -85,6 +89,11 @@ class Drive(ABC):
     @abstractmethod
     def fault_reset(self) -> None:
         """Clear a drive fault (CiA 402 fault reset); the drive is left disabled."""
+
+    def warnings(self) -> list[str]:
+        """Problems seen since the last call that did not stop the drive (a duplicate frame,
+        an implausible sensor reading, an overloaded bus): for the fault topic."""
+        return []
 
     @abstractmethod
     def close(self) -> None:

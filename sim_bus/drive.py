@@ -8,6 +8,7 @@ next frame is looked at: lock-step comes for free when the master waits for the 
 
 import logging
 import threading
+import time
 
 import canopen
 from canopen.nmt import NmtSlave
@@ -17,6 +18,14 @@ from model.parameters import ActuatorModel, Payload
 from protocol import cia402, eds_path, objects
 from protocol import pdo as pdo_layout
 from protocol.cia402 import State
+from sim_bus.faults import (
+    ENCODER_JUMP,
+    FLOOD_COB_ID,
+    FLOOD_SECONDS,
+    SATURATED_READING,
+    TPDO_DELAY,
+    Fault,
+)
 from sim_bus.plant import Plant, SensorNoise
 
 log = logging.getLogger(__name__)
@@ -49,6 +58,44 @@ class DelayedHeartbeatNmt(NmtSlave):
                                           (self, heartbeat_time_ms))
             self._timer.daemon = True
             self._timer.start()
+
+    def schedule(self, fault: Fault, seconds: float) -> None:
+        """Inject `fault` when the drive's time (SYNC count x period) reaches `seconds`."""
+        with self._lock:
+            self._pending_faults[int(round(seconds / self.period))] = fault
+
+    def inject(self, fault: Fault) -> None:
+        """Inject `fault` now."""
+        with self._lock:
+            self.injected.append((self.sync_count, fault))
+            if fault is Fault.HEARTBEAT_STOPS:
+                # stopping the periodic task can wait up to a period: not in the SYNC handler
+                threading.Thread(target=self.stop_heartbeat, daemon=True).start()
+            elif fault is Fault.SILENT:
+                self.go_silent()
+            elif fault is Fault.OVERCURRENT_TRIP:
+                self._fault(objects.EMCY_OVERCURRENT, objects.ERROR_REGISTER_CURRENT)
+            elif fault is Fault.BUS_FLOOD:
+                threading.Thread(target=self._flood, daemon=True, name="bus-flood").start()
+            elif fault is Fault.REBOOT:
+                self._reboot()
+            elif fault is not Fault.NONE:
+                self._once.add(fault)
+
+    def _flood(self) -> None:
+        end = time.monotonic() + FLOOD_SECONDS
+        while time.monotonic() < end:
+            self.network.send_message(FLOOD_COB_ID, bytes(8))
+
+    def _reboot(self) -> None:
+        """Power glitch: the application and communication restart, boot-up is sent and the
+        drive waits, disabled and pre-operational, for a master to bring it up again."""
+        self.node.nmt.stop_heartbeat()
+        self._stop_pdos()
+        self._reset_application()
+        self.state = State.SWITCH_ON_DISABLED
+        self.node.nmt.send_command(NMT_RESET_NODE)
+        self.node.nmt.send_command(NMT_ENTER_PRE_OPERATIONAL)
 
     def stop_heartbeat(self) -> None:
         if self._timer is not None:
@@ -86,6 +133,9 @@ class VirtualDrive:
         self.sync_count = 0
         self.applied_current = 0.0
         self._silent = False
+        self._pending_faults: dict[int, Fault] = {}  # sync count -> fault
+        self._once: set[Fault] = set()  # faults that act on the next sample
+        self.injected: list[tuple[int, Fault]] = []  # (sync count, fault) as they happened
         self._rpdo_by_cob: dict[int, pdo_layout.PdoLayout] = {}
         self._tpdos: list[tuple[int, pdo_layout.PdoLayout]] = []
         self._reset_application()
@@ -102,6 +152,44 @@ class VirtualDrive:
             self.node.nmt.send_command(NMT_RESET_NODE)
             self.node.nmt.send_command(NMT_ENTER_PRE_OPERATIONAL)
             self.state = State.SWITCH_ON_DISABLED
+
+    def schedule(self, fault: Fault, seconds: float) -> None:
+        """Inject `fault` when the drive's time (SYNC count x period) reaches `seconds`."""
+        with self._lock:
+            self._pending_faults[int(round(seconds / self.period))] = fault
+
+    def inject(self, fault: Fault) -> None:
+        """Inject `fault` now."""
+        with self._lock:
+            self.injected.append((self.sync_count, fault))
+            if fault is Fault.HEARTBEAT_STOPS:
+                # stopping the periodic task can wait up to a period: not in the SYNC handler
+                threading.Thread(target=self.stop_heartbeat, daemon=True).start()
+            elif fault is Fault.SILENT:
+                self.go_silent()
+            elif fault is Fault.OVERCURRENT_TRIP:
+                self._fault(objects.EMCY_OVERCURRENT, objects.ERROR_REGISTER_CURRENT)
+            elif fault is Fault.BUS_FLOOD:
+                threading.Thread(target=self._flood, daemon=True, name="bus-flood").start()
+            elif fault is Fault.REBOOT:
+                self._reboot()
+            elif fault is not Fault.NONE:
+                self._once.add(fault)
+
+    def _flood(self) -> None:
+        end = time.monotonic() + FLOOD_SECONDS
+        while time.monotonic() < end:
+            self.network.send_message(FLOOD_COB_ID, bytes(8))
+
+    def _reboot(self) -> None:
+        """Power glitch: the application and communication restart, boot-up is sent and the
+        drive waits, disabled and pre-operational, for a master to bring it up again."""
+        self.node.nmt.stop_heartbeat()
+        self._stop_pdos()
+        self._reset_application()
+        self.state = State.SWITCH_ON_DISABLED
+        self.node.nmt.send_command(NMT_RESET_NODE)
+        self.node.nmt.send_command(NMT_ENTER_PRE_OPERATIONAL)
 
     def stop_heartbeat(self) -> None:
         """Fault injection: the heartbeat producer dies while the rest keeps working."""
@@ -233,6 +321,12 @@ class VirtualDrive:
                 self._mode = value
             elif index in _CONFIGURATION:
                 self._config_dirty = True
+            elif index == objects.FAULT_INJECTION:
+                try:
+                    fault = Fault(value)
+                except ValueError:
+                    raise SdoAbortedError(SDO_ABORT_VALUE_RANGE) from None
+                self.inject(fault)
 
     # --- PDOs and SYNC ----------------------------------------------------------------------
 
@@ -292,9 +386,21 @@ class VirtualDrive:
                 self._fault(objects.EMCY_POSITION_LIMIT, objects.ERROR_REGISTER_GENERIC)
             self._measurement = self.plant.measure()
             values = self._actual_values()
+            due = self._pending_faults.pop(self.sync_count, None)
+            if due is not None:
+                self.inject(due)
+                if self._silent or due is Fault.REBOOT:
+                    return
+            once, self._once = self._once, set()
+            if Fault.ENCODER_GLITCH in once:
+                values[objects.POSITION_ACTUAL] += ENCODER_JUMP
+            if Fault.TORQUE_SENSOR_SATURATED in once:
+                values[objects.JOINT_TORQUE_SENSOR] = SATURATED_READING
             frames = [(cob_id, pdo_layout.encode(layout, values)) for cob_id, layout in
                       self._tpdos]
-        for cob_id, payload in frames:
+        if Fault.TPDO_LATE in once:
+            time.sleep(TPDO_DELAY)
+        for cob_id, payload in frames * (2 if Fault.TPDO_TWICE in once else 1):
             self.network.send_message(cob_id, payload)
 
     def _fault(self, code: int, register: int) -> None:

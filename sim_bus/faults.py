@@ -1,0 +1,42 @@
+"""Faults the virtual drive can be made to have, switchable at run time: from the command
+line (`--inject-fault NAME@SECONDS`), by SDO (write the code to 0x2010) or from Python
+(`VirtualDrive.inject`). Each is what breaks on real hardware."""
+
+from enum import IntEnum
+
+
+class Fault(IntEnum):
+    NONE = 0
+    HEARTBEAT_STOPS = 1  # the heartbeat producer dies, PDOs go on
+    SILENT = 2  # the drive vanishes from the bus (power, cable)
+    TPDO_LATE = 3  # the next sample arrives 200 ms after its SYNC
+    TPDO_TWICE = 4  # the next sample's frames are sent twice
+    ENCODER_GLITCH = 5  # one position sample jumps by 5000 increments (0.06 rad)
+    TORQUE_SENSOR_SATURATED = 6  # the torque reading sticks at the top of its range
+    OVERCURRENT_TRIP = 7  # the power stage trips (EMCY 0x2310)
+    BUS_FLOOD = 8  # another node floods the bus with high-priority frames for 0.5 s
+    REBOOT = 9  # the drive resets and sends its boot-up message mid-run
+
+
+TPDO_DELAY = 0.2  # s
+ENCODER_JUMP = 5000  # increments
+FLOOD_SECONDS = 0.5
+FLOOD_COB_ID = 0x001  # above SYNC (0x080) in priority
+SATURATED_READING = 2**31 - 1  # mN.m: the INT32 ceiling of 0x2002
+
+
+def parse_schedule(text: str) -> tuple[Fault, float]:
+    """'encoder_glitch@2.5' -> (Fault.ENCODER_GLITCH, 2.5 s of drive time)."""
+    name, sep, when = text.partition("@")
+    try:
+        fault = Fault[name.upper()]
+    except KeyError:
+        names = ", ".join(f.name.lower() for f in Fault if f is not Fault.NONE)
+        raise ValueError(f"fault {name!r}: expected one of {names}") from None
+    try:
+        seconds = float(when) if sep else 0.0
+    except ValueError:
+        raise ValueError(f"fault {text!r}: {when!r} is not a time in seconds") from None
+    if fault is Fault.NONE or seconds < 0:
+        raise ValueError(f"fault {text!r}: need a fault and a time >= 0")
+    return fault, seconds

@@ -1,0 +1,92 @@
+"""Each injectable fault of the virtual drive against the driver and the control loop, in
+lock-step: how many cycles until it is seen, the commanded current on every cycle, the
+message on the fault topic, and the state the drive is left in."""
+
+import pytest
+
+from controller.loop import ControlLoop, LoopOptions
+from controller.mpc import Mpc
+from model.parameters import load_model
+from protocol import objects
+from protocol.cia402 import State
+from sim_bus.faults import Fault, parse_schedule
+from tests.conftest import virtual_pair
+
+MODEL = load_model()
+AT = 0.5  # s of drive time when the fault is injected
+
+
+def run_with(fault: Fault, duration: float = 1.5, via_sdo: bool = False):
+    messages = []
+    with virtual_pair(response_timeout=0.1) as (sim, drive):
+        drive.start()
+        if via_sdo:
+            drive.node.sdo[objects.FAULT_INJECTION].raw = int(Fault.NONE)  # SDO path exists
+        sim.schedule(fault, AT)
+        loop = ControlLoop(drive, Mpc(MODEL), LoopOptions(lockstep=True, duration=duration),
+                           lambda topic, fields: messages.append((topic, fields)))
+        report = loop.run()
+        drive.close()
+        final_state = sim.state
+    commands = [f["current"] for topic, f in messages if topic == "command"]
+    faults = [f for topic, f in messages if topic == "fault"]
+    return report, commands, faults, final_state
+
+
+def detection_cycles(faults: list[dict]) -> int:
+    return round((faults[0]["t"] - AT) / 1e-3)
+
+
+@pytest.mark.parametrize("fault,cause,max_cycles,final", [
+    (Fault.SILENT, "no TPDO", 1, None),
+    (Fault.TPDO_LATE, "no TPDO", 1, State.SWITCH_ON_DISABLED),
+    (Fault.ENCODER_GLITCH, "encoder glitch", 1, State.SWITCH_ON_DISABLED),
+    (Fault.OVERCURRENT_TRIP, "EMCY 0x2310", 1, State.FAULT),
+    (Fault.REBOOT, "rebooted", 2, State.SWITCH_ON_DISABLED),
+])
+def test_fatal_faults_stop_the_loop_safely(fault, cause, max_cycles, final):
+    report, commands, faults, final_state = run_with(fault)
+    assert report.exit_code == 1
+    assert cause in report.reason
+    assert faults and faults[-1]["source"] == "drive" and cause in faults[-1]["cause"]
+    assert 0 <= detection_cycles(faults) <= max_cycles
+    assert all(abs(c) <= MODEL.limits.current_max for c in commands)
+    assert len(commands) <= AT / 1e-3 + max_cycles
+    if final is not None:
+        assert final_state is final
+
+
+@pytest.mark.parametrize("fault,cause", [
+    (Fault.TPDO_TWICE, "unexpected TPDO"),
+    (Fault.TORQUE_SENSOR_SATURATED, "joint torque sensor reading saturated"),
+    (Fault.BUS_FLOOD, "bus overloaded"),
+])
+def test_benign_faults_are_reported_and_the_loop_goes_on(fault, cause):
+    report, commands, faults, final_state = run_with(fault)
+    assert report.exit_code == 0, report.reason
+    matching = [f for f in faults if cause in f["cause"]]
+    assert matching, faults
+    assert 0 <= round((matching[0]["t"] - AT) / 1e-3) <= 1
+    assert all(abs(c) <= MODEL.limits.current_max for c in commands)
+    assert len(commands) == 1500
+    assert final_state is State.SWITCH_ON_DISABLED  # disabled on close
+
+
+def test_heartbeat_stop_is_caught_by_the_heartbeat_consumer():
+    """The heartbeat is wall-clock: the loop runs until the consumer's 200 ms pass."""
+    report, commands, faults, final_state = run_with(Fault.HEARTBEAT_STOPS, duration=30.0)
+    assert report.exit_code == 1 and "heartbeat missing" in report.reason
+    assert all(abs(c) <= MODEL.limits.current_max for c in commands)
+    assert final_state is State.SWITCH_ON_DISABLED
+
+
+def test_sdo_injection_and_schedules_are_validated():
+    with virtual_pair() as (sim, drive):
+        drive.start()
+        drive.node.sdo[objects.FAULT_INJECTION].raw = int(Fault.OVERCURRENT_TRIP)
+        assert sim.state is State.FAULT
+    assert parse_schedule("encoder_glitch@2.5") == (Fault.ENCODER_GLITCH, 2.5)
+    with pytest.raises(ValueError, match="expected one of heartbeat_stops"):
+        parse_schedule("meltdown@1")
+    with pytest.raises(ValueError, match="is not a time"):
+        parse_schedule("silent@soon")
