@@ -16,6 +16,7 @@ from model.effects import with_truth_effects
 from model.parameters import ModelFileError, load_model, parse_payload
 from protocol import telemetry
 from protocol.bus_spec import BusSpecError, parse_bus_spec
+from sim_bus.faults import parse_schedule
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -56,6 +57,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="Zenoh key prefix (default: %(default)s)")
     parser.add_argument("--plot", metavar="DIR", help="save position and current figures here")
     parser.add_argument("--seed", type=int, default=0, help="--sim sensor-noise seed")
+    parser.add_argument("--inject-fault", action="append", default=[], metavar="NAME@SECONDS",
+                        help="--sim: inject a fault into the virtual drive at that drive time "
+                             "(as sim-bus)")
     parser.add_argument("--truth-effect", action="append", default=[], metavar="NAME:K=V,...",
                         help="--sim: hidden effect in the virtual drive's physics (as sim-bus)")
     add_zenoh_arguments(parser)
@@ -88,6 +92,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         model = load_model(args.model)
         sim_model = with_truth_effects(model, args.truth_effect)
+        schedule = [parse_schedule(text) for text in args.inject_fault]
+        if schedule and not args.sim:
+            raise ValueError("--inject-fault needs --sim")
         payload = parse_payload(args.payload_mass, args.payload_position)
         if not args.sim:
             parse_bus_spec(args.bus)
@@ -115,6 +122,8 @@ def main(argv: list[str] | None = None) -> int:
         from sim_bus.plant import SensorNoise
 
         sim = EmbeddedDrive(sim_model, payload, SensorNoise(seed=args.seed), args.node_id)
+        for fault, seconds in schedule:
+            sim.drive.schedule(fault, seconds)
         bus = sim.bus_spec
     try:
         session = open_session(args)

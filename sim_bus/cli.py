@@ -12,6 +12,7 @@ from model.effects import with_truth_effects
 from model.parameters import ModelFileError, load_model, parse_payload
 from protocol.bus_spec import BusSpecError, parse_bus_spec
 from sim_bus.drive import VirtualDrive
+from sim_bus.faults import Fault, parse_schedule
 from sim_bus.plant import SensorNoise
 
 
@@ -42,6 +43,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="hidden effect in the drive's physics, e.g. "
                              "stribeck:breakaway_friction=1.5,velocity=0.05 (repeatable; "
                              "effects: stribeck, position_ripple, load_dependent_friction)")
+    parser.add_argument("--inject-fault", action="append", default=[], metavar="NAME@SECONDS",
+                        help="inject a fault at that drive time (repeatable): " + ", ".join(
+                            f.name.lower() for f in Fault if f is not Fault.NONE)
+                        + "; at run time, write its code to SDO 0x2010")
     return parser
 
 
@@ -56,6 +61,7 @@ def main(argv: list[str] | None = None) -> int:
         parse_bus_spec(args.bus)
         model = with_truth_effects(load_model(args.model), args.truth_effect)
         payload = parse_payload(args.payload_mass, args.payload_position)
+        schedule = [parse_schedule(text) for text in args.inject_fault]
     except (BusSpecError, ModelFileError, ValueError) as exc:
         return _usage_error(str(exc))
     if not 1 <= args.node_id <= 127:
@@ -73,6 +79,8 @@ def main(argv: list[str] | None = None) -> int:
     noise = SensorNoise(current=args.current_noise, joint_torque=args.torque_noise,
                         seed=args.seed)
     drive = VirtualDrive(network, args.node_id, model, payload, noise, args.initial_position)
+    for fault, seconds in schedule:
+        drive.schedule(fault, seconds)
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
