@@ -159,3 +159,52 @@ def test_set_bad_usage_exits_2(args, needle):
     proc = subprocess.run([sys.executable, "-m", "dashboard.cli", *args], capture_output=True,
                           text=True, timeout=60)
     assert proc.returncode == 2 and needle in proc.stderr
+
+
+def test_zenoh_acl_lets_viewers_watch_and_only_operators_command(tmp_path):
+    """The shipped ACL (docs/zenoh-acl.json5) enforced by actuatord's own Zenoh session."""
+    from pathlib import Path
+
+    import zenoh
+
+    credentials = tmp_path / "credentials.txt"
+    credentials.write_text("operator:op-secret\nviewer:view-secret\n")
+    shipped = Path(__file__).parent.parent / "docs" / "zenoh-acl.json5"
+    config = tmp_path / "acl.json5"
+    config.write_text(shipped.read_text().replace('"credentials.txt"', json.dumps(
+        str(credentials))))
+    port = random.randint(20000, 60000)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "controller.cli", "--sim", "--lockstep", "--duration", "60",
+         "--zenoh-config", str(config), "--listen", f"tcp/127.0.0.1:{port}",
+         "--no-multicast-scouting"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    def attempt(user: str, password: str) -> tuple[int, int, list]:
+        c = zenoh.Config()
+        c.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+        c.insert_json5("scouting/multicast/enabled", "false")
+        c.insert_json5("transport/auth/usrpwd", json.dumps({"user": user, "password": password}))
+        session = zenoh.open(c)
+        try:
+            states = []
+            session.declare_subscriber(f"{telemetry.DEFAULT_PREFIX}/state",
+                                       lambda s: states.append(1))
+            time.sleep(1.0)
+            parameters = list(session.get(f"{telemetry.DEFAULT_PREFIX}/parameters", timeout=3))
+            answers = [json.loads(r.ok.payload.to_bytes()) for r in session.get(
+                f"{telemetry.DEFAULT_PREFIX}/weights", payload=json.dumps({"position": 350}),
+                timeout=3) if r.ok is not None]
+            return len(states), len(parameters), answers
+        finally:
+            session.close()
+
+    try:
+        assert "enabled" in proc.stdout.readline()
+        viewer = attempt("viewer", "view-secret")
+        operator = attempt("operator", "op-secret")
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=30)
+    assert viewer[0] > 100 and viewer[1] == 1  # reads telemetry and parameters
+    assert viewer[2] == []  # but its command is never delivered
+    assert operator[0] > 100 and operator[2] == [{"ok": True, "weights": {"position": 350}}]
