@@ -15,6 +15,7 @@ from controller.zenoh_session import add_zenoh_arguments, open_session
 from model.effects import with_truth_effects
 from model.parameters import ModelFileError, load_model, parse_payload
 from protocol import telemetry
+from protocol.assignments import parse_assignments
 from protocol.bus_spec import BusSpecError, parse_bus_spec
 from sim_bus.faults import parse_schedule
 
@@ -72,16 +73,7 @@ def _usage_error(message: str) -> int:
 
 
 def _settings(args: argparse.Namespace) -> OcpSettings:
-    weights = {}
-    for item in args.weight:
-        name, sep, value = item.partition("=")
-        if not sep or name not in Weights.__dataclass_fields__:
-            raise ValueError(f"--weight {item!r}: expected NAME=VALUE with NAME one of "
-                             f"{', '.join(Weights.__dataclass_fields__)}")
-        try:
-            weights[name] = float(value)
-        except ValueError:
-            raise ValueError(f"--weight {item!r}: {value!r} is not a number") from None
+    weights = parse_assignments(args.weight, Weights.__dataclass_fields__, "--weight")
     if args.no_current_barrier:
         weights["torque_barrier"] = 0.0
     return OcpSettings(horizon=args.horizon, dt=args.dt).with_weights(**weights)

@@ -14,6 +14,7 @@ import threading
 
 from controller.zenoh_session import add_zenoh_arguments, open_session
 from protocol import telemetry
+from protocol.assignments import parse_assignments
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -65,15 +66,7 @@ def _request_payload(what: str, values: list[str]) -> str:
         if len(values) != 1:
             raise ValueError("reference: give one JSON object")
         return values[0]
-    weights = {}
-    for item in values:
-        name, sep, value = item.partition("=")
-        if not sep:
-            raise ValueError(f"weights: {item!r} is not NAME=VALUE")
-        try:
-            weights[name] = float(value)
-        except ValueError:
-            raise ValueError(f"weights: {item!r}: {value!r} is not a number") from None
+    weights = parse_assignments(values, None, "weights")
     return json.dumps(weights)
 
 

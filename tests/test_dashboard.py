@@ -152,7 +152,7 @@ def test_refused_change_leaves_the_controller_unchanged_and_says_why():
 
 
 @pytest.mark.parametrize("args,needle", [
-    (["set", "weights", "position"], "is not NAME=VALUE"),
+    (["set", "weights", "position"], "expected NAME=VALUE"),
     (["set", "reference", "{}", "{}"], "give one JSON object"),
 ])
 def test_set_bad_usage_exits_2(args, needle):
