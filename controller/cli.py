@@ -116,7 +116,6 @@ def main(argv: list[str] | None = None) -> int:
         sim = EmbeddedDrive(sim_model, payload, SensorNoise(seed=args.seed), args.node_id)
         for fault, seconds in schedule:
             sim.drive.schedule(fault, seconds)
-        bus = sim.bus_spec
     try:
         session = open_session(args)
     except ValueError as exc:
@@ -136,7 +135,8 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, lambda *_: loop.stop())
     signal.signal(signal.SIGTERM, lambda *_: loop.stop())
     try:
-        drive = CanOpenDrive.open(bus, args.node_id, period=period)
+        drive = (CanOpenDrive(sim.master_network, args.node_id, period=period) if sim is not None
+                 else CanOpenDrive.open(bus, args.node_id, period=period))
     except Exception as exc:
         print(f"actuatord: error: cannot open bus {bus!r}: {exc}", file=sys.stderr)
         return 1

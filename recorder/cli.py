@@ -121,7 +121,6 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         from sim_bus.plant import SensorNoise
 
         sim = EmbeddedDrive(sim_model, payload, SensorNoise(seed=args.seed), args.node_id)
-        bus = sim.bus_spec
     metadata = {
         "payload_mass": payload.mass, "payload_position": f"{payload.x},{payload.y}",
         "experiment": "sinusoid" if args.sinusoid else "exciting_trajectory",
@@ -130,7 +129,8 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         "node_id": args.node_id, "period_s": 1e-3,
         "recorded_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
     try:
-        drive = CanOpenDrive.open(bus, args.node_id)
+        drive = (CanOpenDrive(sim.master_network, args.node_id) if sim is not None
+                 else CanOpenDrive.open(bus, args.node_id))
     except Exception as exc:
         print(f"recorder: error: cannot open bus {bus!r}: {exc}", file=sys.stderr)
         return 1
