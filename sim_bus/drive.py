@@ -59,44 +59,6 @@ class DelayedHeartbeatNmt(NmtSlave):
             self._timer.daemon = True
             self._timer.start()
 
-    def schedule(self, fault: Fault, seconds: float) -> None:
-        """Inject `fault` when the drive's time (SYNC count x period) reaches `seconds`."""
-        with self._lock:
-            self._pending_faults[int(round(seconds / self.period))] = fault
-
-    def inject(self, fault: Fault) -> None:
-        """Inject `fault` now."""
-        with self._lock:
-            self.injected.append((self.sync_count, fault))
-            if fault is Fault.HEARTBEAT_STOPS:
-                # stopping the periodic task can wait up to a period: not in the SYNC handler
-                threading.Thread(target=self.stop_heartbeat, daemon=True).start()
-            elif fault is Fault.SILENT:
-                self.go_silent()
-            elif fault is Fault.OVERCURRENT_TRIP:
-                self._fault(objects.EMCY_OVERCURRENT, objects.ERROR_REGISTER_CURRENT)
-            elif fault is Fault.BUS_FLOOD:
-                threading.Thread(target=self._flood, daemon=True, name="bus-flood").start()
-            elif fault is Fault.REBOOT:
-                self._reboot()
-            elif fault is not Fault.NONE:
-                self._once.add(fault)
-
-    def _flood(self) -> None:
-        end = time.monotonic() + FLOOD_SECONDS
-        while time.monotonic() < end:
-            self.network.send_message(FLOOD_COB_ID, bytes(8))
-
-    def _reboot(self) -> None:
-        """Power glitch: the application and communication restart, boot-up is sent and the
-        drive waits, disabled and pre-operational, for a master to bring it up again."""
-        self.node.nmt.stop_heartbeat()
-        self._stop_pdos()
-        self._reset_application()
-        self.state = State.SWITCH_ON_DISABLED
-        self.node.nmt.send_command(NMT_RESET_NODE)
-        self.node.nmt.send_command(NMT_ENTER_PRE_OPERATIONAL)
-
     def stop_heartbeat(self) -> None:
         if self._timer is not None:
             self._timer.cancel()
