@@ -6,16 +6,15 @@ out=docs/gap-stribeck
 work=$(mktemp -d)
 truth="stribeck:breakaway_friction=1.5,velocity=0.05"
 rec="recorder --sim --lockstep --no-progress --truth-effect $truth"
-$rec --exciting-trajectory -o "$work/noload.mcap"
-$rec --exciting-trajectory --seed 1 --payload-mass 5 --payload-position 0,0.1 -o "$work/load.mcap"
-$rec --sinusoid --duration 20 --seed 2 -o "$work/sinusoid.mcap"
-identify "$work/noload.mcap" "$work/load.mcap" -o "$work/baseline.toml"
 mkdir -p "$out"
-cp "$work/baseline.toml" "$out/baseline.toml"
+out=$(cd "$out" && pwd)
 cd "$work"
+$rec --exciting-trajectory -o noload.mcap
+$rec --exciting-trajectory --seed 1 --payload-mass 5 --payload-position 0,0.1 -o load.mcap
+$rec --sinusoid --duration 20 --seed 2 -o sinusoid.mcap
+identify noload.mcap load.mcap -o baseline.toml
 model-gap noload.mcap load.mcap sinusoid.mcap --model baseline.toml --report gap.json \
     --plots plots -o improved.toml
-cd - > /dev/null
-cp "$work/gap.json" "$work/improved.toml" "$out/"
-cp "$work"/plots/*.png "$out/"
+cp baseline.toml gap.json improved.toml plots/*.png "$out/"
+cd /
 rm -rf "$work"
