@@ -135,8 +135,10 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, lambda *_: loop.stop())
     signal.signal(signal.SIGTERM, lambda *_: loop.stop())
     try:
-        drive = (CanOpenDrive(sim.master_network, args.node_id, period=period) if sim is not None
-                 else CanOpenDrive.open(bus, args.node_id, period=period))
+        # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host
+        timing = {"period": period, "response_timeout": 1.0 if args.lockstep else 0.1}
+        drive = (CanOpenDrive(sim.master_network, args.node_id, **timing) if sim is not None
+                 else CanOpenDrive.open(bus, args.node_id, **timing))
     except Exception as exc:
         print(f"actuatord: error: cannot open bus {bus!r}: {exc}", file=sys.stderr)
         return 1

@@ -7,7 +7,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from controller.ilqr import COLD, RESAMPLE, WARM, IlqrSolver, SolveResult
+from controller.ilqr import COLD, NOT_FINITE, RESAMPLE, WARM, IlqrSolver, SolveResult
 from controller.problem import OcpSettings, pack_cost
 from controller.reference import Reference, Sinusoid, check_reference, reference_at
 from model import dynamics
@@ -83,7 +83,7 @@ class Mpc:
             ref_q, ref_qd = reference_at(self._reference_packed, t)
             finite = math.isfinite(position) and math.isfinite(velocity)
             safe = self.hold_current(position) if finite else 0.0
-            return TickResult(safe, math.nan, ref_q, ref_qd, SolveResult(3, 0, math.inf),
+            return TickResult(safe, math.nan, ref_q, ref_qd, SolveResult(NOT_FINITE, 0, math.inf),
                               time.perf_counter() - start, state_fault)
         mode = self._mode
         result = self.solver.tick(
