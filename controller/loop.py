@@ -17,6 +17,8 @@ from driver import CommandRangeError, Drive, DriveError, Sample
 from driver.clock import CycleClock, RingStats
 from protocol import cia402
 
+STALL_CYCLES = 10  # missed in a row: worth a message on the fault topic
+
 
 @dataclass
 class LoopOptions:
@@ -89,8 +91,14 @@ class ControlLoop:
             report.history = history
         clock = report.clock = CycleClock(options.period, options.lockstep)
         next_stats = options.stats_every
+        missed = 0
         while not self._stop.is_set():
             clock.wait()
+            if clock.missed_cycles - missed >= STALL_CYCLES and self.drive.read() is not None:
+                self.fault(self.drive.read().t, "controller",
+                           f"loop stalled: {clock.missed_cycles - missed} cycles missed",
+                           "continuing from the next sample")
+            missed = clock.missed_cycles
             self._apply_requests()
             try:
                 sample = self.drive.sync()

@@ -90,3 +90,29 @@ def test_sdo_injection_and_schedules_are_validated():
         parse_schedule("meltdown@1")
     with pytest.raises(ValueError, match="is not a time"):
         parse_schedule("silent@soon")
+
+
+def test_a_stall_in_real_time_is_reported_on_the_fault_topic():
+    """With the embedded drive the late frames block the sender, so the loop's own clock is
+    what notices: 200 ms without a cycle is 200 missed cycles."""
+    from driver.canopen_drive import CanOpenDrive
+    from model.parameters import Payload
+    from sim_bus.embedded import EmbeddedDrive
+    from sim_bus.plant import SensorNoise
+
+    sim = EmbeddedDrive(MODEL, Payload(), SensorNoise())
+    drive = CanOpenDrive(sim.master_network, 2, response_timeout=1.0)
+    messages = []
+    try:
+        drive.start()
+        sim.drive.schedule(Fault.TPDO_LATE, 0.3)
+        loop = ControlLoop(drive, Mpc(MODEL), LoopOptions(duration=0.8),
+                           lambda topic, fields: messages.append((topic, fields)))
+        report = loop.run()
+    finally:
+        drive.close()
+        sim.close()
+    assert report.exit_code == 0
+    stalls = [f for topic, f in messages if topic == "fault" and "stalled" in f["cause"]]
+    assert stalls and int(stalls[0]["cause"].split()[2]) >= 150
+    assert report.missed_cycles >= 150
