@@ -1,6 +1,7 @@
 import itertools
 import os
 import random
+import socket
 import subprocess
 import sys
 import time
@@ -37,6 +38,13 @@ def virtual_pair(payload: Payload = Payload(), noise: SensorNoise = SensorNoise(
 def pair():
     with virtual_pair() as p:
         yield p
+
+
+def free_port() -> int:
+    """A TCP port nobody listens on right now (the kernel's pick), for Zenoh and WebSocket."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
 
 
 def udp_bus_spec() -> str:

@@ -2,7 +2,6 @@
 a dashboard would, with nothing but the documented schema."""
 
 import json
-import random
 import subprocess
 import sys
 import time
@@ -10,6 +9,7 @@ import time
 import zenoh
 
 from protocol import telemetry
+from tests.conftest import free_port
 
 PREFIX = "test/elbow"
 
@@ -29,7 +29,7 @@ def start_actuatord(port: int, *extra: str) -> subprocess.Popen:
 
 
 def test_dashboard_session_decodes_state_and_talks_to_the_queryables():
-    port = random.randint(20000, 60000)
+    port = free_port()
     proc = start_actuatord(port, "--duration", "30")
     received: dict[str, list] = {topic: [] for topic in telemetry.TOPICS}
     session = dashboard_session(port)
@@ -82,7 +82,7 @@ def test_dashboard_session_decodes_state_and_talks_to_the_queryables():
 
 
 def test_sigterm_disables_and_exits_zero_with_loop_statistics():
-    port = random.randint(20000, 60000)
+    port = free_port()
     proc = start_actuatord(port)
     line = proc.stdout.readline()
     assert "enabled" in line, proc.stderr.read()
@@ -114,7 +114,7 @@ def test_recorder_writes_live_telemetry_to_mcap(tmp_path):
     from recorder.mcap_io import iter_mcap
     from recorder.recording import load_recording
 
-    port = random.randint(20000, 60000)
+    port = free_port()
     proc = start_actuatord(port, "--duration", "60")
     output = tmp_path / "live.mcap"
     try:

@@ -3,7 +3,6 @@ rendering live values, and the command path refusing bad changes with a reason."
 
 import asyncio
 import json
-import random
 import struct
 import subprocess
 import sys
@@ -14,6 +13,7 @@ import pytest
 import websockets
 
 from protocol import telemetry
+from tests.conftest import free_port
 from tests.test_actuatord_zenoh import PREFIX, dashboard_session, start_actuatord
 
 FOXGLOVE_SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
@@ -24,7 +24,7 @@ async def foxglove_client(port: int, wanted: str, count: int) -> tuple[list, lis
     deadline = time.monotonic() + 60
     while True:
         try:
-            ws = await websockets.connect(f"ws://127.0.0.1:{port}",
+            ws = await websockets.connect(f"ws://127.0.0.1:{port}", close_timeout=1,
                                           subprotocols=FOXGLOVE_SUBPROTOCOLS)
             break
         except OSError:
@@ -51,8 +51,9 @@ async def foxglove_client(port: int, wanted: str, count: int) -> tuple[list, lis
 
 
 def test_foxglove_bridge_advertises_and_forwards_decodable_messages():
-    zenoh_port, ws_port = random.randint(20000, 40000), random.randint(40001, 60000)
+    zenoh_port, ws_port = free_port(), free_port()
     actuatord = start_actuatord(zenoh_port, "--duration", "60")
+    assert "enabled" in actuatord.stdout.readline()  # listening before the bridge connects
     bridge = subprocess.Popen(
         [sys.executable, "-m", "dashboard.cli", "foxglove", "--key", f"{PREFIX}/**", "--port",
          str(ws_port), "--connect", f"tcp/127.0.0.1:{zenoh_port}", "--no-multicast-scouting"],
@@ -112,7 +113,7 @@ def test_terminal_dashboard_renders_live_values_limits_and_faults():
 
 
 def test_refused_change_leaves_the_controller_unchanged_and_says_why():
-    port = random.randint(20000, 60000)
+    port = free_port()
     actuatord = start_actuatord(port, "--duration", "60")
     session = dashboard_session(port)
     audit: list[dict] = []
@@ -173,7 +174,7 @@ def test_zenoh_acl_lets_viewers_watch_and_only_operators_command(tmp_path):
     config = tmp_path / "acl.json5"
     config.write_text(shipped.read_text().replace('"credentials.txt"', json.dumps(
         str(credentials))))
-    port = random.randint(20000, 60000)
+    port = free_port()
     proc = subprocess.Popen(
         [sys.executable, "-m", "controller.cli", "--sim", "--lockstep", "--duration", "60",
          "--zenoh-config", str(config), "--listen", f"tcp/127.0.0.1:{port}",
