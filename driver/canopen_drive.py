@@ -29,6 +29,7 @@ from protocol.cia402 import State
 log = logging.getLogger(__name__)
 
 SYNC_COB_ID = 0x80
+SYNC_COUNTER_MAX = 240  # CiA 301 synchronous counter range
 HEARTBEAT_BASE = 0x700
 DEFAULT_HEARTBEAT_MS = 100
 NOTIFIER_CYCLE = 0.05  # s; bounds how long closing the network waits for the receive thread
@@ -81,6 +82,8 @@ class CanOpenDrive(Drive):
         self._rpdo = pdo_layout.RPDO_COMMAND
         self._values: dict[int, int] = {}
         self._pending: set[int] = set()
+        self._sync_counter = 0  # 1..240 in each SYNC (CiA 301), echoed by the drive in TPDO1
+        self._cycle_open = False
         self._arrived = threading.Condition()
         self._latest: Sample | None = None
         self._last_heartbeat: float | None = None
@@ -200,7 +203,9 @@ class CanOpenDrive(Drive):
         self._raise_if_unhealthy()
         with self._arrived:
             self._pending = set(self._tpdos)
-        self.network.send_message(SYNC_COB_ID, b"")
+            self._sync_counter = self._sync_counter % SYNC_COUNTER_MAX + 1
+            self._cycle_open = False
+        self.network.send_message(SYNC_COB_ID, bytes([self._sync_counter]))
         with self._arrived:
             arrived = self._arrived.wait_for(
                 lambda: not self._pending or self.fault is not None, self.response_timeout)
@@ -276,8 +281,11 @@ class CanOpenDrive(Drive):
             log.warning("node %d: %s", self.node_id, exc)
             return
         with self._arrived:
-            if can_id not in self._pending:
-                # a second copy, or a frame from a cycle already given up on: never mix it in
+            if objects.SYNC_ECHO in decoded:
+                # the first TPDO names its SYNC; the others follow it in order on the bus
+                self._cycle_open = decoded[objects.SYNC_ECHO] == self._sync_counter
+            if can_id not in self._pending or not self._cycle_open:
+                # a second copy, or a frame from an earlier cycle: never mix it in
                 self.unexpected_tpdos += 1
                 self._warnings.append(f"unexpected TPDO 0x{can_id:03X} (duplicate or late)")
                 return

@@ -39,6 +39,7 @@ TARGET_CURRENT = 0x2000
 MOTOR_CURRENT_ACTUAL = 0x2001
 JOINT_TORQUE_SENSOR = 0x2002
 OVERCURRENT_TRIP = 0x2003
+SYNC_ECHO = 0x2004  # counter byte of the SYNC a sample answers
 FAULT_INJECTION = 0x2010  # virtual drive only
 
 # Modes of operation (0x6060)

@@ -50,15 +50,18 @@ VELOCITY_ACTUAL = MappedObject(od.VELOCITY_ACTUAL, 0, 32, True)
 MOTOR_CURRENT_ACTUAL = MappedObject(od.MOTOR_CURRENT_ACTUAL, 0, 32, True)
 JOINT_TORQUE_SENSOR = MappedObject(od.JOINT_TORQUE_SENSOR, 0, 32, True)
 TORQUE_ACTUAL = MappedObject(od.TORQUE_ACTUAL, 0, 16, True)
+SYNC_ECHO = MappedObject(od.SYNC_ECHO, 0, 8, False)
 CURRENT_ACTUAL = MappedObject(od.CURRENT_ACTUAL, 0, 16, True)
 
 KNOWN_OBJECTS = {(o.index, o.subindex): o for o in (
     CONTROLWORD, TARGET_CURRENT, TARGET_TORQUE, STATUSWORD, POSITION_ACTUAL, VELOCITY_ACTUAL,
-    MOTOR_CURRENT_ACTUAL, JOINT_TORQUE_SENSOR, TORQUE_ACTUAL, CURRENT_ACTUAL)}
+    MOTOR_CURRENT_ACTUAL, JOINT_TORQUE_SENSOR, TORQUE_ACTUAL, CURRENT_ACTUAL, SYNC_ECHO)}
 
-# Default layout: one RPDO with the command, three TPDOs with the sample (all on SYNC).
+# Default layout: one RPDO with the command, three TPDOs with the sample (all on SYNC). The
+# first TPDO echoes the SYNC's counter byte, so a master can tell this cycle's sample from a
+# late or repeated one (CAN keeps one sender's frames in order: TPDO2 and 3 follow TPDO1).
 RPDO_COMMAND = PdoLayout(0x200, (CONTROLWORD, TARGET_CURRENT))
-TPDO_STATUS_POSITION = PdoLayout(0x180, (STATUSWORD, POSITION_ACTUAL))
+TPDO_STATUS_POSITION = PdoLayout(0x180, (STATUSWORD, POSITION_ACTUAL, SYNC_ECHO))
 TPDO_VELOCITY_CURRENT = PdoLayout(0x280, (VELOCITY_ACTUAL, MOTOR_CURRENT_ACTUAL))
 TPDO_JOINT_TORQUE = PdoLayout(0x380, (JOINT_TORQUE_SENSOR,))
 

@@ -179,6 +179,7 @@ class VirtualDrive:
         self.applied_current = 0.0
         self.error_code = objects.EMCY_NO_ERROR
         self._config_dirty = False
+        self._sync_echo = 0
         self._measurement = self.plant.measure()
         self._read_configuration()
 
@@ -333,6 +334,7 @@ class VirtualDrive:
         if self._silent or self.node.nmt.state != "OPERATIONAL":
             return
         with self._lock:
+            self._sync_echo = data[0] if data else 0
             if self._config_dirty:
                 self._read_configuration()
                 self._config_dirty = False
@@ -384,6 +386,7 @@ class VirtualDrive:
             objects.TORQUE_ACTUAL: int(round(m.motor_current / rated * objects.MILLI)),
             objects.MODES_OF_OPERATION_DISPLAY: self._mode,
             objects.ERROR_CODE: self.error_code,
+            objects.SYNC_ECHO: self._sync_echo,
             objects.ERROR_REGISTER: (objects.ERROR_REGISTER_GENERIC
                                      if self.state is State.FAULT else 0),
         }
@@ -395,7 +398,7 @@ _ACTUAL_VALUES = frozenset((
     objects.STATUSWORD, objects.POSITION_ACTUAL, objects.VELOCITY_ACTUAL,
     objects.MOTOR_CURRENT_ACTUAL, objects.JOINT_TORQUE_SENSOR, objects.CURRENT_ACTUAL,
     objects.TORQUE_ACTUAL, objects.MODES_OF_OPERATION_DISPLAY, objects.ERROR_CODE,
-    objects.ERROR_REGISTER))
+    objects.ERROR_REGISTER, objects.SYNC_ECHO))
 _CONFIGURATION = (objects.MAX_CURRENT, objects.RATED_CURRENT, objects.OVERCURRENT_TRIP,
                   objects.CYCLE_PERIOD_US, objects.SOFTWARE_POSITION_LIMIT)
 
