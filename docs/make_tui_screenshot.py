@@ -22,7 +22,7 @@ PORT = 7461
 
 def main() -> None:
     actuatord = subprocess.Popen(
-        [sys.executable, "-m", "controller.cli", "--sim", "--duration", "30", "--payload-mass",
+        [sys.executable, "-m", "commands.actuatord", "--sim", "--duration", "30", "--payload-mass",
          "30", "--payload-position", "0,0.05", "--listen", f"tcp/127.0.0.1:{PORT}",
          "--no-multicast-scouting"], stdout=subprocess.PIPE, text=True)
     actuatord.stdout.readline()

@@ -246,18 +246,3 @@ def _strings(path: Path, doc: dict, table: str, names: list[str],
         if not isinstance(value, str) or not value.strip():
             raise ModelFileError(f"{path}: [{table}].{key}: expected a provenance string")
     return dict(section)
-
-
-def parse_payload(mass: float, position: str | None) -> Payload:
-    """Payload from CLI text: mass in kg and 'X,Y' in metres in the link frame."""
-    x = y = 0.0
-    if position is not None:
-        parts = position.split(",")
-        try:
-            x, y = (float(v) for v in parts)
-        except ValueError:
-            raise ValueError(f"payload position {position!r}: expected X,Y in metres, "
-                             "e.g. 0,0.05") from None
-    if mass > 0 and position is None:
-        raise ValueError("payload mass given without --payload-position X,Y")
-    return Payload(mass=mass, x=x, y=y)

@@ -54,7 +54,7 @@ def udp_bus_spec() -> str:
 
 @contextmanager
 def sim_bus_process(bus: str, *extra: str):
-    proc = subprocess.Popen([sys.executable, "-m", "sim_bus.cli", "--bus", bus, *extra],
+    proc = subprocess.Popen([sys.executable, "-m", "commands.sim_bus", "--bus", bus, *extra],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         line = proc.stdout.readline()

@@ -55,7 +55,7 @@ def test_foxglove_bridge_advertises_and_forwards_decodable_messages():
     actuatord = start_actuatord(zenoh_port, "--duration", "60")
     assert "enabled" in actuatord.stdout.readline()  # listening before the bridge connects
     bridge = subprocess.Popen(
-        [sys.executable, "-m", "dashboard.cli", "foxglove", "--key", f"{PREFIX}/**", "--port",
+        [sys.executable, "-m", "commands.dashboard", "foxglove", "--key", f"{PREFIX}/**", "--port",
          str(ws_port), "--connect", f"tcp/127.0.0.1:{zenoh_port}", "--no-multicast-scouting"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -125,7 +125,7 @@ def test_refused_change_leaves_the_controller_unchanged_and_says_why():
 
         def cli(*args: str) -> subprocess.CompletedProcess:
             return subprocess.run(
-                [sys.executable, "-m", "dashboard.cli", "set", *args, "--prefix", PREFIX,
+                [sys.executable, "-m", "commands.dashboard", "set", *args, "--prefix", PREFIX,
                  "--connect", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"],
                 capture_output=True, text=True, timeout=60)
 
@@ -157,7 +157,7 @@ def test_refused_change_leaves_the_controller_unchanged_and_says_why():
     (["set", "reference", "{}", "{}"], "give one JSON object"),
 ])
 def test_set_bad_usage_exits_2(args, needle):
-    proc = subprocess.run([sys.executable, "-m", "dashboard.cli", *args], capture_output=True,
+    proc = subprocess.run([sys.executable, "-m", "commands.dashboard", *args], capture_output=True,
                           text=True, timeout=60)
     assert proc.returncode == 2 and needle in proc.stderr
 
@@ -176,7 +176,7 @@ def test_zenoh_acl_lets_viewers_watch_and_only_operators_command(tmp_path):
         str(credentials))))
     port = free_port()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "controller.cli", "--sim", "--lockstep", "--duration", "60",
+        [sys.executable, "-m", "commands.actuatord", "--sim", "--lockstep", "--duration", "60",
          "--zenoh-config", str(config), "--listen", f"tcp/127.0.0.1:{port}",
          "--no-multicast-scouting"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 

@@ -3,7 +3,8 @@ import sys
 
 import pytest
 
-from model.parameters import ModelFileError, default_model_path, load_model, parse_payload
+from commands.options import parse_payload
+from model.parameters import ModelFileError, default_model_path, load_model
 
 DEFAULT = default_model_path().read_text()
 
@@ -77,7 +78,7 @@ def test_sim_bus_bad_input_exits_2_with_one_line(tmp_path, args, needle):
     args = [a.replace("{bad}", str(bad)) for a in args]
     if "--bus" not in args:
         args += ["--bus", "virtual:never-opened"]
-    proc = subprocess.run([sys.executable, "-m", "sim_bus.cli", *args], capture_output=True,
+    proc = subprocess.run([sys.executable, "-m", "commands.sim_bus", *args], capture_output=True,
                           text=True, timeout=60)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()

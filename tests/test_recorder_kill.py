@@ -13,7 +13,7 @@ from recorder.recording import load_recording
 
 
 def start(path) -> subprocess.Popen:
-    proc = subprocess.Popen([sys.executable, "-m", "recorder.cli", "--exciting-trajectory",
+    proc = subprocess.Popen([sys.executable, "-m", "commands.recorder", "--exciting-trajectory",
                              "--sim", "--lockstep", "--no-progress", "-o", str(path)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
@@ -60,7 +60,7 @@ def test_twenty_kills_at_random_moments_leave_twenty_readable_files(tmp_path):
     def one(seed: int) -> tuple[int, float]:
         rng = random.Random(seed)
         path = tmp_path / f"kill{seed}.mcap"
-        proc = subprocess.Popen([sys.executable, "-m", "recorder.cli", "--sinusoid",
+        proc = subprocess.Popen([sys.executable, "-m", "commands.recorder", "--sinusoid",
                                  "--duration", "30", "--sim", "--lockstep", "--no-progress",
                                  "--seed", str(seed), "-o", str(path)],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

@@ -41,7 +41,7 @@ def _lockstep_in_process(cycles: int) -> float:
 
 def _two_processes(cycles: int) -> dict:
     bus = f"udp_multicast:239.0.0.{random.randint(1, 250)}:{random.randint(20000, 60000)}"
-    proc = subprocess.Popen([sys.executable, "-m", "sim_bus.cli", "--bus", bus],
+    proc = subprocess.Popen([sys.executable, "-m", "commands.sim_bus", "--bus", bus],
                             stdout=subprocess.PIPE, text=True)
     try:
         if "ready" not in proc.stdout.readline():

@@ -9,21 +9,19 @@ from pathlib import Path
 
 import numpy as np
 
+from commands.options import usage_error
 from model.effects import EFFECT_KEYS
 from model.gap import GapError, GapResult, find_gap
 from model.identify import Experiment
+from model.model_file import write_model
 from model.parameters import ModelFileError, Payload, load_model
-from recorder.model_file import write_model
 from recorder.recording import RecordingError, load_recording
 
-
-def _usage_error(message: str) -> int:
-    print(f"model-gap: error: {message}", file=sys.stderr)
-    return 2
+PROG = "model-gap"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="model-gap", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0])
     parser.add_argument("recordings", nargs="+", metavar="RECORDING",
                         help="MCAP or CSV recordings (payload from their metadata, else none)")
     parser.add_argument("--model", required=True, metavar="MODEL.toml")
@@ -51,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"--horizon {args.horizon}: expected 0.01..10 s")
         result = find_gap(experiments, model, args.horizon)
     except (ModelFileError, RecordingError, GapError, ValueError) as exc:
-        return _usage_error(str(exc))
+        return usage_error(PROG, str(exc))
 
     improved_path = args.model
     if result.effect != "none" and args.output:

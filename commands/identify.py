@@ -7,6 +7,7 @@ import datetime
 import sys
 from pathlib import Path
 
+from commands.options import add_model_argument, add_payload_arguments, parse_payload, usage_error
 from model.identify import (
     PARAMETERS,
     Experiment,
@@ -14,26 +15,22 @@ from model.identify import (
     Identified,
     identify,
 )
-from model.parameters import ActuatorModel, ModelFileError, load_model, parse_payload
-from recorder.model_file import write_model
+from model.model_file import write_model
+from model.parameters import ActuatorModel, ModelFileError, load_model
 from recorder.recording import Recording, RecordingError, load_recording
 
-
-def _usage_error(message: str) -> int:
-    print(f"identify: error: {message}", file=sys.stderr)
-    return 2
+PROG = "identify"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="identify", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0])
     parser.add_argument("no_load", metavar="NOLOAD", help="recording without payload")
     parser.add_argument("load", metavar="LOAD", help="recording with the known payload")
-    parser.add_argument("--payload-mass", type=float, metavar="KG",
-                        help="payload of LOAD (default: from LOAD's metadata)")
-    parser.add_argument("--payload-position", metavar="X,Y")
+    add_payload_arguments(parser, mass_default=None,
+                          mass_help="payload of LOAD (kg; default: from LOAD's metadata)")
     parser.add_argument("-o", "--output", required=True, metavar="MODEL.toml")
-    parser.add_argument("--model", help="nominal model: limits, and the defaults shown beside "
-                                        "the identified values (default: packaged)")
+    add_model_argument(parser, help="nominal model: limits, and the defaults shown beside the "
+                                    "identified values (default: packaged)")
     parser.add_argument("--cutoff", type=float, default=25.0, metavar="HZ",
                         help="zero-phase low-pass cutoff (default: %(default)s Hz)")
     parser.add_argument("--plots", metavar="DIR", help="save measured vs predicted torques")
@@ -62,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
         result = identify(_experiment(no_load, no_load_payload), _experiment(load, payload),
                           args.cutoff)
     except (ModelFileError, RecordingError, IdentificationError, ValueError) as exc:
-        return _usage_error(str(exc))
+        return usage_error(PROG, str(exc))
     write_identified(Path(args.output), result, nominal, args.no_load, args.load)
     print(table(result, nominal))
     print(f"condition number {result.condition_number:.1f} (paper: 36); torque-fit RMSD motor "

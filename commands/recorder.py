@@ -15,24 +15,32 @@ import threading
 import time
 from pathlib import Path
 
-from model.effects import with_truth_effects
-from model.parameters import ModelFileError, load_model, parse_payload
+from commands.options import (
+    DriveOpenError,
+    add_bus_arguments,
+    add_model_argument,
+    add_payload_arguments,
+    add_virtual_drive_arguments,
+    add_zenoh_arguments,
+    check_drive_arguments,
+    open_drive,
+    open_session,
+    payload_from_args,
+    usage_error,
+    with_truth_effects,
+)
+from model.parameters import ModelFileError, load_model
 from protocol import cia402, telemetry
-from protocol.bus_spec import BusSpecError, parse_bus_spec
+from protocol.bus_spec import BusSpecError
 from recorder.exciting import ExcitingTrajectory, SlowSinusoid
 from recorder.recording import RecordingError
 
-
-def _usage_error(message: str) -> int:
-    print(f"recorder: error: {message}", file=sys.stderr)
-    return 2
+PROG = "recorder"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from controller.zenoh_session import add_zenoh_arguments
-
     parser = argparse.ArgumentParser(
-        prog="recorder", description=__doc__.splitlines()[0],
+        prog=PROG, description=__doc__.splitlines()[0],
         epilog="`recorder export FILE.mcap -o FILE.csv` writes the CSV interchange format.")
     job = parser.add_mutually_exclusive_group(required=True)
     job.add_argument("--exciting-trajectory", action="store_true",
@@ -43,15 +51,10 @@ def build_parser() -> argparse.ArgumentParser:
     job.add_argument("--zenoh", metavar="KEYEXPR",
                      help="record live telemetry, e.g. 'actuators/elbow/**'")
     parser.add_argument("-o", "--output", required=True, metavar="FILE.mcap")
-    where = parser.add_mutually_exclusive_group()
-    where.add_argument("--bus", default="vcan0", help="bus spec (default: vcan0)")
-    where.add_argument("--sim", action="store_true", help="embedded virtual drive")
-    parser.add_argument("--lockstep", action="store_true", help="with --sim: faster than real time")
-    parser.add_argument("--node-id", type=int, default=2)
-    parser.add_argument("--model", help="nominal model TOML for the tracking feedforward "
-                                        "(and for --sim's drive)")
-    parser.add_argument("--payload-mass", type=float, default=0.0, metavar="KG")
-    parser.add_argument("--payload-position", metavar="X,Y")
+    add_bus_arguments(parser)
+    add_model_argument(parser, help="nominal model TOML for the tracking feedforward (and for "
+                                    "--sim's drive)")
+    add_payload_arguments(parser)
     defaults = ExcitingTrajectory()
     parser.add_argument("--position-low", type=float, default=defaults.position_low)
     parser.add_argument("--position-high", type=float, default=defaults.position_high)
@@ -59,9 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--velocity-max", type=float, default=defaults.velocity_max)
     parser.add_argument("--steps", type=int, default=defaults.steps,
                         help="cruise velocities from min to max (default: %(default)s)")
-    parser.add_argument("--seed", type=int, default=0, help="--sim sensor-noise seed")
-    parser.add_argument("--truth-effect", action="append", default=[], metavar="NAME:K=V,...",
-                        help="--sim: hidden effect in the virtual drive's physics (as sim-bus)")
+    add_virtual_drive_arguments(parser, faults=False)
     parser.add_argument("--duration", type=float,
                         help="--zenoh: stop after S seconds; --sinusoid: its length")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -86,7 +87,7 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     try:
         model = load_model(args.model)
         sim_model = with_truth_effects(model, args.truth_effect)
-        payload = parse_payload(args.payload_mass, args.payload_position)
+        payload = payload_from_args(args)
         if args.sinusoid:
             trajectory = SlowSinusoid(duration=args.duration or SlowSinusoid.duration)
             trajectory_range = (trajectory.center - trajectory.amplitude,
@@ -95,10 +96,7 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
             trajectory = ExcitingTrajectory(args.position_low, args.position_high,
                                             args.velocity_min, args.velocity_max, args.steps)
             trajectory_range = (trajectory.position_low, trajectory.position_high)
-        if not args.sim:
-            parse_bus_spec(args.bus)
-        if args.lockstep and not args.sim:
-            raise ValueError("--lockstep needs --sim")
+        check_drive_arguments(args)
         limits = model.limits
         if not (limits.position_min <= trajectory_range[0]
                 and trajectory_range[1] <= limits.position_max):
@@ -106,21 +104,13 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
                              f"leaves the model's limits [{limits.position_min}, "
                              f"{limits.position_max}] rad")
     except (ModelFileError, BusSpecError, ValueError) as exc:
-        return _usage_error(str(exc))
+        return usage_error(PROG, str(exc))
 
     from driver import DriveError
-    from driver.canopen_drive import CanOpenDrive
     from recorder.experiment import run_trajectory
     from recorder.mcap_io import McapRecorder
     from recorder.tracking import TrackingLaw
 
-    sim = None
-    bus = args.bus
-    if args.sim:
-        from sim_bus.embedded import EmbeddedDrive
-        from sim_bus.plant import SensorNoise
-
-        sim = EmbeddedDrive(sim_model, payload, SensorNoise(seed=args.seed), args.node_id)
     metadata = {
         "payload_mass": payload.mass, "payload_position": f"{payload.x},{payload.y}",
         "experiment": "sinusoid" if args.sinusoid else "exciting_trajectory",
@@ -129,10 +119,9 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         "node_id": args.node_id, "period_s": 1e-3,
         "recorded_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
     try:
-        drive = (CanOpenDrive(sim.master_network, args.node_id) if sim is not None
-                 else CanOpenDrive.open(bus, args.node_id))
-    except Exception as exc:
-        print(f"recorder: error: cannot open bus {bus!r}: {exc}", file=sys.stderr)
+        drive, sim = open_drive(args, sim_model, payload)
+    except DriveOpenError as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 1
     writer = McapRecorder(args.output, metadata)
     state_channel = writer.channel("state", "State")
@@ -197,13 +186,12 @@ def _progress(disabled: bool, total: float):
 
 
 def _record_zenoh(args: argparse.Namespace, stop: threading.Event) -> int:
-    from controller.zenoh_session import open_session
     from recorder.mcap_io import McapRecorder
 
     try:
         session = open_session(args)
     except ValueError as exc:
-        return _usage_error(str(exc))
+        return usage_error(PROG, str(exc))
     received: queue.Queue = queue.Queue()
     subscriber = session.declare_subscriber(
         args.zenoh, lambda sample: received.put((str(sample.key_expr),
@@ -249,7 +237,7 @@ def _export(argv: list[str]) -> int:
     try:
         recording = load_recording(args.recording)
     except RecordingError as exc:
-        return _usage_error(str(exc))
+        return usage_error(PROG, str(exc))
     write_csv(recording, Path(args.output))
     print(f"recorder: {len(recording)} samples -> {args.output}")
     return 0

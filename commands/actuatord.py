@@ -6,39 +6,44 @@ import signal
 import sys
 from pathlib import Path
 
+from commands.options import (
+    DriveOpenError,
+    add_bus_arguments,
+    add_model_argument,
+    add_payload_arguments,
+    add_virtual_drive_arguments,
+    add_zenoh_arguments,
+    check_drive_arguments,
+    fault_schedule,
+    open_drive,
+    open_session,
+    parse_assignments,
+    payload_from_args,
+    usage_error,
+    with_truth_effects,
+)
 from controller.loop import ControlLoop, LoopOptions
 from controller.mpc import Mpc
 from controller.problem import OcpSettings, Weights
 from controller.reference import ReferenceError, Sinusoid, reference_from_dict
 from controller.requests import RequestHandler
-from controller.zenoh_session import add_zenoh_arguments, open_session
-from model.effects import with_truth_effects
-from model.parameters import ModelFileError, load_model, parse_payload
+from model.parameters import ModelFileError, load_model
 from protocol import telemetry
-from protocol.assignments import parse_assignments
-from protocol.bus_spec import BusSpecError, parse_bus_spec
-from sim_bus.faults import parse_schedule
+from protocol.bus_spec import BusSpecError
+
+PROG = "actuatord"
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="actuatord",
+        prog=PROG,
         description="Run the paper's iLQR (exponential barriers on position, velocity and "
                     "motor torque) as an MPC on a CiA 402 drive and publish telemetry on Zenoh. "
                     "SIGINT/SIGTERM disable the drive and exit 0.")
-    where = parser.add_mutually_exclusive_group()
-    where.add_argument("--bus", default="vcan0",
-                       help="bus spec: vcan0, virtual:NAME, udp_multicast:GROUP[:PORT] "
-                            "(default: vcan0)")
-    where.add_argument("--sim", action="store_true",
-                       help="embedded virtual drive in this process (no bus needed)")
-    parser.add_argument("--node-id", type=int, default=2)
-    parser.add_argument("--model", help="model TOML (default: the packaged paper defaults)")
-    parser.add_argument("--payload-mass", type=float, default=0.0, metavar="KG",
-                        help="payload known to the controller (and carried by --sim's drive)")
-    parser.add_argument("--payload-position", metavar="X,Y", help="payload position (m)")
-    parser.add_argument("--lockstep", action="store_true",
-                        help="with --sim: run as fast as the virtual drive answers")
+    add_bus_arguments(parser)
+    add_model_argument(parser)
+    add_payload_arguments(parser, mass_help="payload known to the controller (and carried by "
+                                            "--sim's drive, kg)")
     parser.add_argument("--duration", type=float, metavar="S",
                         help="stop after S seconds of drive time")
     parser.add_argument("--period-us", type=int, default=1000, help="control period (us)")
@@ -57,19 +62,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--prefix", default=telemetry.DEFAULT_PREFIX,
                         help="Zenoh key prefix (default: %(default)s)")
     parser.add_argument("--plot", metavar="DIR", help="save position and current figures here")
-    parser.add_argument("--seed", type=int, default=0, help="--sim sensor-noise seed")
-    parser.add_argument("--inject-fault", action="append", default=[], metavar="NAME@SECONDS",
-                        help="--sim: inject a fault into the virtual drive at that drive time "
-                             "(as sim-bus)")
-    parser.add_argument("--truth-effect", action="append", default=[], metavar="NAME:K=V,...",
-                        help="--sim: hidden effect in the virtual drive's physics (as sim-bus)")
+    add_virtual_drive_arguments(parser)
     add_zenoh_arguments(parser)
     return parser
-
-
-def _usage_error(message: str) -> int:
-    print(f"actuatord: error: {message}", file=sys.stderr)
-    return 2
 
 
 def _settings(args: argparse.Namespace) -> OcpSettings:
@@ -84,42 +79,28 @@ def main(argv: list[str] | None = None) -> int:
     try:
         model = load_model(args.model)
         sim_model = with_truth_effects(model, args.truth_effect)
-        schedule = [parse_schedule(text) for text in args.inject_fault]
+        schedule = fault_schedule(args)
         if schedule and not args.sim:
             raise ValueError("--inject-fault needs --sim")
-        payload = parse_payload(args.payload_mass, args.payload_position)
-        if not args.sim:
-            parse_bus_spec(args.bus)
+        payload = payload_from_args(args)
+        check_drive_arguments(args)
         settings = _settings(args)
         reference = (reference_from_dict(json.loads(args.reference), model.limits)
                      if args.reference else Sinusoid())
-        if args.lockstep and not args.sim:
-            raise ValueError("--lockstep needs --sim (a real drive runs in real time)")
         if not 100 <= args.period_us <= 100_000:
             raise ValueError(f"--period-us {args.period_us}: expected 100..100000")
         if args.duration is not None and not args.duration > 0:
             raise ValueError(f"--duration {args.duration}: expected > 0")
     except (ModelFileError, BusSpecError, ReferenceError, ValueError) as exc:
-        return _usage_error(str(exc))
+        return usage_error(PROG, str(exc))
 
     from driver import DriveError
-    from driver.canopen_drive import CanOpenDrive
 
     period = args.period_us * 1e-6
-    sim = None
-    bus = args.bus
-    if args.sim:
-        # the composition root is the one place the controller meets the virtual drive
-        from sim_bus.embedded import EmbeddedDrive
-        from sim_bus.plant import SensorNoise
-
-        sim = EmbeddedDrive(sim_model, payload, SensorNoise(seed=args.seed), args.node_id)
-        for fault, seconds in schedule:
-            sim.drive.schedule(fault, seconds)
     try:
         session = open_session(args)
     except ValueError as exc:
-        return _usage_error(str(exc))
+        return usage_error(PROG, str(exc))
     from controller.telemetry import TelemetryPublisher
 
     publisher = TelemetryPublisher(session, args.prefix)
@@ -136,16 +117,17 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, lambda *_: loop.stop())
     try:
         # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host
-        timing = {"period": period, "response_timeout": 1.0 if args.lockstep else 0.1}
-        drive = (CanOpenDrive(sim.master_network, args.node_id, **timing) if sim is not None
-                 else CanOpenDrive.open(bus, args.node_id, **timing))
-    except Exception as exc:
-        print(f"actuatord: error: cannot open bus {bus!r}: {exc}", file=sys.stderr)
+        drive, sim = open_drive(args, sim_model, payload, schedule, period=period,
+                                response_timeout=1.0 if args.lockstep else 0.1)
+    except DriveOpenError as exc:
+        publisher.close()
+        session.close()
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 1
     loop.drive = drive
     try:
         drive.start()
-        print(f"actuatord: node {args.node_id} on {'--sim' if args.sim else bus} enabled; "
+        print(f"actuatord: node {args.node_id} on {'--sim' if args.sim else args.bus} enabled; "
               f"telemetry under {args.prefix}/", flush=True)
         report = loop.run()
     except DriveError as exc:

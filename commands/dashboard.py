@@ -12,13 +12,14 @@ import signal
 import sys
 import threading
 
-from controller.zenoh_session import add_zenoh_arguments, open_session
+from commands.options import add_zenoh_arguments, open_session, parse_assignments, usage_error
 from protocol import telemetry
-from protocol.assignments import parse_assignments
+
+PROG = "dashboard"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="dashboard", description=__doc__.splitlines()[0],
+    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
                                      epilog="\n".join(__doc__.splitlines()[2:]))
     jobs = parser.add_subparsers(dest="job", required=True)
@@ -46,8 +47,7 @@ def main(argv: list[str] | None = None) -> int:
             payload = _request_payload(args.what, args.values)
         session = open_session(args)
     except ValueError as exc:
-        print(f"dashboard: error: {exc}", file=sys.stderr)
-        return 2
+        return usage_error(PROG, str(exc))
     try:
         if args.job == "foxglove":
             return _foxglove(session, args)
