@@ -1,10 +1,13 @@
-"""Bus specs as users type them (`vcan0`, `virtual:NAME`, `udp_multicast:GROUP[:PORT]`) turned
-into python-can constructor arguments. Pure: opening the bus is the caller's job."""
+"""Bus specs as users type them (`vcan0`, `virtual:NAME`, `udp_multicast:GROUP[:PORT]`,
+`ethercat:IFACE`) turned into constructor arguments: python-can's for CAN, the network
+interface for EtherCAT. Pure: opening the bus is the caller's job."""
 
 import ipaddress
 import re
 
 _SOCKETCAN_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_.-]{0,14}$")
+_NETWORK_INTERFACE = _SOCKETCAN_NAME  # Linux IFNAMSIZ: 15 characters
+ETHERCAT = "ethercat"
 DEFAULT_UDP_PORT = 43113  # python-can's UdpMulticastBus default
 
 
@@ -33,8 +36,17 @@ def parse_bus_spec(spec: str) -> dict:
         return {"interface": "virtual", "channel": rest, "receive_own_messages": False}
     if kind == "udp_multicast":
         return _udp_multicast(spec, rest)
+    if kind == ETHERCAT:
+        if _NETWORK_INTERFACE.match(rest):
+            return {"interface": ETHERCAT, "channel": rest}
+        raise BusSpecError(f"bus spec {spec!r}: not a network interface name")
     raise BusSpecError(f"bus spec {spec!r}: unknown interface {kind!r}; expected socketcan, "
-                       "virtual or udp_multicast")
+                       "virtual, udp_multicast or ethercat")
+
+
+def is_ethercat(spec: str) -> bool:
+    """Whether a spec names an EtherCAT segment rather than a CAN bus."""
+    return isinstance(spec, str) and spec.strip().partition(":")[0] == ETHERCAT
 
 
 def _udp_multicast(spec: str, rest: str) -> dict:
