@@ -179,12 +179,20 @@ class CanOpenNode:
             return
         frames = [(pdo.cob_id, pdo.codec.pack(*device.values_of(pdo.keys)))
                   for pdo in self._tpdos if self.sync_count % pdo.every == 0]
-        if self._late_once:
-            self._late_once = False
-            time.sleep(TPDO_DELAY)
         if self._twice_once:
             self._twice_once = False
             frames = frames * 2
+        if self._late_once:
+            # from another thread, as a drive's late answer: the bus (and, embedded, the
+            # master's thread that sent the SYNC) is not held up meanwhile
+            self._late_once = False
+            late = threading.Timer(TPDO_DELAY, self._send, (frames,))
+            late.daemon = True
+            late.start()
+            return
+        self._send(frames)
+
+    def _send(self, frames: list[tuple[int, bytes]]) -> None:
         send = self.network.send_message
         for cob_id, payload in frames:
             send(cob_id, payload)

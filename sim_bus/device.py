@@ -130,7 +130,6 @@ class Cia402Device:
 
     def _set_state(self, state: State) -> None:
         self._state = state
-        self._values[(objects.STATUSWORD, 0)] = cia402.statusword_for(state)
 
     # --- resets -----------------------------------------------------------------------------
 
@@ -206,6 +205,8 @@ class Cia402Device:
         if var.access_type not in _READABLE:
             raise DeviceAccessError(cia301.SDO_ABORT_READ_WRITE_ONLY,
                                     f"0x{index:04X}:{subindex:02X} is write-only")
+        if index == objects.STATUSWORD:
+            return cia402.statusword_for(self._state)  # acyclic reads see the state now
         return self._values[(index, subindex)]
 
     def read_bytes(self, index: int, subindex: int = 0) -> bytes:
@@ -406,8 +407,11 @@ class Cia402Device:
                     self._values[(objects.JOINT_TORQUE_SENSOR, 0)] = cia301.INT32_MAX
 
     def _sample(self, m) -> None:
-        """The sensors' reading in the dictionary's units."""
+        """The sensors' reading and the statusword, in the dictionary's units, as the input
+        process data carries them: latched here, so a fault due later in the same cycle shows
+        in the next sample (its emergency goes out at once)."""
         v = self._values
+        v[(objects.STATUSWORD, 0)] = cia402.statusword_for(self._state)
         per_rad = self.increments_per_rad
         v[(objects.POSITION_ACTUAL, 0)] = int(round(m.position * per_rad))
         v[(objects.VELOCITY_ACTUAL, 0)] = int(round(m.velocity * per_rad))
