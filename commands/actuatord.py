@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, lambda *_: loop.stop())
     try:
         # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host
-        drive, sim = open_drive(args, sim_model, payload, schedule, period=period,
+        drive, sim = open_drive(args, model, sim_model, payload, schedule, period=period,
                                 response_timeout=1.0 if args.lockstep else 0.1)
     except DriveOpenError as exc:
         publisher.close()

@@ -101,29 +101,34 @@ class DriveOpenError(Exception):
     """The bus or the drive could not be opened (the job fails: exit code 1)."""
 
 
-def open_drive(args: argparse.Namespace, sim_model: ActuatorModel, payload: Payload,
-               schedule: Iterable[tuple[Fault, float]] = (), **timing):
+def open_drive(args: argparse.Namespace, model: ActuatorModel, sim_model: ActuatorModel,
+               payload: Payload, schedule: Iterable[tuple[Fault, float]] = (), **timing):
     """The master drive for `--bus` or `--sim`, and the embedded virtual drive (None on a bus).
 
-    `sim_model` and `payload` are the virtual drive's physics (its hidden truth), `schedule`
-    its injected faults; `timing` goes to the master (`period`, `response_timeout`). The
-    caller closes the master, then the virtual drive."""
+    `model` is what the master knows of the joint (its velocity limit guards the encoder, its
+    drive gain converts torque commands); `sim_model` and `payload` are the virtual drive's
+    physics (its hidden truth), `schedule` its injected faults; `timing` goes to the master
+    (`period`, `response_timeout`). The caller closes the master, then the virtual drive."""
     from driver.canopen_drive import CanOpenDrive
 
+    lockstep = getattr(args, "lockstep", False)
+    options = {"lockstep": lockstep, "velocity_limit": model.limits.velocity_max,
+               "drive_gain": model.parameters.drive_gain, **timing}
     if not args.sim:
         try:
-            return CanOpenDrive.open(args.bus, args.node_id, **timing), None
+            return CanOpenDrive.open(args.bus, args.node_id, **options), None
         except Exception as exc:
             raise DriveOpenError(f"cannot open bus {args.bus!r}: {exc}") from exc
     # the composition root is the one place a master meets the virtual drive
     from sim_bus.embedded import EmbeddedDrive
     from sim_bus.plant import SensorNoise
 
-    sim = EmbeddedDrive(sim_model, payload, SensorNoise(seed=args.seed), args.node_id)
+    sim = EmbeddedDrive(sim_model, payload, SensorNoise(seed=args.seed), args.node_id,
+                        lockstep=lockstep)
     for fault, seconds in schedule:
-        sim.drive.schedule(fault, seconds)
+        sim.device.schedule(fault, seconds)
     try:
-        return CanOpenDrive(sim.master_network, args.node_id, **timing), sim
+        return CanOpenDrive(sim.master_network, args.node_id, **options), sim
     except Exception as exc:
         sim.close()
         raise DriveOpenError(f"cannot open the embedded drive: {exc}") from exc

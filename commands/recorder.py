@@ -119,7 +119,7 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         "node_id": args.node_id, "period_s": 1e-3,
         "recorded_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
     try:
-        drive, sim = open_drive(args, sim_model, payload)
+        drive, sim = open_drive(args, model, sim_model, payload)
     except DriveOpenError as exc:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 1

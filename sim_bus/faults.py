@@ -1,6 +1,7 @@
 """Faults the virtual drive can be made to have, switchable at run time: from the command
 line (`--inject-fault NAME@SECONDS`), by SDO (write the code to 0x2010) or from Python
-(`VirtualDrive.inject`). Each is what breaks on real hardware."""
+(`Cia402Device.inject`). Each is what breaks on real hardware. The device acts out the
+drive's own (sensors, power stage); the node exposing it acts out the communication's."""
 
 from enum import IntEnum
 

@@ -23,12 +23,12 @@ def run_with(fault: Fault, duration: float = 1.5, via_sdo: bool = False):
         drive.start()
         if via_sdo:
             drive.node.sdo[objects.FAULT_INJECTION].raw = int(Fault.NONE)  # SDO path exists
-        sim.schedule(fault, AT)
+        sim.device.schedule(fault, AT)
         loop = ControlLoop(drive, Mpc(MODEL), LoopOptions(lockstep=True, duration=duration),
                            lambda topic, fields: messages.append((topic, fields)))
         report = loop.run()
         drive.close()
-        final_state = sim.state
+        final_state = sim.device.state
     commands = [f["current"] for topic, f in messages if topic == "command"]
     faults = [f for topic, f in messages if topic == "fault"]
     return report, commands, faults, final_state
@@ -74,7 +74,8 @@ def test_benign_faults_are_reported_and_the_loop_goes_on(fault, cause):
 
 
 def test_heartbeat_stop_is_caught_by_the_heartbeat_consumer():
-    """The heartbeat is wall-clock: the loop runs until the consumer's 200 ms pass."""
+    """In lock-step the consumer counts cycles: the loop runs until two producer periods
+    (200 cycles) pass without a heartbeat, whatever the host's speed."""
     report, commands, faults, final_state = run_with(Fault.HEARTBEAT_STOPS, duration=30.0)
     assert report.exit_code == 1 and "heartbeat missing" in report.reason
     assert all(abs(c) <= MODEL.limits.current_max for c in commands)
@@ -85,7 +86,7 @@ def test_sdo_injection_and_schedules_are_validated():
     with virtual_pair() as (sim, drive):
         drive.start()
         drive.node.sdo[objects.FAULT_INJECTION].raw = int(Fault.OVERCURRENT_TRIP)
-        assert sim.state is State.FAULT
+        assert sim.device.state is State.FAULT
     assert parse_fault("encoder_glitch@2.5") == (Fault.ENCODER_GLITCH, 2.5)
     with pytest.raises(ValueError, match="expected one of heartbeat_stops"):
         parse_fault("meltdown@1")
@@ -102,11 +103,12 @@ def test_a_stall_in_real_time_is_reported_on_the_fault_topic():
     from sim_bus.plant import SensorNoise
 
     sim = EmbeddedDrive(MODEL, Payload(), SensorNoise())
-    drive = CanOpenDrive(sim.master_network, 2, response_timeout=1.0)
+    drive = CanOpenDrive(sim.master_network, 2, velocity_limit=MODEL.limits.velocity_max,
+                         response_timeout=1.0)
     messages = []
     try:
         drive.start()
-        sim.drive.schedule(Fault.TPDO_LATE, 0.3)
+        sim.device.schedule(Fault.TPDO_LATE, 0.3)
         loop = ControlLoop(drive, Mpc(MODEL), LoopOptions(duration=0.8),
                            lambda topic, fields: messages.append((topic, fields)))
         report = loop.run()
