@@ -16,7 +16,8 @@ from model.identify import (
 )
 from model.parameters import ActuatorModel, ModelFileError, load_model, parse_payload
 from recorder.model_file import write_model
-from recorder.recording import Recording, RecordingError, load_recording
+from recorder.reader import load_recording
+from recorder.recording import Recording, RecordingError
 
 
 def _usage_error(message: str) -> int:

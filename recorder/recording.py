@@ -1,12 +1,12 @@
 """A recording in memory: the contract's columns as arrays, plus metadata.
 
 MCAP is the native format, CSV the interchange one (DESIGN.md: `t,q,current,joint_torque`,
-optional extra columns, optional `# key=value` lines before the header); every reader returns
-this class, so every tool accepts both.
+optional extra columns, optional `# key=value` lines before the header). Both readers
+(`csv_io`, `mcap_io`) return this class and raise this module's error, and `reader.load_recording`
+picks between them, so every tool accepts both. This module imports neither reader.
 """
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -57,16 +57,3 @@ class Recording:
                                  f"sample {row}")
         return self
 
-
-def load_recording(path: str | Path) -> Recording:
-    """Read MCAP (by extension .mcap) or CSV (anything else) and check it."""
-    path = Path(path)
-    if not path.exists():
-        raise RecordingError(f"{path}: no such file")
-    if path.suffix == ".mcap":
-        from recorder.mcap_io import read_mcap
-
-        return read_mcap(path).check()
-    from recorder.csv_io import read_csv
-
-    return read_csv(path).check()

@@ -112,7 +112,7 @@ def test_recorder_writes_live_telemetry_to_mcap(tmp_path):
     from pathlib import Path
 
     from recorder.mcap_io import iter_mcap
-    from recorder.recording import load_recording
+    from recorder.reader import load_recording
 
     port = free_port()
     proc = start_actuatord(port, "--duration", "60")

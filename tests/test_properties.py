@@ -16,7 +16,8 @@ from model.parameters import ModelFileError, default_model_path, load_model
 from protocol import cia402, telemetry
 from protocol import pdo as pdo_layout
 from protocol.bus_spec import BusSpecError, parse_bus_spec
-from recorder.recording import RecordingError, load_recording
+from recorder.reader import load_recording
+from recorder.recording import RecordingError
 
 LIMITS = load_model().limits
 FAST = settings(max_examples=200, deadline=None,

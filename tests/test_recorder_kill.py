@@ -9,15 +9,15 @@ import time
 import numpy as np
 import pytest
 
-from recorder.recording import load_recording
+from recorder.reader import load_recording
 
 
 def start(path) -> subprocess.Popen:
     proc = subprocess.Popen([sys.executable, "-m", "recorder.cli", "--exciting-trajectory",
                              "--sim", "--lockstep", "--no-progress", "-o", str(path)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline and (not path.exists() or path.stat().st_size < 100_000):
+    deadline = time.monotonic() + 60  # 120 kB: about 1200 samples (State + Command)
+    while time.monotonic() < deadline and (not path.exists() or path.stat().st_size < 120_000):
         time.sleep(0.05)
     assert proc.poll() is None, proc.stderr.read()
     return proc
