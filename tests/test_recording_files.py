@@ -279,3 +279,19 @@ def test_recorder_repair_command(tmp_path):
         proc = repair_cli(*args)
         lines = proc.stderr.strip().splitlines()
         assert proc.returncode == 2 and len(lines) == 1 and needle in lines[0], proc.stderr
+
+
+def test_a_recording_that_fails_before_its_first_sample_leaves_no_file(tmp_path):
+    output = tmp_path / "run.mcap"
+    proc = subprocess.run([sys.executable, "-m", "recorder.cli", "--exciting-trajectory",
+                           "--bus", "virtual:nobody-here", "--no-progress", "-o", str(output)],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1 and "no boot-up message" in proc.stderr
+    assert "0 samples" in proc.stdout and "no file written" in proc.stdout
+    assert not output.exists()
+    proc = subprocess.run([sys.executable, "-m", "recorder.cli", "--exciting-trajectory",
+                           "--sim", "-o", str(tmp_path / "missing" / "run.mcap")],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
+        f"recorder: error: -o {tmp_path / 'missing' / 'run.mcap'}: cannot write: No such file "
+        "or directory"]
