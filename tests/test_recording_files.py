@@ -6,6 +6,7 @@ import random
 import struct
 import subprocess
 import sys
+import time
 import tracemalloc
 from pathlib import Path
 
@@ -295,3 +296,21 @@ def test_a_recording_that_fails_before_its_first_sample_leaves_no_file(tmp_path)
     assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
         f"recorder: error: -o {tmp_path / 'missing' / 'run.mcap'}: cannot write: No such file "
         "or directory"]
+
+
+def test_experiment_recordings_log_wall_clock_time_and_publish_drive_time(tmp_path):
+    output = tmp_path / "run.mcap"
+    started = time.time_ns()
+    proc = subprocess.run([sys.executable, "-m", "recorder.cli", "--sinusoid", "--duration",
+                           "0.5", "--sim", "--lockstep", "--no-progress", "-o", str(output)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    with open(output, "rb") as fh:
+        messages = [(channel.topic, message) for _, channel, message
+                    in make_reader(fh).iter_messages(log_time_order=False)]
+    first = messages[0][1]
+    assert abs(first.log_time - started) < 60e9  # not 1970 (drive time from 1 ms)
+    assert all(started <= message.log_time <= time.time_ns() for _, message in messages)
+    for topic, message in messages:
+        t = telemetry.decode("State" if topic == "state" else "Command", message.data).t
+        assert message.publish_time == round(t * 1e9)
