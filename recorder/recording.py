@@ -12,6 +12,10 @@ import numpy as np
 
 from model.parameters import Payload
 
+# Identification and model-gap filter at tens of Hz, so no tool here can use slower samples;
+# the usual mistake it catches is time written in ms (1 kHz data then looks 1 s apart).
+SLOWEST_SAMPLE_PERIOD = 0.1  # s
+
 
 class RecordingError(ValueError):
     """A recording that cannot be used; the message names the file and what is wrong."""
@@ -41,7 +45,8 @@ class Recording:
             raise RecordingError(f"{self.source}: metadata payload: {exc}") from None
 
     def check(self) -> "Recording":
-        """Refuse what no tool can use: NaN, too short, time not increasing."""
+        """Refuse what no tool can use: NaN, too short, time not increasing or not in
+        seconds."""
         for name in ("t", "q", "current", "joint_torque"):
             column = getattr(self, name)
             if not np.all(np.isfinite(column)):
@@ -55,5 +60,10 @@ class Recording:
             row = int(np.argmax(np.diff(self.t) <= 0)) + 1
             raise RecordingError(f"{self.source}: column t: time does not increase at "
                                  f"sample {row}")
+        period = float(np.median(np.diff(self.t)))
+        if period > SLOWEST_SAMPLE_PERIOD:
+            raise RecordingError(f"{self.source}: column t: samples {period:g} apart; t is in "
+                                 f"seconds and a recording is sampled every "
+                                 f"{SLOWEST_SAMPLE_PERIOD:g} s or faster (time in ms?)")
         return self
 

@@ -119,6 +119,15 @@ def test_unreadable_files_are_one_line_naming_the_file(tmp_path, case, needle):
     assert "\n" not in str(caught.value)
 
 
+def test_time_in_milliseconds_is_named(tmp_path):
+    path = tmp_path / "ms.csv"
+    path.write_text("t,q,current,joint_torque\n" + "".join(
+        f"{k},{k * 1e-3},0,0\n" for k in range(1, 100)))
+    with pytest.raises(RecordingError, match=r"ms.csv: column t: samples 1 apart; t is in "
+                                             r"seconds.*\(time in ms\?\)"):
+        load_recording(path)
+
+
 def test_a_csv_with_a_byte_order_mark_reads(tmp_path):
     path = tmp_path / "excel.csv"
     rows = "".join(f"{k * 1e-3},{k * 1e-3},0,0\n" for k in range(10))
