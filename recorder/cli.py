@@ -222,11 +222,15 @@ def _record_zenoh(args: argparse.Namespace, stop: threading.Event) -> int:
         session = open_session(args)
     except ValueError as exc:
         return _usage_error(str(exc))
+    try:
+        writer = McapRecorder(args.output, {"source": f"zenoh {args.zenoh}"})
+    except OSError as exc:
+        session.close()
+        return _usage_error(f"-o {args.output}: cannot write: {exc.strerror}")
     received: queue.Queue = queue.Queue()
     subscriber = session.declare_subscriber(
         args.zenoh, lambda sample: received.put((str(sample.key_expr),
                                                  sample.payload.to_bytes(), time.time_ns())))
-    writer = McapRecorder(args.output, {"source": f"zenoh {args.zenoh}"})
     print(f"recorder: recording {args.zenoh} -> {args.output}", flush=True)
     deadline = time.monotonic() + args.duration if args.duration else None
     skipped = 0
@@ -270,7 +274,10 @@ def _export(argv: list[str]) -> int:
         recording = load_recording(args.recording)
     except RecordingError as exc:
         return _usage_error(str(exc))
-    write_csv(recording, Path(args.output))
+    try:
+        write_csv(recording, Path(args.output))
+    except OSError as exc:
+        return _usage_error(f"-o {args.output}: cannot write: {exc.strerror}")
     print(f"recorder: {len(recording)} samples -> {args.output}")
     return 0
 

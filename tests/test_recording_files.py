@@ -323,3 +323,25 @@ def test_experiment_recordings_log_wall_clock_time_and_publish_drive_time(tmp_pa
     for topic, message in messages:
         t = telemetry.decode("State" if topic == "state" else "Command", message.data).t
         assert message.publish_time == round(t * 1e9)
+
+
+@pytest.mark.parametrize("case,needle", [
+    ("binary", "not UTF-8 text"),
+    ("directory", "is a directory"),
+    ("unwritable", "cannot write"),
+])
+def test_recorder_export_refuses_in_one_line(tmp_path, case, needle):
+    source, output = tmp_path / "run.mcap", tmp_path / "run.csv"
+    synthetic(source, cycles=100)
+    if case == "binary":
+        source = tmp_path / "blob.bin"
+        source.write_bytes(bytes(range(256)) * 4)
+    elif case == "directory":
+        source = tmp_path
+    else:
+        output = tmp_path / "missing" / "run.csv"
+    proc = subprocess.run([sys.executable, "-m", "recorder.cli", "export", str(source), "-o",
+                           str(output)], capture_output=True, text=True, timeout=60)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and needle in lines[0], proc.stderr
+    assert not output.exists()
