@@ -154,20 +154,21 @@ class DataSection:
                     if record.data_section_crc not in (0, crc):
                         raise DamagedMcap(
                             f"{self.path}: data section CRC mismatch (stored "
-                            f"0x{record.data_section_crc:08X}, computed 0x{crc:08X} over bytes "
-                            f"0-{offset}): damaged outside the chunks' contents")
+                            f"0x{record.data_section_crc:08X}, computed 0x{crc:08X} over the "
+                            f"{offset} bytes before DataEnd): damaged outside the chunks' "
+                            "contents")
                     self.complete = True
                     self.end = offset + RECORD_HEAD.size + length
                     following = fh.read(1)
                     self.summary = bool(following) and following[0] != Opcode.FOOTER
                     return
+                if offset == len(MAGIC) and not isinstance(record, Header):
+                    raise DamagedMcap(f"{self.path}: the first record is not a Header")
                 if isinstance(record, SUMMARY_ONLY) or (
                         isinstance(record, Header) and offset != len(MAGIC)):
                     raise DamagedMcap(f"{self.path}: byte {offset}: {type(record).__name__} "
                                       "record inside the data section: damaged record length "
                                       "before it")
-                if offset == len(MAGIC) and not isinstance(record, Header):
-                    raise DamagedMcap(f"{self.path}: first record is not a Header")
                 crc = zlib.crc32(body, zlib.crc32(head, crc))
                 if record is not None:
                     yield offset, record
