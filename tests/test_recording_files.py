@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 from mcap.records import Chunk, Message
+from mcap.writer import CompressionType, Writer
 
 from protocol import telemetry
 from recorder.csv_io import write_csv
@@ -169,6 +170,29 @@ def test_a_damaged_chunk_is_named_with_its_offset(tmp_path):
     data[offset + 9 + 40 + len(chunk.data) // 2] ^= 0x10  # in the compressed records
     path.write_bytes(data)
     with pytest.raises(RecordingError, match=rf"run.mcap: chunk 3 at byte {offset}: "):
+        load_recording(path)
+
+
+@pytest.mark.parametrize("compression", [CompressionType.LZ4, CompressionType.NONE])
+def test_other_writers_compressions_read_and_their_damage_is_named(tmp_path, compression):
+    path = tmp_path / "other.mcap"
+    with open(path, "wb") as fh:
+        writer = Writer(fh, chunk_size=4096, compression=compression)
+        writer.start()
+        schema = writer.register_schema(telemetry.schema_name("State"), "protobuf",
+                                        telemetry.file_descriptor_set())
+        channel = writer.register_channel("state", "protobuf", schema)
+        for k in range(1, 501):
+            writer.add_message(channel, k, telemetry.message_class("State")(
+                t=k * 1e-3, position=k * 1e-4).SerializeToString(), k)
+        writer.finish()
+    recording = load_recording(path)
+    assert len(recording) == 500 and recording.q[-1] == pytest.approx(0.05)
+    data = bytearray(path.read_bytes())
+    offset, chunk = chunks(path)[1]
+    data[offset + 9 + 40 + len(chunk.compression) + len(chunk.data) // 2] ^= 0x04
+    path.write_bytes(data)
+    with pytest.raises(RecordingError, match=rf"other.mcap: chunk 2 at byte {offset}: "):
         load_recording(path)
 
 
