@@ -17,7 +17,8 @@ from model.identify import (
 )
 from model.model_file import write_model
 from model.parameters import ActuatorModel, ModelFileError, load_model
-from recorder.recording import Recording, RecordingError, load_recording
+from recorder.reader import load_recording
+from recorder.recording import Recording, RecordingError
 
 PROG = "identify"
 

@@ -15,7 +15,8 @@ from model.gap import GapError, GapResult, find_gap
 from model.identify import Experiment
 from model.model_file import write_model
 from model.parameters import ModelFileError, Payload, load_model
-from recorder.recording import RecordingError, load_recording
+from recorder.reader import load_recording
+from recorder.recording import RecordingError
 
 PROG = "model-gap"
 

@@ -4,6 +4,7 @@ export a recording to CSV.
     recorder --exciting-trajectory [--bus vcan0 | --sim [--lockstep]] -o FILE.mcap
     recorder --zenoh KEYEXPR -o FILE.mcap [--duration S]
     recorder export FILE.mcap -o FILE.csv
+    recorder repair FILE.mcap -o REPAIRED.mcap
 """
 
 import argparse
@@ -41,7 +42,9 @@ PROG = "recorder"
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog=PROG, description=__doc__.splitlines()[0],
-        epilog="`recorder export FILE.mcap -o FILE.csv` writes the CSV interchange format.")
+        epilog="`recorder export FILE.mcap -o FILE.csv` writes the CSV interchange format; "
+               "`recorder repair FILE.mcap -o REPAIRED.mcap` rewrites a killed, truncated or "
+               "damaged recording as a complete MCAP file.")
     job = parser.add_mutually_exclusive_group(required=True)
     job.add_argument("--exciting-trajectory", action="store_true",
                      help="run the paper's exciting trajectory on the drive and record it")
@@ -74,6 +77,8 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "export":
         return _export(argv[1:])
+    if argv and argv[0] == "repair":
+        return _repair(argv[1:])
     args = build_parser().parse_args(argv)
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
@@ -118,12 +123,16 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         "model": model.source, "bus": "sim" if args.sim else args.bus,
         "node_id": args.node_id, "period_s": 1e-3,
         "recorded_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
+    try:  # before the drive is touched
+        writer = McapRecorder(args.output, metadata)
+    except OSError as exc:
+        return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
     try:
         drive, sim = open_drive(args, model, sim_model, payload)
     except DriveOpenError as exc:
+        writer.discard()
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 1
-    writer = McapRecorder(args.output, metadata)
     state_channel = writer.channel("state", "State")
     command_channel = writer.channel("command", "Command")
     state_class, command_class = (telemetry.message_class("State"),
@@ -132,39 +141,48 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     bar = _progress(args.no_progress, trajectory.duration)
 
     def sink(sample, current, reference) -> None:
-        log_time = int(round(sample.t * 1e9))
+        # log_time: the wall clock, once for the cycle's two messages; publish_time: drive time
+        log_time, drive_time = time.time_ns(), int(round(sample.t * 1e9))
         state = cia402.state_from_statusword(sample.statusword)
-        writer.write(state_channel, log_time, state_class(
+        writer.write(state_channel, state_class(
             t=sample.t, position=sample.position, velocity=sample.velocity,
             motor_current=sample.motor_current, joint_torque=sample.joint_torque,
-            statusword=sample.statusword, drive_state=state.value).SerializeToString())
-        writer.write(command_channel, log_time, command_class(
+            statusword=sample.statusword, drive_state=state.value).SerializeToString(),
+            publish_time_ns=drive_time, log_time_ns=log_time)
+        writer.write(command_channel, command_class(
             t=sample.t, current=current, planned_current=current,
             reference_position=reference[0], reference_velocity=reference[1],
             current_limit=model.limits.current_max, position_min=model.limits.position_min,
-            position_max=model.limits.position_max).SerializeToString())
+            position_max=model.limits.position_max).SerializeToString(),
+            publish_time_ns=drive_time, log_time_ns=log_time)
 
     started = time.perf_counter()
-    code, samples = 0, 0
+    code = 0
     try:
         drive.start()
-        samples = run_trajectory(drive, trajectory, law, sink, args.lockstep,
-                                          bar, stop.is_set)
+        run_trajectory(drive, trajectory, law, sink, args.lockstep, bar, stop.is_set)
         if stop.is_set():
             code = 1
-            print(f"recorder: interrupted after {samples} samples", file=sys.stderr)
+            print(f"recorder: interrupted after {writer.messages_on(state_channel)} samples",
+                  file=sys.stderr)
     except DriveError as exc:
         code = 1
         print(f"recorder: error: {exc}", file=sys.stderr)
     finally:
         drive.close()
-        writer.close()
+        # the samples that reached the writer, however the run ended
+        samples = writer.messages_on(state_channel)
+        if code != 0 and samples == 0:
+            writer.discard()  # failed before its first sample: leave no file
+        else:
+            writer.close()
         if sim is not None:
             sim.close()
     elapsed = time.perf_counter() - started
     bar(None)
+    output = args.output if samples else "no file written"
     print(f"recorder: {samples} samples ({samples / 1000:.1f} s of drive time) in {elapsed:.1f} s "
-          f"(real-time factor {samples / 1000 / elapsed:.2f}) -> {args.output}", flush=True)
+          f"(real-time factor {samples / 1000 / elapsed:.2f}) -> {output}", flush=True)
     return code
 
 
@@ -192,11 +210,15 @@ def _record_zenoh(args: argparse.Namespace, stop: threading.Event) -> int:
         session = open_session(args)
     except ValueError as exc:
         return usage_error(PROG, str(exc))
+    try:
+        writer = McapRecorder(args.output, {"source": f"zenoh {args.zenoh}"})
+    except OSError as exc:
+        session.close()
+        return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
     received: queue.Queue = queue.Queue()
     subscriber = session.declare_subscriber(
         args.zenoh, lambda sample: received.put((str(sample.key_expr),
                                                  sample.payload.to_bytes(), time.time_ns())))
-    writer = McapRecorder(args.output, {"source": f"zenoh {args.zenoh}"})
     print(f"recorder: recording {args.zenoh} -> {args.output}", flush=True)
     deadline = time.monotonic() + args.duration if args.duration else None
     skipped = 0
@@ -210,7 +232,8 @@ def _record_zenoh(args: argparse.Namespace, stop: threading.Event) -> int:
             if message is None:
                 skipped += 1
                 continue
-            writer.write(writer.channel(key, message), log_time, data)
+            writer.write(writer.channel(key, message), data, publish_time_ns=log_time,
+                         log_time_ns=log_time)
     finally:
         subscriber.undeclare()
         session.close()
@@ -218,7 +241,8 @@ def _record_zenoh(args: argparse.Namespace, stop: threading.Event) -> int:
             key, data, log_time = received.get()
             message = telemetry.TOPICS.get(key.rsplit("/", 1)[-1])
             if message is not None:
-                writer.write(writer.channel(key, message), log_time, data)
+                writer.write(writer.channel(key, message), data, publish_time_ns=log_time,
+                             log_time_ns=log_time)
         writer.close()
     print(f"recorder: {writer.messages} messages ({skipped} on keys without a schema skipped) "
           f"-> {args.output}", flush=True)
@@ -232,14 +256,37 @@ def _export(argv: list[str]) -> int:
     parser.add_argument("-o", "--output", required=True, metavar="FILE.csv")
     args = parser.parse_args(argv)
     from recorder.csv_io import write_csv
-    from recorder.recording import load_recording
+    from recorder.reader import load_recording
 
     try:
         recording = load_recording(args.recording)
     except RecordingError as exc:
         return usage_error(PROG, str(exc))
-    write_csv(recording, Path(args.output))
+    try:
+        write_csv(recording, Path(args.output))
+    except OSError as exc:
+        return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
     print(f"recorder: {len(recording)} samples -> {args.output}")
+    return 0
+
+
+def _repair(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog=f"{PROG} repair",
+        description="rewrite a killed, truncated or damaged MCAP recording as a complete one "
+                    "(summary, indexes, statistics) keeping every sound chunk")
+    parser.add_argument("recording", metavar="FILE.mcap")
+    parser.add_argument("-o", "--output", required=True, metavar="REPAIRED.mcap")
+    args = parser.parse_args(argv)
+    from recorder.repair import repair_recording
+
+    try:
+        report = repair_recording(args.recording, args.output)
+    except RecordingError as exc:
+        return usage_error(PROG, str(exc))
+    except OSError as exc:
+        return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
+    print(f"recorder: {report.summary()} -> {args.output}")
     return 0
 
 

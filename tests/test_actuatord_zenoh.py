@@ -112,13 +112,14 @@ def test_recorder_writes_live_telemetry_to_mcap(tmp_path):
     from pathlib import Path
 
     from recorder.mcap_io import iter_mcap
-    from recorder.recording import load_recording
+    from recorder.reader import load_recording
 
     port = free_port()
     proc = start_actuatord(port, "--duration", "60")
     output = tmp_path / "live.mcap"
     try:
         assert "enabled" in proc.stdout.readline()
+        started = time.time_ns()
         rec = subprocess.run(
             [sys.executable, "-m", "commands.recorder", "--zenoh", f"{PREFIX}/**", "-o",
              str(output), "--duration", "2", "--connect", f"tcp/127.0.0.1:{port}",
@@ -133,3 +134,5 @@ def test_recorder_writes_live_telemetry_to_mcap(tmp_path):
     assert len(recording) > 100
     assert all(telemetry.decode("Command", data).current_limit == 6.0
                for topic, _, _, data in iter_mcap(Path(output)) if topic.endswith("/command"))
+    # log_time: the wall clock when each sample arrived
+    assert all(started <= log_time <= time.time_ns() for _, _, log_time, _ in iter_mcap(output))

@@ -13,7 +13,7 @@ from controller.loop import ControlLoop, LoopOptions
 from controller.mpc import Mpc
 from model.parameters import load_model
 from recorder.csv_io import write_csv
-from recorder.recording import load_recording
+from recorder.reader import load_recording
 from tests.conftest import virtual_pair
 
 TRUE = load_model()

@@ -17,7 +17,8 @@ from protocol import cia402, eds_path, telemetry
 from protocol import pdo as pdo_layout
 from protocol.bus_spec import BusSpecError, parse_bus_spec
 from protocol.dictionary import load_dictionary, mappable_object
-from recorder.recording import RecordingError, load_recording
+from recorder.reader import load_recording
+from recorder.recording import RecordingError
 
 LIMITS = load_model().limits
 DICTIONARY = load_dictionary(eds_path(), 2)
