@@ -29,6 +29,10 @@ def build_parser() -> argparse.ArgumentParser:
     fox.add_argument("--key", help="key expression to bridge (default: PREFIX/**)")
     fox.add_argument("--host", default="127.0.0.1")
     fox.add_argument("--port", type=int, default=8765)
+    fox.add_argument("--legacy-port", type=int, metavar="PORT",
+                     help="also serve the old foxglove.websocket.v1 subprotocol here, for "
+                          "viewers that do not offer foxglove.sdk.v1 (Lichtblick before "
+                          "December 2025)")
     tui = jobs.add_parser("tui", help="terminal dashboard")
     tui.add_argument("--prefix", default=telemetry.DEFAULT_PREFIX)
     change = jobs.add_parser("set", help="change the reference or the weights")
@@ -96,9 +100,16 @@ def _foxglove(session, args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     key = args.key or f"{args.prefix}/**"
     bridge = FoxgloveBridge(session, key, args.prefix, args.host, args.port)
-    print(f"dashboard: Foxglove bridge on ws://{args.host}:{bridge.port} for {key}",
-          flush=True)
+    relay = None
+    if args.legacy_port is not None:
+        from dashboard.foxglove_legacy import LegacyRelay
+
+        relay = LegacyRelay(args.host, bridge.port, args.host, args.legacy_port)
+    print(f"dashboard: Foxglove bridge on ws://{args.host}:{bridge.port} for {key}"
+          + (f" (foxglove.websocket.v1 on port {relay.port})" if relay else ""), flush=True)
     stop.wait()
+    if relay is not None:
+        relay.close()
     bridge.close()
     print(f"dashboard: forwarded {bridge.forwarded} messages", flush=True)
     return 0

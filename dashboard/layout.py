@@ -166,6 +166,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("-o", "--output", type=Path, default=None,
                         help=f"default: the shipped dashboard/{SHIPPED}")
     args = parser.parse_args(argv)
+    if args.prefix and args.output is None:
+        parser.error("--prefix needs -o FILE: the shipped layout is the default prefix's")
     output = args.output or shipped_path()
     output.write_text(layout_json(build_layout(args.prefix)))
     print(f"wrote {output}")

@@ -161,6 +161,37 @@ def test_foxglove_reference_service_is_applied_audited_and_a_vanished_actuatord_
     assert f"actuatord under {PREFIX} vanished" in vanished[0]["message"]
 
 
+def test_viewers_offering_only_the_old_subprotocol_connect_through_the_legacy_port():
+    """foxglove-sdk refuses `foxglove.websocket.v1` (HTTP 400); `--legacy-port` serves it and
+    relays frames both ways: advertisements, subscriptions and service calls work."""
+    zenoh_port, ws_port, legacy_port = free_port(), free_port(), free_port()
+    old = ["foxglove.websocket.v1"]
+    bridge = subprocess.Popen(
+        [sys.executable, "-m", "dashboard.cli", "foxglove", "--prefix", PREFIX, "--port",
+         str(ws_port), "--legacy-port", str(legacy_port), "--listen",
+         f"tcp/127.0.0.1:{zenoh_port}", "--no-multicast-scouting"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    async def viewer() -> tuple[FoxgloveClient, tuple]:
+        with pytest.raises(websockets.InvalidStatus, match="HTTP 400"):
+            await websockets.connect(f"ws://127.0.0.1:{ws_port}", subprotocols=old)
+        client = await FoxgloveClient.connect(legacy_port, subprotocols=old)
+        async with client.ws:
+            await client.subscribe(f"{PREFIX}/state")
+            answer = await client.call(f"{PREFIX}/{telemetry.REFERENCE}",
+                                       {"kind": "setpoint", "position": -1.0})
+        return client, answer
+
+    try:
+        assert "foxglove.websocket.v1 on port" in bridge.stdout.readline()
+        client, (ok, message) = asyncio.run(viewer())
+    finally:
+        stop(bridge)
+    assert client.ws.subprotocol == "foxglove.websocket.v1"
+    assert client.channels[f"{PREFIX}/state"]["schemaName"] == "actuator.State"
+    assert not ok and f"no actuatord answered on {PREFIX}/reference" in message
+
+
 def schema_fields(schema_name: str, descriptor_set: bytes) -> set[str]:
     """The field names of `schema_name` in a serialised protobuf FileDescriptorSet."""
     from google.protobuf import descriptor_pb2
@@ -207,6 +238,21 @@ def layout_references() -> tuple[dict[str, set[str]], set[str]]:
 
     visit(layout)
     return fields, services
+
+
+def test_layout_for_several_actuatords_has_a_tab_each_on_its_own_topics():
+    import foxglove.layouts as fl
+
+    from dashboard.layout import build_layout
+
+    layout = build_layout(["actuators/elbow", "actuators/wrist"])
+    assert isinstance(layout.content, fl.TabContainer)
+    tabs = {tab.title: json.dumps(tab.content, default=fl.Layout._to_json_default)
+            for tab in layout.content.tabs}
+    assert set(tabs) == {"elbow", "wrist"}
+    assert "actuators/wrist/state.position" in tabs["wrist"]
+    assert "actuators/wrist/reference" in tabs["wrist"]
+    assert "actuators/elbow" not in tabs["wrist"] and "actuators/wrist" not in tabs["elbow"]
 
 
 def recorded_fields(path) -> dict[str, set[str]]:
