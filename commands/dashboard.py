@@ -1,6 +1,6 @@
 """`dashboard`: watch and steer actuatord over Zenoh.
 
-    dashboard foxglove [--key KEYEXPR] [--port 8765]   Foxglove WebSocket bridge
+    dashboard foxglove [--prefix actuators/elbow] [--port 8765]   Foxglove WebSocket bridge
     dashboard tui [--prefix actuators/elbow]           terminal dashboard
     dashboard set reference '{"kind": "setpoint", "position": -1.0}'
     dashboard set weights position=300 torque_barrier=50
@@ -24,10 +24,16 @@ def build_parser() -> argparse.ArgumentParser:
                                      epilog="\n".join(__doc__.splitlines()[2:]))
     jobs = parser.add_subparsers(dest="job", required=True)
     fox = jobs.add_parser("foxglove", help="serve the telemetry to Foxglove")
-    fox.add_argument("--key", default=f"{telemetry.DEFAULT_PREFIX}/**",
-                     help="key expression to bridge (default: %(default)s)")
+    fox.add_argument("--prefix", default=telemetry.DEFAULT_PREFIX,
+                     help="actuatord's key prefix: its services and liveliness "
+                          "(default: %(default)s)")
+    fox.add_argument("--key", help="key expression to bridge (default: PREFIX/**)")
     fox.add_argument("--host", default="127.0.0.1")
     fox.add_argument("--port", type=int, default=8765)
+    fox.add_argument("--legacy-port", type=int, metavar="PORT",
+                     help="also serve the old foxglove.websocket.v1 subprotocol here, for "
+                          "viewers that do not offer foxglove.sdk.v1 (Lichtblick before "
+                          "December 2025)")
     tui = jobs.add_parser("tui", help="terminal dashboard")
     tui.add_argument("--prefix", default=telemetry.DEFAULT_PREFIX)
     change = jobs.add_parser("set", help="change the reference or the weights")
@@ -71,18 +77,19 @@ def _request_payload(what: str, values: list[str]) -> str:
 
 
 def _set(session, args: argparse.Namespace, payload: str) -> int:
-    key = telemetry.key_expr(args.prefix, args.what)
-    replies = list(session.get(key, payload=payload, timeout=5.0))
-    answers = [json.loads(r.ok.payload.to_bytes()) for r in replies if r.ok is not None]
-    if not answers:
-        print(f"dashboard: error: no actuatord answered on {key}", file=sys.stderr)
+    from dashboard.changes import NoAnswer, request_change
+
+    try:
+        answers = request_change(session, args.prefix, args.what, payload)
+    except NoAnswer as exc:
+        print(f"dashboard: error: {exc}", file=sys.stderr)
         return 1
     for answer in answers:
-        if answer.get("ok"):
-            print(f"dashboard: {args.what} accepted: {json.dumps(answer[args.what])}")
+        if answer.accepted:
+            print(f"dashboard: {args.what} accepted: {json.dumps(answer.change)}")
         else:
-            print(f"dashboard: {args.what} refused: {answer.get('reason')}", file=sys.stderr)
-    return 0 if all(a.get("ok") for a in answers) else 1
+            print(f"dashboard: {args.what} refused: {answer.reason}", file=sys.stderr)
+    return 0 if all(a.accepted for a in answers) else 1
 
 
 def _foxglove(session, args: argparse.Namespace) -> int:
@@ -91,10 +98,18 @@ def _foxglove(session, args: argparse.Namespace) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    bridge = FoxgloveBridge(session, args.key, args.host, args.port)
-    print(f"dashboard: Foxglove bridge on ws://{args.host}:{args.port} for {args.key}",
-          flush=True)
+    key = args.key or f"{args.prefix}/**"
+    bridge = FoxgloveBridge(session, key, args.prefix, args.host, args.port)
+    relay = None
+    if args.legacy_port is not None:
+        from dashboard.foxglove_legacy import LegacyRelay
+
+        relay = LegacyRelay(args.host, bridge.port, args.host, args.legacy_port)
+    print(f"dashboard: Foxglove bridge on ws://{args.host}:{bridge.port} for {key}"
+          + (f" (foxglove.websocket.v1 on port {relay.port})" if relay else ""), flush=True)
     stop.wait()
+    if relay is not None:
+        relay.close()
     bridge.close()
     print(f"dashboard: forwarded {bridge.forwarded} messages", flush=True)
     return 0

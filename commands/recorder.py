@@ -133,8 +133,10 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         writer.discard()
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 1
-    state_channel = writer.channel("state", "State")
-    command_channel = writer.channel("command", "Command")
+    # channels named as the Zenoh keys, so a Foxglove layout serves live data and both recordings
+    state_channel = writer.channel(telemetry.key_expr(telemetry.DEFAULT_PREFIX, "state"), "State")
+    command_channel = writer.channel(telemetry.key_expr(telemetry.DEFAULT_PREFIX, "command"),
+                                     "Command")
     state_class, command_class = (telemetry.message_class("State"),
                                   telemetry.message_class("Command"))
     law = TrackingLaw(model.parameters.with_payload(payload), model.limits.current_max)
