@@ -1,8 +1,11 @@
-"""Bus specs as users type them (`vcan0`, `virtual:NAME`, `udp_multicast:GROUP[:PORT]`) turned
-into python-can constructor arguments. Pure: opening the bus is the caller's job."""
+"""Bus specs as users type them (`vcan0`, `virtual:NAME`, `udp_multicast:GROUP[:PORT]`,
+`INTERFACE:CHANNEL` for any other python-can interface) turned into python-can constructor
+arguments. Pure: opening the bus is the caller's job."""
 
 import ipaddress
 import re
+
+from can import VALID_INTERFACES
 
 _SOCKETCAN_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_.-]{0,14}$")
 DEFAULT_UDP_PORT = 43113  # python-can's UdpMulticastBus default
@@ -33,8 +36,12 @@ def parse_bus_spec(spec: str) -> dict:
         return {"interface": "virtual", "channel": rest, "receive_own_messages": False}
     if kind == "udp_multicast":
         return _udp_multicast(spec, rest)
-    raise BusSpecError(f"bus spec {spec!r}: unknown interface {kind!r}; expected socketcan, "
-                       "virtual or udp_multicast")
+    if kind in VALID_INTERFACES:
+        # the interface's own channel syntax (PCAN_USBBUS1, /dev/ttyACM0@115200, 0, ...);
+        # none given: the interface's default channel
+        return {"interface": kind, "channel": rest} if rest else {"interface": kind}
+    raise BusSpecError(f"bus spec {spec!r}: unknown interface {kind!r}; expected one of "
+                       f"python-can's: {', '.join(sorted(VALID_INTERFACES))}")
 
 
 def _udp_multicast(spec: str, rest: str) -> dict:
