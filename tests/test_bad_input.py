@@ -29,6 +29,16 @@ def files(tmp_path):
     binary.write_bytes(b"\x89PNG\r\n\x1a\n\x00\xff\xfe" * 50)
     folder = tmp_path / "folder"
     folder.mkdir()
+    default = default_model_path().read_text()
+    models = {"digits": default.replace("drive_gain = 5.0", "drive_gain = " + "9" * 401),
+              "deep": default.replace("drive_gain = 5.0",
+                                      "drive_gain = " + "[" * 5000 + "]" * 5000),
+              "offset": default.replace("torque_offset_motor = 0.0",
+                                        "torque_offset_motor = 1e12")}
+    for name, text in models.items():
+        (tmp_path / f"{name}.toml").write_text(text)
+    (tmp_path / "latin1.toml").write_bytes(default.replace("# TALOS", "# TALOS \xe9", 1)
+                                           .encode("latin-1"))
     return {"rec": str(recording), "bin": str(binary), "dir": str(folder),
             "out": str(tmp_path / "out.mcap"), "tmp": str(tmp_path)}
 
@@ -59,6 +69,10 @@ CASES = [
     ("actuatord", ["--bus", "can:0"], "unknown interface 'can'"),
     ("actuatord", [*SIM, "--bus", "virtual:x"], "--sim"),
     ("actuatord", ["--bus", "virtual:x", "-i", "virtual"], "--bus"),
+    ("actuatord", [*SIM, "--model", "{tmp}/digits.toml"], "digits.toml"),
+    ("actuatord", [*SIM, "--model", "{tmp}/deep.toml"], "deep.toml"),
+    ("actuatord", [*SIM, "--model", "{tmp}/latin1.toml"], "latin1.toml"),
+    ("actuatord", [*SIM, "--model", "{tmp}/offset.toml"], "torque_offset_motor"),
     # sim-bus
     ("sim_bus", ["--bus", "virtual:x", "--inject-fault", "silent@nan"], "--inject-fault"),
     ("sim_bus", ["--bus", "virtual:x", "--inject-fault", "silent@inf"], "--inject-fault"),
