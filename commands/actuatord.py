@@ -99,19 +99,20 @@ def _settings(args: argparse.Namespace, model: ActuatorModel) -> OcpSettings:
 
 def _check_resolution(settings: OcpSettings, model: ActuatorModel, period_us: int) -> None:
     """Refuse a step the controller cannot keep safe: at the velocity limit, one iLQR step or
-    one control period must move the joint less than the position barrier's width 1/alpha
-    (the barrier grows by e over it). A coarser step lets the plan hop over the limit without
-    the cost seeing it, and a longer period leaves the joint that far unwatched: both drove
-    the joint through the drive's position window (EMCY 0x8612)."""
+    one control period may move the joint at most half the position barrier's width 1/alpha
+    (over which the barrier grows by e), so the wall is felt at least two steps before it. A
+    coarser plan hops over the limit without the cost seeing it; a longer period leaves the
+    joint that far unwatched. At the defaults (1/alpha = 0.1 rad, 5 rad/s) 100 ms and 20 ms
+    steps drove the joint through the drive's position window (EMCY 0x8612); 10 ms held."""
     alpha, velocity = settings.sharpness.position, model.limits.velocity_max
-    longest = 1.0 / (alpha * velocity)  # s
+    longest = 0.5 / (alpha * velocity)  # s
     for option, step, shown in (("--dt", settings.dt, f"{settings.dt:g} s"),
                                 ("--period-us", period_us * 1e-6, f"{period_us} us")):
         if step > longest:
             raise ValueError(
                 f"{option} {shown}: at the velocity limit {velocity:g} rad/s the joint moves "
-                f"{velocity * step:.3g} rad per step, more than the position barrier's width "
-                f"1/alpha = {1 / alpha:g} rad; expected at most {longest * 1e3:g} ms")
+                f"{velocity * step:.3g} rad per step, more than half the position barrier's "
+                f"width 1/alpha = {1 / alpha:g} rad; expected at most {longest * 1e3:g} ms")
 
 
 def _reference(text: str | None, model: ActuatorModel):
