@@ -5,7 +5,6 @@ Prints one JSON object: SYNC cycles per second with both in this process on pyth
 `sim-bus` in a second process over `udp_multicast`.
 """
 
-import argparse
 import json
 import random
 import subprocess
@@ -14,6 +13,7 @@ import time
 
 import numpy as np
 
+from commands.options import CommandParser, add_logging_argument, configure_logging, int_range
 from driver.canopen_drive import CanOpenDrive, open_network
 
 
@@ -82,9 +82,11 @@ def _velocity_limit() -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="bus-bench", description=__doc__.splitlines()[0])
-    parser.add_argument("--cycles", type=int, default=5000)
+    parser = CommandParser(prog="bus-bench", description=__doc__.splitlines()[0])
+    parser.add_argument("--cycles", type=int_range(1, 10_000_000), default=5000)
+    add_logging_argument(parser)
     args = parser.parse_args(argv)
+    configure_logging(parser.prog, args.log_level)
     result = {"in_process_lockstep_cycles_per_s": round(_lockstep_in_process(args.cycles)),
               "udp_multicast_two_processes": _two_processes(args.cycles)}
     print(json.dumps(result))

@@ -2,12 +2,23 @@
 paper's total least squares, written as a model TOML that sim-bus, actuatord and model-gap
 accept."""
 
-import argparse
 import datetime
 import sys
 from pathlib import Path
 
-from commands.options import add_model_argument, add_payload_arguments, parse_payload, usage_error
+from commands.options import (
+    CommandParser,
+    add_logging_argument,
+    add_model_argument,
+    add_payload_arguments,
+    check_output_file,
+    check_output_folder,
+    configure_logging,
+    parse_payload,
+    positive_float,
+    read_recording,
+    usage_error,
+)
 from model.identify import (
     PARAMETERS,
     Experiment,
@@ -17,14 +28,13 @@ from model.identify import (
 )
 from model.model_file import write_model
 from model.parameters import ActuatorModel, ModelFileError, load_model
-from recorder.reader import load_recording
 from recorder.recording import Recording, RecordingError
 
 PROG = "identify"
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0])
+def build_parser() -> CommandParser:
+    parser = CommandParser(prog=PROG, description=__doc__.splitlines()[0])
     parser.add_argument("no_load", metavar="NOLOAD", help="recording without payload")
     parser.add_argument("load", metavar="LOAD", help="recording with the known payload")
     add_payload_arguments(parser, mass_default=None,
@@ -32,9 +42,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-o", "--output", required=True, metavar="MODEL.toml")
     add_model_argument(parser, help="nominal model: limits, and the defaults shown beside the "
                                     "identified values (default: packaged)")
-    parser.add_argument("--cutoff", type=float, default=25.0, metavar="HZ",
-                        help="zero-phase low-pass cutoff (default: %(default)s Hz)")
+    parser.add_argument("--cutoff", type=positive_float, default=25.0, metavar="HZ",
+                        help="zero-phase low-pass cutoff, below the recordings' Nyquist "
+                             "frequency (default: %(default)s Hz)")
     parser.add_argument("--plots", metavar="DIR", help="save measured vs predicted torques")
+    add_logging_argument(parser)
     return parser
 
 
@@ -45,10 +57,14 @@ def _experiment(recording: Recording, payload) -> Experiment:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    configure_logging(PROG, args.log_level)
     try:
+        check_output_file("-o", args.output)
+        if args.plots:
+            check_output_folder("--plots", args.plots)
         nominal = load_model(args.model)
-        no_load = load_recording(args.no_load)
-        load = load_recording(args.load)
+        no_load = read_recording(args.no_load)
+        load = read_recording(args.load)
         if args.payload_mass is not None:
             payload = parse_payload(args.payload_mass, args.payload_position)
         else:

@@ -17,16 +17,27 @@ import time
 from pathlib import Path
 
 from commands.options import (
+    CommandParser,
     DriveOpenError,
     add_bus_arguments,
+    add_logging_argument,
     add_model_argument,
     add_payload_arguments,
     add_virtual_drive_arguments,
     add_zenoh_arguments,
     check_drive_arguments,
+    check_key_expr,
+    check_output_file,
+    check_payload,
+    configure_logging,
+    finite_float,
+    int_range,
+    job_error,
     open_drive,
     open_session,
     payload_from_args,
+    positive_float,
+    read_recording,
     usage_error,
     with_truth_effects,
 )
@@ -40,7 +51,7 @@ PROG = "recorder"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = CommandParser(
         prog=PROG, description=__doc__.splitlines()[0],
         epilog="`recorder export FILE.mcap -o FILE.csv` writes the CSV interchange format; "
                "`recorder repair FILE.mcap -o REPAIRED.mcap` rewrites a killed, truncated or "
@@ -59,17 +70,18 @@ def build_parser() -> argparse.ArgumentParser:
                                     "--sim's drive)")
     add_payload_arguments(parser)
     defaults = ExcitingTrajectory()
-    parser.add_argument("--position-low", type=float, default=defaults.position_low)
-    parser.add_argument("--position-high", type=float, default=defaults.position_high)
-    parser.add_argument("--velocity-min", type=float, default=defaults.velocity_min)
-    parser.add_argument("--velocity-max", type=float, default=defaults.velocity_max)
-    parser.add_argument("--steps", type=int, default=defaults.steps,
+    parser.add_argument("--position-low", type=finite_float, default=defaults.position_low)
+    parser.add_argument("--position-high", type=finite_float, default=defaults.position_high)
+    parser.add_argument("--velocity-min", type=positive_float, default=defaults.velocity_min)
+    parser.add_argument("--velocity-max", type=positive_float, default=defaults.velocity_max)
+    parser.add_argument("--steps", type=int_range(1, 1000), default=defaults.steps,
                         help="cruise velocities from min to max (default: %(default)s)")
     add_virtual_drive_arguments(parser, faults=False)
-    parser.add_argument("--duration", type=float,
+    parser.add_argument("--duration", type=positive_float, metavar="S",
                         help="--zenoh: stop after S seconds; --sinusoid: its length")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_zenoh_arguments(parser)
+    add_logging_argument(parser)
     return parser
 
 
@@ -80,6 +92,13 @@ def main(argv: list[str] | None = None) -> int:
     if argv and argv[0] == "repair":
         return _repair(argv[1:])
     args = build_parser().parse_args(argv)
+    configure_logging(PROG, args.log_level)
+    try:
+        check_output_file("-o", args.output)
+        if args.zenoh:
+            check_key_expr("--zenoh", args.zenoh, wildcards=True)
+    except ValueError as exc:
+        return usage_error(PROG, str(exc))
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
@@ -93,6 +112,7 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         model = load_model(args.model)
         sim_model = with_truth_effects(model, args.truth_effect)
         payload = payload_from_args(args)
+        check_payload(model, payload)
         if args.sinusoid:
             trajectory = SlowSinusoid(duration=args.duration or SlowSinusoid.duration)
             trajectory_range = (trajectory.center - trajectory.amplitude,
@@ -116,23 +136,23 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     from recorder.mcap_io import McapRecorder
     from recorder.tracking import TrackingLaw
 
+    try:
+        connection = open_drive(args, sim_model, payload)
+    except DriveOpenError as exc:
+        return job_error(PROG, str(exc))
+    drive = connection.drive
     metadata = {
         "payload_mass": payload.mass, "payload_position": f"{payload.x},{payload.y}",
         "experiment": "sinusoid" if args.sinusoid else "exciting_trajectory",
         "trajectory": repr(trajectory), "truth_effects": ";".join(args.truth_effect),
-        "model": model.source, "bus": "sim" if args.sim else args.bus,
+        "model": model.source, "bus": "sim" if args.sim else connection.where,
         "node_id": args.node_id, "period_s": 1e-3,
         "recorded_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
-    try:  # before the drive is touched
+    try:  # before the drive runs
         writer = McapRecorder(args.output, metadata)
     except OSError as exc:
+        connection.close()
         return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
-    try:
-        drive, sim = open_drive(args, model, sim_model, payload)
-    except DriveOpenError as exc:
-        writer.discard()
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return 1
     # channels named as the Zenoh keys, so a Foxglove layout serves live data and both recordings
     state_channel = writer.channel(telemetry.key_expr(telemetry.DEFAULT_PREFIX, "state"), "State")
     command_channel = writer.channel(telemetry.key_expr(telemetry.DEFAULT_PREFIX, "command"),
@@ -168,18 +188,15 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
             print(f"recorder: interrupted after {writer.messages_on(state_channel)} samples",
                   file=sys.stderr)
     except DriveError as exc:
-        code = 1
-        print(f"recorder: error: {exc}", file=sys.stderr)
+        code = job_error(PROG, str(exc))
     finally:
-        drive.close()
+        connection.close()
         # the samples that reached the writer, however the run ended
         samples = writer.messages_on(state_channel)
         if code != 0 and samples == 0:
             writer.discard()  # failed before its first sample: leave no file
         else:
             writer.close()
-        if sim is not None:
-            sim.close()
     elapsed = time.perf_counter() - started
     bar(None)
     output = args.output if samples else "no file written"
@@ -252,17 +269,19 @@ def _record_zenoh(args: argparse.Namespace, stop: threading.Event) -> int:
 
 
 def _export(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="recorder export",
-                                     description="MCAP recording to the CSV contract")
+    parser = CommandParser(prog="recorder export",
+                           description="MCAP recording to the CSV contract")
     parser.add_argument("recording", metavar="FILE.mcap")
     parser.add_argument("-o", "--output", required=True, metavar="FILE.csv")
+    add_logging_argument(parser)
     args = parser.parse_args(argv)
+    configure_logging(PROG, args.log_level)
     from recorder.csv_io import write_csv
-    from recorder.reader import load_recording
 
     try:
-        recording = load_recording(args.recording)
-    except RecordingError as exc:
+        check_output_file("-o", args.output)
+        recording = read_recording(args.recording)
+    except (RecordingError, ValueError) as exc:
         return usage_error(PROG, str(exc))
     try:
         write_csv(recording, Path(args.output))

@@ -1,9 +1,12 @@
 """Bus specs as users type them (`vcan0`, `virtual:NAME`, `udp_multicast:GROUP[:PORT]`,
-`ethercat:IFACE`) turned into constructor arguments: python-can's for CAN, the network
-interface for EtherCAT. Pure: opening the bus is the caller's job."""
+`ethercat:IFACE`, `INTERFACE:CHANNEL` for any other python-can interface) turned into
+constructor arguments: python-can's for CAN, the network interface for EtherCAT. Pure: opening
+the bus is the caller's job."""
 
 import ipaddress
 import re
+
+from can import VALID_INTERFACES
 
 _SOCKETCAN_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_.-]{0,14}$")
 _NETWORK_INTERFACE = _SOCKETCAN_NAME  # Linux IFNAMSIZ: 15 characters
@@ -40,8 +43,12 @@ def parse_bus_spec(spec: str) -> dict:
         if _NETWORK_INTERFACE.match(rest):
             return {"interface": ETHERCAT, "channel": rest}
         raise BusSpecError(f"bus spec {spec!r}: not a network interface name")
-    raise BusSpecError(f"bus spec {spec!r}: unknown interface {kind!r}; expected socketcan, "
-                       "virtual, udp_multicast or ethercat")
+    if kind in VALID_INTERFACES:
+        # the interface's own channel syntax (PCAN_USBBUS1, /dev/ttyACM0@115200, 0, ...);
+        # none given: the interface's default channel
+        return {"interface": kind, "channel": rest} if rest else {"interface": kind}
+    raise BusSpecError(f"bus spec {spec!r}: unknown interface {kind!r}; expected ethercat or "
+                       f"one of python-can's: {', '.join(sorted(VALID_INTERFACES))}")
 
 
 def is_ethercat(spec: str) -> bool:

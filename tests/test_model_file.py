@@ -36,6 +36,12 @@ def test_default_model_has_provenance_for_every_parameter():
     (("drive_gain = 5.0", "drive_gain = nan"), r"drive_gain: expected a finite number"),
     (("[limits]", "[limitz]"), r"unknown table \[limitz\]"),
     (("drive_gain = 5.0", "drive_gain = = 5.0"), r"not valid TOML"),
+    (("drive_gain = 5.0", "drive_gain = " + "9" * 401),
+     r"drive_gain: expected a finite number, got an integer too large for a float"),
+    (("drive_gain = 5.0", "drive_gain = " + "[" * 5000 + "]" * 5000),
+     r"nested too deeply for a model file"),
+    (("torque_offset_motor = 0.0", "torque_offset_motor = 1e12"),
+     r"torque_offset_motor: 1e\+12 N.m; expected at most the drive's peak torque"),
 ])
 def test_bad_model_files_name_file_and_field(tmp_path, edit, message):
     path = write(tmp_path, DEFAULT.replace(*edit, 1))
@@ -60,6 +66,16 @@ provenance = "test"
     bad = write(tmp_path, DEFAULT + "\n[effects.backlash]\nwidth = 1\nprovenance = 'x'\n")
     with pytest.raises(ModelFileError, match=r"\[effects.backlash\]: unknown effect"):
         load_model(bad)
+
+
+def test_a_model_file_that_is_not_utf8_names_the_file(tmp_path):
+    path = tmp_path / "latin1.toml"
+    path.write_bytes(DEFAULT.replace("# TALOS", "# TALOS \xe9", 1).encode("latin-1"))
+    with pytest.raises(ModelFileError, match="not UTF-8 text") as info:
+        load_model(path)
+    assert str(path) in str(info.value)
+    with pytest.raises(ModelFileError, match="is a directory"):
+        load_model(tmp_path)
 
 
 def test_missing_model_file(tmp_path):

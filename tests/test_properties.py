@@ -6,6 +6,7 @@ import json
 import math
 import tomllib
 
+import can
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -109,7 +110,7 @@ def test_bus_specs(spec):
         kwargs = parse_bus_spec(spec)
     except BusSpecError:
         return
-    assert kwargs["interface"] in ("socketcan", "virtual", "udp_multicast")
+    assert kwargs["interface"] in can.VALID_INTERFACES
 
 
 BASE = tomllib.loads(default_model_path().read_text())
