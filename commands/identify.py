@@ -16,7 +16,6 @@ from commands.options import (
     configure_logging,
     parse_payload,
     positive_float,
-    read_recording,
     usage_error,
 )
 from model.identify import (
@@ -28,6 +27,7 @@ from model.identify import (
 )
 from model.model_file import write_model
 from model.parameters import ActuatorModel, ModelFileError, load_model
+from recorder.reader import load_recording
 from recorder.recording import Recording, RecordingError
 
 PROG = "identify"
@@ -63,8 +63,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.plots:
             check_output_folder("--plots", args.plots)
         nominal = load_model(args.model)
-        no_load = read_recording(args.no_load)
-        load = read_recording(args.load)
+        no_load = load_recording(args.no_load)
+        load = load_recording(args.load)
         if args.payload_mass is not None:
             payload = parse_payload(args.payload_mass, args.payload_position)
         else:

@@ -15,7 +15,6 @@ from commands.options import (
     check_output_folder,
     configure_logging,
     positive_float,
-    read_recording,
     usage_error,
 )
 from model.effects import EFFECT_KEYS
@@ -23,6 +22,7 @@ from model.gap import GapError, GapResult, find_gap
 from model.identify import Experiment
 from model.model_file import write_model
 from model.parameters import ModelFileError, Payload, load_model
+from recorder.reader import load_recording
 from recorder.recording import RecordingError
 
 PROG = "model-gap"
@@ -56,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
         model = load_model(args.model)
         experiments = []
         for path in args.recordings:
-            recording = read_recording(path)
+            recording = load_recording(path)
             experiments.append(Experiment(recording.t, recording.q, recording.current,
                                           recording.joint_torque,
                                           recording.payload() or Payload(), path))
