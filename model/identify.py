@@ -23,13 +23,15 @@ after filtering keeps the rows nearly independent for the statistics.
 """
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import signal
 
-from model.parameters import GRAVITY, ActuatorParameters, Payload
+from model.dynamics import inverse_dynamics
+from model.parameters import ActuatorParameters, Payload
 
+# the inverse dynamics' parameters, then the two measurement gains (current, torque sensor)
 PARAMETERS = ("motor_inertia", "link_inertia", "first_moment_y", "first_moment_x",
               "viscous_friction_motor", "viscous_friction_joint", "dry_friction_motor",
               "dry_friction_joint", "torque_offset_motor", "torque_offset_joint", "drive_gain",
@@ -116,25 +118,23 @@ def prepare(experiment: Experiment, cutoff_hz: float = CUTOFF_HZ) -> Columns:
                    joint_torque=smooth(np.asarray(experiment.joint_torque, float))[keep])
 
 
-def payload_torque(columns: Columns, payload: Payload) -> np.ndarray:
-    """The payload's known joint torque: inertia m (x^2 + y^2) and gravity of (m x, m y)."""
-    return (payload.mass * (payload.x**2 + payload.y**2) * columns.qdd
-            + GRAVITY * payload.mass * (payload.y * np.sin(columns.q)
-                                        + payload.x * np.cos(columns.q)))
-
-
 def rows(columns: Columns, payload: Payload) -> tuple[np.ndarray, np.ndarray]:
     """Motor and sensor rows [unknown columns (12) | known payload torque] of one experiment,
-    restricted to samples moving faster than MIN_SPEED."""
+    restricted to samples moving faster than MIN_SPEED. The inverse dynamics are linear in the
+    model's parameters, so each column is the model's own torque for a unit value of one
+    parameter (all others zero); the known column is the payload's alone."""
     moving = np.abs(columns.qd) > MIN_SPEED
     c = Columns(*(getattr(columns, f)[moving] for f in Columns.__dataclass_fields__))
-    n = len(c.t)
-    gs, gc, one, zero = GRAVITY * np.sin(c.q), GRAVITY * np.cos(c.q), np.ones(n), np.zeros(n)
-    known = payload_torque(c, payload)
-    motor = np.column_stack([c.qdd, c.qdd, gs, gc, c.qd, c.qd, c.friction_sign,
-                             c.friction_sign, one, one, -c.current, zero, known])
-    sensor = np.column_stack([zero, c.qdd, gs, gc, zero, c.qd, zero, c.friction_sign, zero,
-                              one, zero, -c.joint_torque, known])
+
+    def torques(parameters: ActuatorParameters) -> tuple[np.ndarray, np.ndarray]:
+        return inverse_dynamics(c.q, c.qd, c.qdd, c.friction_sign, parameters.packed())
+
+    nothing = ActuatorParameters(**dict.fromkeys(PARAMETERS, 0.0))
+    unit = [torques(replace(nothing, **{name: 1.0})) for name in PARAMETERS[:-2]]
+    known_motor, known_joint = torques(nothing.with_payload(payload))
+    zero = np.zeros(len(c.t))
+    motor = np.column_stack([m for m, _ in unit] + [-c.current, zero, known_motor])
+    sensor = np.column_stack([j for _, j in unit] + [zero, -c.joint_torque, known_joint])
     return motor, sensor
 
 

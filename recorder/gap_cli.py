@@ -9,8 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from model.effects import EFFECT_KEYS
-from model.gap import GapError, GapResult, find_gap
+from model.gap import HORIZON, GapError, GapResult, build_report, find_gap
 from model.identify import Experiment
 from model.parameters import ModelFileError, Payload, load_model
 from recorder.model_file import write_model
@@ -31,7 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--plots", metavar="DIR", help="before/after figures")
     parser.add_argument("-o", "--output", metavar="IMPROVED.toml",
                         help="write the improved model (only when an effect is found)")
-    parser.add_argument("--horizon", type=float, default=0.5, metavar="S",
+    parser.add_argument("--horizon", type=float, default=HORIZON, metavar="S",
                         help="simulation horizon before restarting from the measured state "
                              "(default: %(default)s s)")
     return parser
@@ -78,31 +77,6 @@ def main(argv: list[str] | None = None) -> int:
     closed = result.effect == "none" or (result.rmsd_after < result.rmsd_before
                                          and result.sim_rmsd_after <= result.sim_rmsd_before)
     return 0 if closed else 1
-
-
-def build_report(result: GapResult, model_path: str) -> dict:
-    effect_parameters = ({} if result.effect == "none"
-                         else result.parameters.effects.section(result.effect))
-    return {
-        "effect": result.effect,
-        "rmsd_before": result.rmsd_before,
-        "rmsd_after": result.rmsd_after,
-        "sim_rmsd_before": result.sim_rmsd_before,
-        "sim_rmsd_after": result.sim_rmsd_after,
-        "model": str(model_path),
-        "rmsd_signal": "motor torque at joint level (drive_gain x current) against the model's "
-                       "inverse dynamics, N.m",
-        "rmsd_sensor_before": result.rmsd_sensor_before,
-        "rmsd_sensor_after": result.rmsd_sensor_after,
-        "sim_horizon_s": result.horizon,
-        "effect_parameters": effect_parameters,
-        "effect_units": {k: unit for k, (_, unit) in EFFECT_KEYS.get(result.effect, {}).items()},
-        "candidates": result.candidates,
-        "selection": "lowest held-out torque RMSD over 5 contiguous time blocks; named only if "
-                     "it beats the plain refit by >= 10 %",
-        "where_before": result.localisation_before,
-        "where_after": result.localisation_after,
-    }
 
 
 def summary(result: GapResult) -> str:

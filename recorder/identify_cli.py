@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from model.identify import (
+    CUTOFF_HZ,
     PARAMETERS,
     Experiment,
     IdentificationError,
@@ -34,7 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-o", "--output", required=True, metavar="MODEL.toml")
     parser.add_argument("--model", help="nominal model: limits, and the defaults shown beside "
                                         "the identified values (default: packaged)")
-    parser.add_argument("--cutoff", type=float, default=25.0, metavar="HZ",
+    parser.add_argument("--cutoff", type=float, default=CUTOFF_HZ, metavar="HZ",
                         help="zero-phase low-pass cutoff (default: %(default)s Hz)")
     parser.add_argument("--plots", metavar="DIR", help="save measured vs predicted torques")
     return parser

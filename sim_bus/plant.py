@@ -6,10 +6,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from model import dynamics
-from model.parameters import GRAVITY, ActuatorParameters, Payload
+from model.parameters import ActuatorParameters, Payload
 from protocol import objects as od
-
-PHYSICS_SUBSTEPS = 20  # 50 us: within 1 encoder count of 1000 substeps (tests/test_dynamics.py)
 
 
 @dataclass(frozen=True)
@@ -56,23 +54,19 @@ class Plant:
     def advance(self, current: float, dt: float) -> None:
         (self.position, self.velocity, self._acceleration, self._dry,
          self._dry_level) = dynamics.step(self.position, self.velocity, current, self._packed,
-                                          dt, PHYSICS_SUBSTEPS)
+                                          dt, dynamics.SUBSTEPS)
         self._current = current
         self.time += dt
 
     def joint_torque(self) -> float:
-        """What the link side transmits: link inertia, gravity of link and payload, and the
-        joint's share of the friction. Sliding, the joint side carries its own Coulomb part
-        (Fsj); stuck, its share of the holding friction. The optional effects (Stribeck,
-        ripple, load-dependent friction) sit in the transmission, on the motor side of the
-        sensor, so the sensor does not see them directly."""
-        p = self.parameters
-        share = p.dry_friction_joint / self._dry_level if self._dry_level > 0 else 0.0
-        gravity = GRAVITY * (p.first_moment_y * np.sin(self.position)
-                             + p.first_moment_x * np.cos(self.position))
-        return (p.link_inertia * self._acceleration + gravity
-                + p.viscous_friction_joint * self.velocity + share * self._dry
-                + p.torque_offset_joint)
+        """What the link side transmits (the inverse dynamics' joint side) in the last substep:
+        sliding, the joint carries its own Coulomb part (Fsj); stuck, its share of the holding
+        friction (the direction is the share of the level in use). The effects sit in the
+        transmission, on the motor side of the sensor, so the sensor does not see them."""
+        direction = self._dry / self._dry_level if self._dry_level > 0 else 0.0
+        _, joint = dynamics.sample_inverse_dynamics(self.position, self.velocity,
+                                                    self._acceleration, direction, self._packed)
+        return float(joint)
 
     def measure(self) -> Measurement:
         current = self._current + self._rng.normal(0.0, self.noise.current)
