@@ -20,6 +20,9 @@ class TrackingLaw:
     parameters: ActuatorParameters  # nominal model, payload included
     current_limit: float
 
+    def __post_init__(self) -> None:
+        self.current(0.0, 0.0, (0.0, 0.0, 0.0))  # load the compiled model before the loop runs
+
     @cached_property
     def _packed(self) -> np.ndarray:
         return self.parameters.packed()

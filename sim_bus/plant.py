@@ -45,6 +45,10 @@ class Plant:
         self._dry = 0.0
         self._dry_level = parameters.dry_friction
         self._current = 0.0
+        # load the compiled physics now, not in the first SYNC: a process's first call of
+        # compiled code takes seconds, which a heartbeat watch would see as a dead drive
+        dynamics.step(self.position, 0.0, 0.0, self._packed, 1e-3, dynamics.SUBSTEPS)
+        self.joint_torque()
 
     def set_payload(self, payload: Payload) -> None:
         self.payload = payload
