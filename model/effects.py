@@ -19,7 +19,10 @@ of the torque the drive must overcome, each with its partial derivatives:
 from the effect's own block of the packed parameters, p[k:k + slots], and the base model's
 Coulomb level and gravity torque (with its derivative), which some effects scale.
 
-`LIBRARY` is what model files may carry and what model-gap searches.
+`LIBRARY` is what model files may carry and what model-gap searches. `HIDDEN_ONLY` holds
+physics the virtual drive can be given as a hidden truth (`--truth-effect`) to test what
+model-gap says about an effect outside its library; model-gap never proposes it and model
+files refuse it.
 """
 
 import math
@@ -136,6 +139,27 @@ def _load_friction_term(q, qd, p, k, coulomb, gravity, d_gravity):
     return p[k] * smooth_abs, p[k] * gravity * d_gravity / smooth_abs, zero, zero, zero, zero
 
 
+@register_jitable
+def _friction_ripple_term(q, qd, p, k, coulomb, gravity, d_gravity):
+    zero = 0.0 * q
+    if p[k] == 0.0 and p[k + 1] == 0.0:
+        return zero, zero, zero, zero, zero, zero
+    w = p[k + 2]
+    s, c = np.sin(w * q), np.cos(w * q)
+    return p[k] * s + p[k + 1] * c, w * (p[k] * c - p[k + 1] * s), zero, zero, zero, zero
+
+
+@register_jitable
+def _smooth_reversal_term(q, qd, p, k, coulomb, gravity, d_gravity):
+    zero = 0.0 * qd
+    if p[k] == 0.0:
+        return zero, zero, zero, zero, zero, zero
+    th = np.tanh(qd / p[k])
+    # level Fs |tanh(qd / v)| instead of Fs: the effect's share is -Fs (1 - |tanh|)
+    return (-coulomb * (1.0 - np.abs(th)), zero, coulomb * np.sign(qd) * (1.0 - th * th) / p[k],
+            zero, zero, zero)
+
+
 # --- the effects ------------------------------------------------------------------------------
 
 class Stribeck(Effect):
@@ -179,7 +203,7 @@ class PositionRipple(Effect):
     strength = "amplitude"
     slots = 3
     shape = "spatial_frequency"
-    shape_grid = np.arange(0.5, 40.0, 0.05)
+    shape_grid = np.arange(1.0, 40.0, 0.2)  # refined between neighbours by model-gap
     coefficients = 2  # a sin(wq) + b cos(wq)
     term = staticmethod(_position_ripple_term)
 
@@ -233,8 +257,42 @@ class LoadDependentFriction(Effect):
         return []
 
 
-LIBRARY: tuple[Effect, ...] = (Stribeck(), PositionRipple(), LoadDependentFriction())
-PHYSICS: tuple[Effect, ...] = LIBRARY  # what the dynamics carry, in packed order
+class FrictionRipple(PositionRipple):
+    name = "friction_ripple"
+    model = ("dry friction periodic in angle (wave-generator meshing): "
+             "Fs + A sin(2 pi f q + phi)")
+    term = staticmethod(_friction_ripple_term)
+
+    def violations(self, table, context):
+        out = super().violations(table, context)
+        if table["amplitude"] >= context.coulomb:
+            out.append(f"amplitude {table['amplitude']:.3f} N.m is not below the Coulomb level "
+                       f"{context.coulomb:.3f} N.m (dry friction would change sign with angle)")
+        return out
+
+
+class SmoothReversal(Effect):
+    """Outside the library on purpose (see the module docstring)."""
+
+    name = "smooth_reversal"
+    model = "dry friction reversing smoothly instead of sticking: Fs tanh(qd / v)"
+    keys = (Key("velocity", "rad/s", 0.0, "v: the speed over which the friction reverses"),)
+    strength = "velocity"
+    slots = 1
+    term = staticmethod(_smooth_reversal_term)
+
+    def validate(self, table):
+        if table["velocity"] < 0:
+            raise ValueError("smooth_reversal velocity must be >= 0")
+
+    def pack(self, table):
+        return (table["velocity"],)
+
+
+LIBRARY: tuple[Effect, ...] = (Stribeck(), PositionRipple(), LoadDependentFriction(),
+                               FrictionRipple())
+HIDDEN_ONLY: tuple[Effect, ...] = (SmoothReversal(),)
+PHYSICS: tuple[Effect, ...] = LIBRARY + HIDDEN_ONLY  # what the dynamics carry, in packed order
 EFFECTS: dict[str, Effect] = {effect.name: effect for effect in PHYSICS}
 LIBRARY_NAMES = tuple(effect.name for effect in LIBRARY)
 # what `--truth-effect` accepts: {effect: {key: (key, unit)}}

@@ -52,10 +52,11 @@ def test_twenty_substeps_agree_with_a_thousand_within_one_encoder_count():
 WITH_EFFECTS = load_model().parameters.with_effect(
     "stribeck", {"breakaway_friction": 1.0, "velocity": 0.05}).with_effect(
     "position_ripple", {"amplitude": 0.5, "spatial_frequency": 3.0, "phase": 0.4}).with_effect(
-    "load_dependent_friction", {"coefficient": 0.05}).packed()
+    "load_dependent_friction", {"coefficient": 0.05}).with_effect(
+    "friction_ripple", {"amplitude": 0.3, "spatial_frequency": 5.0, "phase": 1.1}).packed()
 
 
-@pytest.mark.parametrize("p", [P, WITH_EFFECTS], ids=["paper", "all effects"])
+@pytest.mark.parametrize("p", [P, WITH_EFFECTS], ids=["paper", "all library effects"])
 def test_smooth_model_derivatives_match_finite_differences(p):
     beta, eps = 1000.0, 1e-7
     for q, qd, i in [(-1.0, 0.3, 1.2), (-2.0, -0.001, -3.0), (-0.3, 0.0, 0.5)]:
