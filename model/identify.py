@@ -44,6 +44,9 @@ EDGE = 0.2  # s dropped at both ends (filter transients)
 MIN_DURATION = 2.0  # s
 MIN_RANGE = 0.5  # rad of motion needed to separate the gravity terms
 MAX_CONDITION = 1e4  # of the column-normalised regressor
+MAX_SCALE_STD = 10.0  # % relative std of the drive gain: above, the payload did not fix the scale
+SAME_POSITION = 1e-3  # rad RMS: two recordings this close in position ...
+SAME_CURRENT = 0.02  # ... and within 2 % in current are one experiment recorded twice
 
 
 class IdentificationError(ValueError):
@@ -138,11 +141,45 @@ def rows(columns: Columns, payload: Payload) -> tuple[np.ndarray, np.ndarray]:
     return motor, sensor
 
 
+def _describe(payload: Payload) -> str:
+    if payload.mass <= 0:
+        return "no payload"
+    return f"{payload.mass:g} kg at ({payload.x:g}, {payload.y:g}) m"
+
+
+def _refuse_one_experiment(no_load: Experiment, load: Experiment) -> None:
+    """The scale comes from the payload's difference between the experiments: the same payload
+    twice, a payload that adds no torque, or the same data under two payload claims cannot
+    give it."""
+    if no_load.payload == load.payload:
+        raise IdentificationError(
+            f"{no_load.name} and {load.name} carry the same payload ({_describe(load.payload)})"
+            ": one experiment twice cannot fix the scale; record LOAD with another payload")
+    p = load.payload
+    if p.mass * math.hypot(p.x, p.y) == 0:
+        raise IdentificationError(f"{load.name}: the payload ({_describe(p)}) adds no torque "
+                                  "at the joint (it sits on the axis); it cannot fix the scale")
+    a, b = (np.asarray(e.q, float) for e in (no_load, load))
+    i, j = (np.asarray(e.current, float) for e in (no_load, load))
+    n = min(len(a), len(b))
+    if (abs(len(a) - len(b)) <= 0.01 * max(len(a), len(b))
+            and np.sqrt(np.mean((a[:n] - b[:n]) ** 2)) < SAME_POSITION
+            and np.sqrt(np.mean((i[:n] - j[:n]) ** 2))
+            < SAME_CURRENT * np.sqrt(np.mean(i[:n] ** 2))):
+        raise IdentificationError(
+            f"{no_load.name} and {load.name} are the same experiment (positions and currents "
+            f"agree) yet are said to carry {_describe(no_load.payload)} and "
+            f"{_describe(load.payload)}: record LOAD with the payload on the link")
+
+
 def identify(no_load: Experiment, load: Experiment,
              cutoff_hz: float = CUTOFF_HZ) -> Identified:
+    """The paper's total least squares over the two experiments; IdentificationError when
+    they cannot identify the model (why, in one line)."""
     if load.payload.mass <= 0:
         raise IdentificationError(f"{load.name}: the load experiment carries no payload; the "
                                   "scale of the parameters cannot be identified without one")
+    _refuse_one_experiment(no_load, load)
     prepared = [(prepare(e, cutoff_hz), e) for e in (no_load, load)]
     blocks = [rows(columns, e.payload) for columns, e in prepared]
     M = np.vstack([block for pair in blocks for block in pair])
@@ -171,6 +208,16 @@ def identify(no_load: Experiment, load: Experiment,
     parameters = ActuatorParameters(**values)
     relative = {name: 100.0 * s / abs(values[name]) if values[name] != 0 else math.inf
                 for name, s in zip(PARAMETERS, std, strict=True)}
+    unphysical = [f"{name} {values[name]:.4g}" for name in
+                  ("drive_gain", "torque_sensor_gain", "motor_inertia", "link_inertia")
+                  if values[name] <= 0]
+    if unphysical or relative["drive_gain"] > MAX_SCALE_STD:
+        raise IdentificationError(
+            f"the payload difference between {no_load.name} ({_describe(no_load.payload)}) and "
+            f"{load.name} ({_describe(load.payload)}) cannot scale the solution: "
+            + (", ".join(unphysical) + " (must be > 0)" if unphysical else
+               f"drive_gain known only to {relative['drive_gain']:.0f} % "
+               f"(need {MAX_SCALE_STD:g} %)"))
 
     fits = {}
     motor_err, joint_err = [], []
