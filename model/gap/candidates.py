@@ -8,7 +8,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from model.effects import Effect, Effects
-from model.gap.evidence import Signals, gravity, predicted_motor_torque, unit_columns
+from model.gap.evidence import FOLDS, Signals, gravity, predicted_motor_torque, unit_columns
 from model.parameters import ActuatorParameters
 
 REFIT = ("viscous_friction_motor", "dry_friction_motor", "torque_offset_motor")
@@ -29,6 +29,10 @@ class Problem:
     base columns of REFIT, and what the effects' columns need."""
 
     def __init__(self, s: Signals, parameters: ActuatorParameters):
+        # rows ordered by time block, so that a block is a slice
+        s = s.subset(np.argsort(s.segment, kind="stable"))
+        bounds = np.searchsorted(s.segment, np.arange(FOLDS + 1))
+        self.blocks = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
         self.s = s
         self.parameters = parameters
         untouched = replace(parameters, effects=Effects(), **dict.fromkeys(REFIT, 0.0))
@@ -74,44 +78,38 @@ def solve(problem: Problem, terms: tuple[Term, ...], rows: np.ndarray | slice = 
     return Fit(terms, coefficients)
 
 
-class _Projection:
-    """Least squares of y on [fixed | C] for many candidate blocks C: the fixed columns are
-    projected out once (QR), so each candidate costs a small solve."""
-
-    def __init__(self, fixed: np.ndarray, y: np.ndarray):
-        self.basis, _ = np.linalg.qr(fixed)
-        self.y = y - self.basis @ (self.basis.T @ y)
-
-    def sse(self, candidate: np.ndarray) -> float:
-        c = candidate - self.basis @ (self.basis.T @ candidate)
-        g = c.T @ self.y
-        beta, *_ = np.linalg.lstsq(c.T @ c, g, rcond=None)
-        return float(self.y @ self.y - g @ beta)
-
-
 def best_terms(problem: Problem, fixed: tuple[Term, ...], effect: Effect,
-               row_sets: list[np.ndarray | slice]) -> list[Term]:
-    """For each set of rows, the shape of `effect` that, added to `fixed`, leaves the least
-    squared error on those rows."""
-    if effect.shape is None:
-        return [Term(effect, 0.0) for _ in row_sets]
-    design = problem.design(fixed)
-    projections = [_Projection(design[rows], problem.target[rows]) for rows in row_sets]
+               left_out: list[int | None]) -> list[Term]:
+    """For each entry of `left_out` (a time block left out, or None for none), the shape of
+    `effect` that, added to `fixed`, leaves the least squared error on the remaining rows.
 
-    def errors(shape: float, which: list[int]) -> list[float]:
-        block = problem.columns(Term(effect, shape))
-        return [projections[j].sse(block[row_sets[j]]) for j in which]
+    The rows' cross products are summed per time block, so a fit on any union of blocks is a
+    small solve: one pass over the data per shape serves every fold. The grid's best point is
+    refined between its neighbours."""
+    if effect.shape is None:
+        return [Term(effect, 0.0) for _ in left_out]
+    fixed_part = np.column_stack([problem.design(fixed), problem.target])
+    pick = np.array([[fold != block for block in range(FOLDS)] for fold in left_out], float)
+
+    def errors(shape: float) -> np.ndarray:
+        """Squared error of each entry of `left_out` at this shape."""
+        z = np.column_stack([problem.columns(Term(effect, shape)), fixed_part])
+        grams = np.array([z[rows].T @ z[rows] for rows in problem.blocks])
+        gram = np.einsum("fb,bij->fij", pick, grams)
+        a, b = gram[:, :-1, :-1], gram[:, :-1, -1]
+        ridge = 1e-12 * np.trace(a, axis1=1, axis2=2)[:, None, None] * np.eye(a.shape[1])
+        beta = np.linalg.solve(a + ridge, b[..., None])[..., 0]
+        return gram[:, -1, -1] - np.einsum("fi,fi->f", b, beta)
 
     grid = effect.shape_grid
-    everyone = list(range(len(row_sets)))
-    table = np.array([errors(shape, everyone) for shape in grid])
-    out = []
-    for j in everyone:
-        i = int(np.argmin(table[:, j]))
-        fine = np.linspace(grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)], REFINE_POINTS)
-        scores = [errors(shape, [j])[0] for shape in fine]
-        out.append(Term(effect, float(fine[int(np.argmin(scores))])))
-    return out
+    coarse = np.array([errors(shape) for shape in grid])
+    best = np.argmin(coarse, axis=0)
+    fine_grids = [np.linspace(grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)],
+                              REFINE_POINTS) for i in best]
+    shapes = np.unique(np.concatenate(fine_grids))
+    fine = dict(zip(shapes, (errors(shape) for shape in shapes), strict=True))
+    return [Term(effect, float(min(points, key=lambda x, j=j: fine[x][j])))
+            for j, points in enumerate(fine_grids)]
 
 
 def improved_parameters(fit: Fit, parameters: ActuatorParameters) -> ActuatorParameters:
