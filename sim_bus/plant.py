@@ -7,9 +7,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from model import dynamics
-from model.parameters import GRAVITY, ActuatorParameters, Payload
+from model.parameters import ActuatorParameters, Payload
 
-PHYSICS_SUBSTEPS = 20  # 50 us: within 1 encoder count of 1000 substeps (tests/test_dynamics.py)
 # assumed: above the motor's rated torque (30 N.m, 0x6076) as holding brakes are sized, and
 # above the 25 N.m the paper's heaviest payload (30 kg at 5 cm) hangs on the joint
 BRAKE_HOLDING_TORQUE = 40.0  # N.m
@@ -55,9 +54,6 @@ class Plant:
         self._dry = 0.0
         self._dry_level = parameters.dry_friction
         self._current = 0.0
-        # load the compiled physics now, not inside the first SYNC: on a busy host that takes
-        # seconds, far longer than a master waits for its first sample (the result is unused)
-        dynamics.step(self.position, 0.0, 0.0, self._packed, 1e-3, PHYSICS_SUBSTEPS)
 
     def set_payload(self, payload: Payload) -> None:
         self.payload = payload
@@ -68,30 +64,28 @@ class Plant:
 
     def warm_up(self) -> None:
         """Compile (or load) the integrator now, on a throwaway state: the first SYNC must be
-        answered within one period, not after a 0.3-0.5 s compilation."""
-        dynamics.step(self.position, 0.0, 0.0, self._packed, 1e-3, PHYSICS_SUBSTEPS)
+        answered within one period, not after a 0.3-0.5 s compilation (seconds on a busy
+        host, far longer than a master waits for its first sample). The results are unused."""
+        dynamics.step(self.position, 0.0, 0.0, self._packed, 1e-3, dynamics.SUBSTEPS)
+        self.joint_torque()
 
     def advance(self, current: float, dt: float, braked: bool = False) -> None:
         (self.position, self.velocity, self._acceleration, self._dry,
          self._dry_level) = dynamics.step(self.position, self.velocity, current,
                                           self._packed_braked if braked else self._packed,
-                                          dt, PHYSICS_SUBSTEPS)
+                                          dt, dynamics.SUBSTEPS)
         self._current = current
         self.time += dt
 
     def joint_torque(self) -> float:
-        """What the link side transmits: link inertia, gravity of link and payload, and the
-        joint's share of the friction. Sliding, the joint side carries its own Coulomb part
-        (Fsj); stuck, its share of the holding friction. The optional effects (Stribeck,
-        ripple, load-dependent friction) sit in the transmission, on the motor side of the
-        sensor, so the sensor does not see them directly."""
-        p = self.parameters
-        share = p.dry_friction_joint / self._dry_level if self._dry_level > 0 else 0.0
-        gravity = GRAVITY * (p.first_moment_y * np.sin(self.position)
-                             + p.first_moment_x * np.cos(self.position))
-        return (p.link_inertia * self._acceleration + gravity
-                + p.viscous_friction_joint * self.velocity + share * self._dry
-                + p.torque_offset_joint)
+        """What the link side transmits (the inverse dynamics' joint side) in the last substep:
+        sliding, the joint carries its own Coulomb part (Fsj); stuck, its share of the holding
+        friction (the direction is the share of the level in use). The effects sit in the
+        transmission, on the motor side of the sensor, so the sensor does not see them."""
+        direction = self._dry / self._dry_level if self._dry_level > 0 else 0.0
+        _, joint = dynamics.sample_inverse_dynamics(self.position, self.velocity,
+                                                    self._acceleration, direction, self._packed)
+        return float(joint)
 
     def measure(self) -> Measurement:
         current = self._current + self._rng.normal(0.0, self.noise.current)
