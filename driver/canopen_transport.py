@@ -148,8 +148,8 @@ class CanOpenTransport(Transport):
         self._plan = (rpdos, tpdos, counting, len(inputs))
 
     def start(self, period: float) -> None:
-        """Cycle period, synchronous window (one period) and heartbeat by SDO, then NMT
-        operational; the heartbeat consumer starts watching."""
+        """Cycle period, synchronous window and heartbeats by SDO, then NMT operational; the
+        heartbeat consumer starts watching."""
         if self._plan is None:
             raise DriveError(f"{self.name}: start before map_process_data")
         rpdos, tpdos, counting, inputs = self._plan
@@ -159,8 +159,9 @@ class CanOpenTransport(Transport):
             self.write(objects.CYCLE_PERIOD_US, 0, period_us)
         window = None
         if has(self.dictionary, objects.SYNC_WINDOW_US):
-            self.write(objects.SYNC_WINDOW_US, 0, period_us)
-            window = period
+            # the response timeout, for the reason in driver.canopen_cycle
+            window = self.sync_cycle.response_timeout
+            self.write(objects.SYNC_WINDOW_US, 0, int(round(window * 1e6)))
         heartbeat_ms = 0
         if has(self.dictionary, objects.PRODUCER_HEARTBEAT_MS):
             self.write(objects.PRODUCER_HEARTBEAT_MS, 0, self.heartbeat_ms)

@@ -30,6 +30,8 @@ from sim_bus.faults import FLOOD_COB_ID, FLOOD_SECONDS, TPDO_DELAY, Fault
 
 log = logging.getLogger(__name__)
 
+RESET_TIME = 0.01  # s from an NMT reset (or power-on) to the boot-up message, real time
+
 NMT_STATE_NAMES = {cia301.NMT_BOOT_UP: "INITIALISING", cia301.NMT_STOPPED: "STOPPED",
                    cia301.NMT_OPERATIONAL: "OPERATIONAL",
                    cia301.NMT_PRE_OPERATIONAL: "PRE-OPERATIONAL"}
@@ -103,11 +105,24 @@ class CanOpenNode:
         self._restart()
 
     def _restart(self) -> None:
+        """Initialisation, then the boot-up message. In real time it takes RESET_TIME, as a
+        device's reset does: a master that sends the reset and then starts waiting for the
+        boot-up (canopen's documented `wait_for_bootup`) is not outrun by it."""
         self._heartbeat.stop()
         self._stop_pdos()
         self.master_watch.rearm()
         self.master_watch.configure(self.device.period)
         self.nmt_state = cia301.NMT_BOOT_UP
+        if self.lockstep:
+            self._boot_up()
+        else:
+            timer = threading.Timer(RESET_TIME, self._boot_up)
+            timer.daemon = True
+            timer.start()
+
+    def _boot_up(self) -> None:
+        if self._silent:
+            return
         self.network.send_message(cia301.HEARTBEAT_BASE + self.node_id,
                                   bytes([cia301.NMT_BOOT_UP]))
         self.nmt_state = cia301.NMT_PRE_OPERATIONAL
