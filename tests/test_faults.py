@@ -1,6 +1,7 @@
 """Each injectable fault of the virtual drive against the driver and the control loop, in
 lock-step: how many cycles until it is seen, the commanded current on every cycle, the
-message on the fault topic, and the state the drive is left in."""
+message on the fault topic, and the state the drive is left in. The drive is linked to the
+master as `--sim` links it, so a flood and a late TPDO are reported there as on a bus."""
 
 import pytest
 
@@ -119,3 +120,28 @@ def test_a_stall_in_real_time_is_reported_on_the_fault_topic():
     stalls = [f for topic, f in messages if topic == "fault" and "stalled" in f["cause"]]
     assert stalls and int(stalls[0]["cause"].split()[2]) >= 150
     assert report.missed_cycles >= 150
+
+
+def test_a_fault_at_time_zero_fires_on_the_first_cycle():
+    with virtual_pair() as (sim, drive):
+        drive.start()
+        sim.device.schedule(Fault.TORQUE_SENSOR_SATURATED, 0.0)
+        first = drive.sync()
+        assert sim.device.injected == [(1, Fault.TORQUE_SENSOR_SATURATED)]
+        assert first.joint_torque != first.joint_torque  # NaN: the reading is not a torque
+        assert any("saturated" in w for w in drive.warnings())
+
+
+def test_several_faults_due_in_one_cycle_all_fire():
+    with virtual_pair() as (sim, drive):
+        drive.start()
+        for fault in (Fault.TPDO_TWICE, Fault.TORQUE_SENSOR_SATURATED, Fault.HEARTBEAT_STOPS):
+            sim.device.schedule(fault, 0.01)
+        for _ in range(10):
+            drive.sync()
+            drive.command_current(0.0)
+        assert sorted(sim.device.injected) == [
+            (10, Fault.HEARTBEAT_STOPS), (10, Fault.TPDO_TWICE),
+            (10, Fault.TORQUE_SENSOR_SATURATED)]
+        warnings = " | ".join(drive.warnings())
+        assert "unexpected TPDO" in warnings and "saturated" in warnings
