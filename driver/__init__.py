@@ -1,4 +1,5 @@
-"""The master side: a transport-neutral `Drive` interface and its CANopen (CiA 402) backend."""
+"""The master side: the `Drive` interface, the transport-neutral CiA 402 layer and its
+transports (CANopen now; EtherCAT against `driver.transport`)."""
 
 from driver.interface import (
     CommandRangeError,
@@ -8,8 +9,10 @@ from driver.interface import (
     DriveLost,
     DriveTimeout,
     EncoderGlitch,
+    ForeignMaster,
+    ProfileError,
     Sample,
 )
 
 __all__ = ["CommandRangeError", "Drive", "DriveError", "DriveFault", "DriveLost", "DriveTimeout",
-           "EncoderGlitch", "Sample"]
+           "EncoderGlitch", "ForeignMaster", "ProfileError", "Sample"]

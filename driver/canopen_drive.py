@@ -21,7 +21,7 @@ from driver.interface import (
     EncoderGlitch,
     Sample,
 )
-from protocol import cia402, eds_path, objects
+from protocol import cia301, cia402, eds_path, objects
 from protocol import pdo as pdo_layout
 from protocol.bus_spec import parse_bus_spec
 from protocol.cia402 import State
@@ -135,10 +135,10 @@ class CanOpenDrive(Drive):
             sdo[objects.MODES_OF_OPERATION].raw = objects.MODE_CYCLIC_SYNC_CURRENT
             for n, layout in enumerate(pdo_layout.DEFAULT_RPDOS):
                 self._write_pdo(objects.RPDO_COMM + n, objects.RPDO_MAP + n, layout,
-                                pdo_layout.TRANSMISSION_ASYNC)
+                                cia301.TRANSMISSION_ASYNC)
             for n, layout in enumerate(pdo_layout.DEFAULT_TPDOS):
                 self._write_pdo(objects.TPDO_COMM + n, objects.TPDO_MAP + n, layout,
-                                pdo_layout.TRANSMISSION_SYNC)
+                                cia301.TRANSMISSION_SYNC)
             for n in range(len(pdo_layout.DEFAULT_TPDOS), 4):
                 cob_id = sdo[objects.TPDO_COMM + n][1].raw
                 sdo[objects.TPDO_COMM + n][1].raw = cob_id | 0x80000000
@@ -311,7 +311,7 @@ class CanOpenDrive(Drive):
         self._last_heartbeat = time.monotonic()
 
     def _on_emcy(self, error: EmcyError) -> None:
-        if error.code == objects.EMCY_NO_ERROR:
+        if error.code == cia301.EMCY_NO_ERROR:
             return
         self.last_emcy = error
         log.error("node %d: EMCY 0x%04X %s", self.node_id, error.code, error.get_desc())

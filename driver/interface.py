@@ -48,6 +48,16 @@ class EncoderGlitch(DriveError):
     """The position jumped further in one cycle than the joint can move."""
 
 
+class ProfileError(DriveError):
+    """The drive lacks what the loop needs (a mode, an object, a mapping); found before
+    anything was enabled, so it is bad input rather than a run-time failure."""
+
+
+class ForeignMaster(DriveError):
+    """Another master is driving the drive (its SYNC or RPDO traffic, or the drive already
+    enabled): taking it over would fight that master."""
+
+
 class CommandRangeError(ValueError):
     """A command outside what the drive accepts; nothing was sent."""
 

@@ -11,7 +11,8 @@ import canopen
 from model.effects import with_truth_effects
 from model.parameters import ModelFileError, load_model, parse_payload
 from protocol.bus_spec import BusSpecError, parse_bus_spec
-from sim_bus.drive import VirtualDrive
+from sim_bus.canopen_node import CanOpenNode
+from sim_bus.device import Cia402Device
 from sim_bus.faults import Fault, parse_schedule
 from sim_bus.plant import SensorNoise
 
@@ -78,19 +79,21 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     noise = SensorNoise(current=args.current_noise, joint_torque=args.torque_noise,
                         seed=args.seed)
-    drive = VirtualDrive(network, args.node_id, model, payload, noise, args.initial_position)
+    device = Cia402Device(model, payload, noise, initial_position=args.initial_position,
+                          node_id=args.node_id)
+    node = CanOpenNode(network, args.node_id, device)
     for fault, seconds in schedule:
-        drive.schedule(fault, seconds)
+        device.schedule(fault, seconds)
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    drive.boot()
+    node.boot()
     print(f"sim-bus: node {args.node_id} on {args.bus} ready ({model.name or model.source}, "
           f"payload {payload.mass} kg at ({payload.x}, {payload.y}) m)", flush=True)
     stop.wait()
-    print(f"sim-bus: stopped after {drive.sync_count} SYNC cycles, drive state "
-          f"'{drive.state.value}'", flush=True)
-    drive.close()
+    print(f"sim-bus: stopped after {device.cycle_count} SYNC cycles, drive state "
+          f"'{device.state.value}'", flush=True)
+    node.close()
     network.disconnect()
     return 0
 

@@ -9,11 +9,13 @@ rhythm in Python. `--bus virtual:NAME` still goes through python-can's virtual i
 
 import threading
 import time
+from pathlib import Path
 
 import canopen
 
 from model.parameters import ActuatorModel, Payload
-from sim_bus.drive import VirtualDrive
+from sim_bus.canopen_node import CanOpenNode
+from sim_bus.device import Cia402Device
 from sim_bus.plant import SensorNoise
 
 
@@ -61,17 +63,24 @@ class _PeriodicFrame:
 
 
 class EmbeddedDrive:
-    """A booted virtual drive and the network a master should use to reach it."""
+    """A booted virtual drive and the network a master should use to reach it.
+
+    `lockstep`: the drive's heartbeat (and every other watchdog of its node) counts cycles,
+    as the master's must then too (`CanOpenDrive(..., lockstep=True)`).
+    """
 
     def __init__(self, model: ActuatorModel, payload: Payload, noise: SensorNoise,
-                 node_id: int = 2):
+                 node_id: int = 2, *, lockstep: bool = False, eds_path: str | Path | None = None,
+                 initial_position: float | None = None):
         self.network = LinkedNetwork()
         self.master_network = LinkedNetwork()
         self.network.peers.append(self.master_network)
         self.master_network.peers.append(self.network)
-        self.drive = VirtualDrive(self.network, node_id, model, payload, noise)
-        self.drive.boot()
+        self.device = Cia402Device(model, payload, noise, eds_path=eds_path,
+                                   initial_position=initial_position, node_id=node_id)
+        self.node = CanOpenNode(self.network, node_id, self.device, lockstep=lockstep)
+        self.node.boot()
 
     def close(self) -> None:
-        self.drive.close()
+        self.node.close()
         self.network.disconnect()

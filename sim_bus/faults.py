@@ -1,6 +1,7 @@
 """Faults the virtual drive can be made to have, switchable at run time: from the command
 line (`--inject-fault NAME@SECONDS`), by SDO (write the code to 0x2010) or from Python
-(`VirtualDrive.inject`). Each is what breaks on real hardware."""
+(`Cia402Device.inject`). Each is what breaks on real hardware. The device acts out the
+drive's own (sensors, power stage); the node exposing it acts out the communication's."""
 
 from enum import IntEnum
 
@@ -22,7 +23,6 @@ TPDO_DELAY = 0.2  # s
 ENCODER_JUMP = 5000  # increments
 FLOOD_SECONDS = 0.5
 FLOOD_COB_ID = 0x001  # above SYNC (0x080) in priority
-SATURATED_READING = 2**31 - 1  # mN.m: the INT32 ceiling of 0x2002
 
 
 def parse_schedule(text: str) -> tuple[Fault, float]:

@@ -1,5 +1,6 @@
-"""The physical joint behind the virtual drive: the model integrated exactly, seen through
-realistic sensors (19-bit encoder, noisy current and torque readings)."""
+"""The physical joint behind the virtual drive: the model integrated exactly, with a holding
+brake, seen through realistic sensors (noisy current and torque readings; the encoder's
+quantisation is the drive's unit conversion, `sim_bus.device`)."""
 
 from dataclasses import dataclass
 
@@ -7,9 +8,11 @@ import numpy as np
 
 from model import dynamics
 from model.parameters import GRAVITY, ActuatorParameters, Payload
-from protocol import objects as od
 
 PHYSICS_SUBSTEPS = 20  # 50 us: within 1 encoder count of 1000 substeps (tests/test_dynamics.py)
+# assumed: above the motor's rated torque (30 N.m, 0x6076) as holding brakes are sized, and
+# above the 25 N.m the paper's heaviest payload (30 kg at 5 cm) hangs on the joint
+BRAKE_HOLDING_TORQUE = 40.0  # N.m
 
 
 @dataclass(frozen=True)
@@ -24,14 +27,19 @@ class SensorNoise:
 
 @dataclass(frozen=True)
 class Measurement:
-    position_increments: int
-    velocity_increments_per_s: int
+    position: float  # rad, the encoder's shaft (the drive quantises it)
+    velocity: float  # rad/s
     motor_current: float  # A, as read by the drive's current sensor
     joint_torque_reading: float  # N.m before the sensor gain K_j
 
 
 class Plant:
-    """True state of the joint with its payload; advances only when told to (lock-step)."""
+    """True state of the joint with its payload; advances only when told to (lock-step).
+
+    The holding brake acts in the transmission like dry friction: engaged, it adds its holding
+    torque to the dry-friction level of the model's own stick-slip integrator, so a joint at
+    rest stays put while gravity needs less than that, and a moving one is stopped by it.
+    """
 
     def __init__(self, parameters: ActuatorParameters, payload: Payload = Payload(),
                  noise: SensorNoise = SensorNoise(), initial_position: float | None = None):
@@ -52,10 +60,18 @@ class Plant:
         self.payload = payload
         self.parameters = self.base_parameters.with_payload(payload)
         self._packed = self.parameters.packed()
+        self._packed_braked = self._packed.copy()
+        self._packed_braked[dynamics.P_DRY] += BRAKE_HOLDING_TORQUE
 
-    def advance(self, current: float, dt: float) -> None:
+    def warm_up(self) -> None:
+        """Compile (or load) the integrator now, on a throwaway state: the first SYNC must be
+        answered within one period, not after a 0.3-0.5 s compilation."""
+        dynamics.step(self.position, 0.0, 0.0, self._packed, 1e-3, PHYSICS_SUBSTEPS)
+
+    def advance(self, current: float, dt: float, braked: bool = False) -> None:
         (self.position, self.velocity, self._acceleration, self._dry,
-         self._dry_level) = dynamics.step(self.position, self.velocity, current, self._packed,
+         self._dry_level) = dynamics.step(self.position, self.velocity, current,
+                                          self._packed_braked if braked else self._packed,
                                           dt, PHYSICS_SUBSTEPS)
         self._current = current
         self.time += dt
@@ -79,8 +95,8 @@ class Plant:
         reading = (self.joint_torque() / self.parameters.torque_sensor_gain
                    + self._rng.normal(0.0, self.noise.joint_torque))
         return Measurement(
-            position_increments=od.position_to_increments(self.position),
-            velocity_increments_per_s=od.position_to_increments(self.velocity),
+            position=self.position,
+            velocity=self.velocity,
             motor_current=float(current),
             joint_torque_reading=float(reading),
         )

@@ -11,7 +11,8 @@ import pytest
 
 from driver.canopen_drive import CanOpenDrive, open_network
 from model.parameters import Payload, load_model
-from sim_bus.drive import VirtualDrive
+from sim_bus.canopen_node import CanOpenNode
+from sim_bus.device import Cia402Device
 from sim_bus.plant import SensorNoise
 
 _channels = itertools.count()
@@ -20,10 +21,12 @@ _channels = itertools.count()
 @contextmanager
 def virtual_pair(payload: Payload = Payload(), noise: SensorNoise = SensorNoise(), model=None,
                  **drive_kwargs):
-    """A virtual drive and our master on a private python-can `virtual` channel."""
+    """A virtual drive (its CANopen node; the device is `sim.device`) and our master on a
+    private python-can `virtual` channel."""
     channel = f"virtual:test-{os.getpid()}-{next(_channels)}"
     sim_network = open_network(channel)
-    sim = VirtualDrive(sim_network, 2, model or load_model(), payload, noise)
+    device = Cia402Device(model or load_model(), payload, noise, node_id=2)
+    sim = CanOpenNode(sim_network, 2, device)
     sim.boot()
     master = CanOpenDrive(open_network(channel), 2, **drive_kwargs)
     try:

@@ -9,7 +9,7 @@ import pytest
 from driver import CommandRangeError, DriveFault, DriveLost, DriveTimeout
 from model import dynamics
 from model.parameters import Payload
-from protocol import cia402, objects
+from protocol import cia301, cia402, objects
 from protocol import pdo as pdo_layout
 from protocol.cia402 import State
 from sim_bus.plant import PHYSICS_SUBSTEPS
@@ -34,15 +34,15 @@ def run_profile(sim, master, currents):
 
 def test_boot_enable_and_motion_match_the_model(pair):
     sim, master = pair
-    q0 = sim.plant.position
+    q0 = sim.device.plant.position
     master.start()
-    assert sim.state is State.OPERATION_ENABLED
+    assert sim.device.state is State.OPERATION_ENABLED
     currents = current_profile(3000)
     samples = run_profile(sim, master, currents)
     # sample k+1 results from the command sent after sample k (the first cycle runs at 0 A);
     # the RPDO carries whole milliamps
     applied = np.round(np.concatenate(([0.0], currents[:-1])) * 1000) / 1000
-    expected = dynamics.simulate(q0, 0.0, applied, sim.plant.parameters.packed(), 1e-3,
+    expected = dynamics.simulate(q0, 0.0, applied, sim.device.plant.parameters.packed(), 1e-3,
                                  PHYSICS_SUBSTEPS)
     measured = np.array([s.position for s in samples])
     # the physics is the model's own integrator: only the 19-bit quantisation separates them
@@ -72,7 +72,7 @@ def test_payload_changes_the_hanging_torque():
         for _ in range(50):
             sample = master.sync()
             master.command_current(hold)
-        assert sim.plant.parameters.first_moment_y == pytest.approx(1.1 + 0.5)
+        assert sim.device.plant.parameters.first_moment_y == pytest.approx(1.1 + 0.5)
         assert sample.joint_torque < -1.0
 
 
@@ -86,7 +86,7 @@ def test_out_of_range_command_is_refused_and_nothing_sent(pair):
     with pytest.raises(CommandRangeError, match="not a finite number"):
         master.command_current(float("nan"))
     master.sync()
-    assert sim.applied_current == pytest.approx(1.0)
+    assert sim.device.applied_current == pytest.approx(1.0)
 
 
 def test_close_leaves_the_drive_disabled(pair):
@@ -97,8 +97,8 @@ def test_close_leaves_the_drive_disabled(pair):
     master.sync()
     master.close()
     time.sleep(0.05)
-    assert sim.state is State.SWITCH_ON_DISABLED
-    assert sim.node.nmt.state == "PRE-OPERATIONAL"
+    assert sim.device.state is State.SWITCH_ON_DISABLED
+    assert sim.nmt_state_name == "PRE-OPERATIONAL"
 
 
 def test_heartbeat_loss_is_reported_within_three_periods_and_commanding_stops(pair):
@@ -151,9 +151,9 @@ def test_overcurrent_trips_with_emcy_and_reset_recovers(pair):
     sample = master.sync()
     assert cia402.state_from_statusword(sample.statusword) is State.FAULT
     assert wait_for(lambda: master.last_emcy is not None)
-    assert master.last_emcy.code == objects.EMCY_OVERCURRENT
+    assert master.last_emcy.code == cia301.EMCY_OVERCURRENT
     assert isinstance(master.fault, DriveFault)
-    assert sim.applied_current == 0.0
+    assert sim.device.applied_current == 0.0
     with pytest.raises(DriveFault, match="EMCY 0x2310"):
         master.command_current(0.1)
     master.fault_reset()
@@ -162,7 +162,7 @@ def test_overcurrent_trips_with_emcy_and_reset_recovers(pair):
     master.command_current(0.5)
     sample = master.sync()
     assert cia402.state_from_statusword(sample.statusword) is State.OPERATION_ENABLED
-    assert sim.applied_current == pytest.approx(0.5)
+    assert sim.device.applied_current == pytest.approx(0.5)
 
 
 def test_current_is_saturated_at_max_current_like_a_real_drive(pair):
@@ -171,7 +171,7 @@ def test_current_is_saturated_at_max_current_like_a_real_drive(pair):
     master.sync()
     send_raw_command(master, 0x0F, 7000)  # above max current, below the trip level
     master.sync()
-    assert sim.applied_current == pytest.approx(6.0)
+    assert sim.device.applied_current == pytest.approx(6.0)
 
 
 def test_position_limit_fault_sends_emcy(pair):
@@ -185,4 +185,4 @@ def test_position_limit_fault_sends_emcy(pair):
     assert cia402.state_from_statusword(sample.statusword) is State.FAULT
     assert sample.position < -2.44
     assert wait_for(lambda: master.last_emcy is not None)
-    assert master.last_emcy.code == objects.EMCY_POSITION_LIMIT
+    assert master.last_emcy.code == cia301.EMCY_POSITION_LIMIT

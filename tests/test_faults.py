@@ -22,12 +22,12 @@ def run_with(fault: Fault, duration: float = 1.5, via_sdo: bool = False):
         drive.start()
         if via_sdo:
             drive.node.sdo[objects.FAULT_INJECTION].raw = int(Fault.NONE)  # SDO path exists
-        sim.schedule(fault, AT)
+        sim.device.schedule(fault, AT)
         loop = ControlLoop(drive, Mpc(MODEL), LoopOptions(lockstep=True, duration=duration),
                            lambda topic, fields: messages.append((topic, fields)))
         report = loop.run()
         drive.close()
-        final_state = sim.state
+        final_state = sim.device.state
     commands = [f["current"] for topic, f in messages if topic == "command"]
     faults = [f for topic, f in messages if topic == "fault"]
     return report, commands, faults, final_state
@@ -84,7 +84,7 @@ def test_sdo_injection_and_schedules_are_validated():
     with virtual_pair() as (sim, drive):
         drive.start()
         drive.node.sdo[objects.FAULT_INJECTION].raw = int(Fault.OVERCURRENT_TRIP)
-        assert sim.state is State.FAULT
+        assert sim.device.state is State.FAULT
     assert parse_schedule("encoder_glitch@2.5") == (Fault.ENCODER_GLITCH, 2.5)
     with pytest.raises(ValueError, match="expected one of heartbeat_stops"):
         parse_schedule("meltdown@1")
@@ -105,7 +105,7 @@ def test_a_stall_in_real_time_is_reported_on_the_fault_topic():
     messages = []
     try:
         drive.start()
-        sim.drive.schedule(Fault.TPDO_LATE, 0.3)
+        sim.device.schedule(Fault.TPDO_LATE, 0.3)
         loop = ControlLoop(drive, Mpc(MODEL), LoopOptions(duration=0.8),
                            lambda topic, fields: messages.append((topic, fields)))
         report = loop.run()

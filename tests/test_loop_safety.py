@@ -27,7 +27,7 @@ def test_failing_solver_holds_position_and_says_so_every_cycle():
         mpc = Mpc(MODEL, OcpSettings().with_weights(position=1e308))
         loop = ControlLoop(drive, mpc, LoopOptions(lockstep=True, duration=0.5), publish)
         report = loop.run()
-        final_position = sim.plant.position
+        final_position = sim.device.plant.position
     assert report.exit_code == 0 and report.fallbacks == report.cycles == 500
     faults = [f for topic, f in messages if topic == "fault"]
     assert len(faults) == 500

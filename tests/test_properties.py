@@ -13,12 +13,14 @@ from hypothesis import strategies as st
 from controller.reference import ReferenceError, reference_from_dict
 from controller.requests import RequestError, parse_weights
 from model.parameters import ModelFileError, default_model_path, load_model
-from protocol import cia402, telemetry
+from protocol import cia402, eds_path, telemetry
 from protocol import pdo as pdo_layout
 from protocol.bus_spec import BusSpecError, parse_bus_spec
+from protocol.dictionary import load_dictionary, mappable_object
 from recorder.recording import RecordingError, load_recording
 
 LIMITS = load_model().limits
+DICTIONARY = load_dictionary(eds_path(), 2)
 FAST = settings(max_examples=200, deadline=None,
                 suppress_health_check=[HealthCheck.function_scoped_fixture])
 
@@ -50,7 +52,7 @@ def test_cia402_decoding_is_total(statusword, controlword):
 @given(st.integers(0, 2**32 - 1))
 def test_mapping_entries_are_validated(entry):
     try:
-        obj = pdo_layout.object_from_mapping_entry(entry)
+        obj = mappable_object(DICTIONARY, entry)
     except ValueError as exc:
         assert "not mappable" in str(exc)
     else:

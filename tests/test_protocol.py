@@ -4,12 +4,16 @@ import pytest
 from protocol import eds_path, objects
 from protocol import pdo as pdo_layout
 from protocol.bus_spec import BusSpecError, parse_bus_spec
+from protocol.dictionary import mappable_object
+
+ELBOW_OBJECTS = [v for v in vars(pdo_layout).values() if isinstance(v, pdo_layout.MappedObject)]
 
 
 def test_eds_holds_every_mapped_object_with_matching_size():
     od = canopen.import_od(str(eds_path()), 2)
-    for obj in pdo_layout.KNOWN_OBJECTS.values():
+    for obj in ELBOW_OBJECTS:
         assert len(od[obj.index]) == obj.bits, hex(obj.index)
+        assert mappable_object(od, obj.mapping_entry) == obj
     assert od[objects.ENCODER_RESOLUTION][1].default == 2**19
     assert od[objects.TPDO_COMM][1].default == 0x182
 
@@ -24,11 +28,14 @@ def test_default_layout_round_trips_and_rejects_wrong_length():
 
 
 def test_mapping_entries_are_validated():
+    od = canopen.import_od(str(eds_path()), 2)
     entry = pdo_layout.POSITION_ACTUAL.mapping_entry
     assert entry == 0x60640020
-    assert pdo_layout.object_from_mapping_entry(entry) is pdo_layout.POSITION_ACTUAL
+    assert mappable_object(od, entry) == pdo_layout.POSITION_ACTUAL
     with pytest.raises(ValueError, match="0x6064:00 with 16 bits"):
-        pdo_layout.object_from_mapping_entry(0x60640010)
+        mappable_object(od, 0x60640010)
+    with pytest.raises(ValueError, match="0x1017:00 with 16 bits is not mappable"):
+        mappable_object(od, 0x10170010)  # the heartbeat time is not PDO-mappable
 
 
 @pytest.mark.parametrize("spec,expected", [

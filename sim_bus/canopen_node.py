@@ -1,0 +1,319 @@
+"""A `Cia402Device` exposed as a CANopen node: NMT slave with boot-up and heartbeat, SDO server
+(canopen's, answering from the device), PDOs configured from the dictionary, SYNC, EMCY.
+
+Every handler runs in the thread that delivers the frame (the network's receive thread, or the
+sender's with the embedded link), so a SYNC is handled completely before the next frame is
+looked at: lock-step comes for free when the master waits for the TPDOs.
+
+Heartbeat producer (0x1017): on the wall clock in real time; in lock-step it counts the drive's
+cycles instead, because there the drive's time *is* the SYNC count. A wall-clock producer in a
+lock-step run beats at a rate unrelated to the drive's time (ten drive seconds pass in one wall
+second, or one wall second passes on a busy host without a single cycle), so no consumer could
+judge it deterministically. Counted in cycles, the beats fall on the same cycles every run.
+"""
+
+import logging
+import threading
+import time
+
+import canopen
+from canopen.emcy import EmcyProducer
+from canopen.objectdictionary import ObjectDictionary
+from canopen.sdo import SdoAbortedError, SdoServer
+
+from protocol import cia301, objects
+from protocol.dictionary import mappable_object
+from protocol.pdo import PdoLayout
+from sim_bus.device import Cia402Device, DeviceAccessError
+from sim_bus.faults import FLOOD_COB_ID, FLOOD_SECONDS, TPDO_DELAY, Fault
+
+log = logging.getLogger(__name__)
+
+NMT_STATE_NAMES = {cia301.NMT_BOOT_UP: "INITIALISING", cia301.NMT_STOPPED: "STOPPED",
+                   cia301.NMT_OPERATIONAL: "OPERATIONAL",
+                   cia301.NMT_PRE_OPERATIONAL: "PRE-OPERATIONAL"}
+
+
+class _Pdo:
+    """One enabled PDO as configured in the dictionary: COB-ID, codec, the objects' keys."""
+
+    __slots__ = ("cob_id", "codec", "keys", "every", "synchronous")
+
+    def __init__(self, cob_id: int, layout: PdoLayout, transmission: int):
+        self.cob_id = cob_id
+        self.codec = layout.struct
+        self.keys = tuple((o.index, o.subindex) for o in layout.objects)
+        self.every = transmission if 1 <= transmission <= cia301.SYNC_COUNTER_MAX else 1
+        self.synchronous = transmission <= cia301.SYNC_COUNTER_MAX
+
+
+class CanOpenNode:
+    """CANopen node `node_id` on `network`, serving `device`."""
+
+    def __init__(self, network: canopen.Network, node_id: int, device: Cia402Device, *,
+                 lockstep: bool = False):
+        self.network = network
+        self.node_id = node_id
+        self.device = device
+        self.lockstep = lockstep
+        self.object_dictionary: ObjectDictionary = device.dictionary  # for canopen's SdoServer
+        self.sdo = SdoServer(cia301.SDO_RX_BASE + node_id, cia301.SDO_TX_BASE + node_id, self)
+        self.sdo.network = network
+        self.emcy = EmcyProducer(cia301.EMCY_BASE + node_id)
+        self.emcy.network = network
+        self.nmt_state = cia301.NMT_BOOT_UP
+        self.sync_count = 0
+        self._silent = False
+        self._tpdos: list[_Pdo] = []
+        self._rpdos: dict[int, _Pdo] = {}
+        self._latched: list[tuple[_Pdo, tuple[int, ...]]] = []  # synchronous RPDOs
+        self._heartbeat = _HeartbeatProducer(self)
+        self._late_once = self._twice_once = self._reboot_in_cycle = False
+        device.add_emergency_handler(self._send_emcy)
+        device.add_fault_handler(self._act_fault)
+        network.subscribe(cia301.NMT_COB_ID, self._on_nmt)
+        network.subscribe(cia301.SYNC_COB_ID, self._on_sync)
+        network.subscribe(self.sdo.rx_cobid, self.sdo.on_request)
+
+    @property
+    def nmt_state_name(self) -> str:
+        return NMT_STATE_NAMES.get(self.nmt_state, f"0x{self.nmt_state:02X}")
+
+    # --- NMT --------------------------------------------------------------------------------
+
+    def boot(self) -> None:
+        """Power-on: boot-up message, then pre-operational with the heartbeat running."""
+        self._silent = False
+        self._restart()
+
+    def _restart(self) -> None:
+        self._heartbeat.stop()
+        self._stop_pdos()
+        self.nmt_state = cia301.NMT_BOOT_UP
+        self.network.send_message(cia301.HEARTBEAT_BASE + self.node_id,
+                                  bytes([cia301.NMT_BOOT_UP]))
+        self.nmt_state = cia301.NMT_PRE_OPERATIONAL
+        self._heartbeat.start()
+
+    def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if self._silent or len(data) != 2 or data[1] not in (0, self.node_id):
+            return
+        command = data[0]
+        if command == cia301.NMT_RESET_NODE:
+            self.device.reset_application()
+            self._restart()
+        elif command == cia301.NMT_RESET_COMMUNICATION:
+            self.device.reset_communication()
+            self._restart()
+        elif command == cia301.NMT_START:
+            self.nmt_state = cia301.NMT_OPERATIONAL
+            self._start_pdos()
+        elif command == cia301.NMT_STOP:
+            self.nmt_state = cia301.NMT_STOPPED
+            self._stop_pdos()
+        elif command == cia301.NMT_ENTER_PRE_OPERATIONAL:
+            self.nmt_state = cia301.NMT_PRE_OPERATIONAL
+            self._stop_pdos()
+
+    # --- PDOs from the dictionary -----------------------------------------------------------
+
+    def _start_pdos(self) -> None:
+        self._stop_pdos()
+        self._tpdos = self._configured(objects.TPDO_COMM, objects.TPDO_MAP)
+        self._rpdos = {pdo.cob_id: pdo for pdo in
+                       self._configured(objects.RPDO_COMM, objects.RPDO_MAP)}
+        for cob_id in self._rpdos:
+            self.network.subscribe(cob_id, self._on_rpdo)
+
+    def _stop_pdos(self) -> None:
+        for cob_id in self._rpdos:
+            self.network.unsubscribe(cob_id, self._on_rpdo)
+        self._tpdos, self._rpdos, self._latched = [], {}, []
+
+    def _configured(self, comm: int, mapping: int) -> list[_Pdo]:
+        """The enabled PDOs as the dictionary holds them now."""
+        read, dictionary = self.device.read, self.device.dictionary
+        out = []
+        for n in range(objects.PDO_CHANNELS):
+            if comm + n not in dictionary:
+                continue
+            cob_id = read(comm + n, 1)
+            count = read(mapping + n, 0)
+            if cob_id & cia301.PDO_INVALID or count == 0:
+                continue
+            mapped = tuple(mappable_object(dictionary, read(mapping + n, k))
+                           for k in range(1, count + 1))
+            out.append(_Pdo(cob_id & cia301.COB_ID_MASK, PdoLayout(0, mapped),
+                            read(comm + n, 2)))
+        return out
+
+    def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        pdo = self._rpdos.get(can_id)
+        if pdo is None or self._silent:
+            return
+        if len(data) != pdo.codec.size:
+            log.warning("node %d: RPDO 0x%03X with %d bytes, %d expected", self.node_id,
+                        can_id, len(data), pdo.codec.size)
+            return
+        values = pdo.codec.unpack(data)
+        if pdo.synchronous:
+            self._latched.append((pdo, values))  # CiA 301: applied at the next SYNC
+        else:
+            self.device.write_outputs(pdo.keys, values)
+
+    # --- SYNC -------------------------------------------------------------------------------
+
+    def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if self._silent or self.nmt_state != cia301.NMT_OPERATIONAL:
+            return
+        device = self.device
+        for pdo, values in self._latched:
+            device.write_outputs(pdo.keys, values)
+        self._latched = []
+        self.sync_count += 1
+        self._reboot_in_cycle = False
+        device.cycle(data[0] if data else 0)
+        if self.lockstep:
+            self._heartbeat.count_cycle()
+        if self._silent or self._reboot_in_cycle:
+            return
+        frames = [(pdo.cob_id, pdo.codec.pack(*device.values_of(pdo.keys)))
+                  for pdo in self._tpdos if self.sync_count % pdo.every == 0]
+        if self._late_once:
+            self._late_once = False
+            time.sleep(TPDO_DELAY)
+        if self._twice_once:
+            self._twice_once = False
+            frames = frames * 2
+        send = self.network.send_message
+        for cob_id, payload in frames:
+            send(cob_id, payload)
+
+    # --- SDO server (canopen's SdoServer calls these) ---------------------------------------
+
+    def get_data(self, index: int, subindex: int, check_readable: bool = False) -> bytes:
+        try:
+            return self.device.read_bytes(index, subindex)
+        except DeviceAccessError as exc:
+            raise SdoAbortedError(exc.abort_code) from None
+
+    def set_data(self, index: int, subindex: int, data: bytes,
+                 check_writable: bool = False) -> None:
+        if objects.is_pdo_mapping(index):
+            self._check_mapping_write(index, subindex, data)
+        try:
+            self.device.write_bytes(index, subindex, data)
+        except DeviceAccessError as exc:
+            raise SdoAbortedError(exc.abort_code) from None
+        if index == objects.PRODUCER_HEARTBEAT_MS:
+            self._heartbeat.start()
+
+    def _check_mapping_write(self, index: int, subindex: int, data: bytes) -> None:
+        """What CAN adds to the device's own checks: no remapping while the PDOs run, and at
+        most 8 bytes in a frame."""
+        if self.nmt_state == cia301.NMT_OPERATIONAL:
+            raise SdoAbortedError(cia301.SDO_ABORT_WRONG_STATE)
+        if subindex == 0 and data:
+            count = data[0]
+            read = self.device.read
+            bits = sum(read(index, k) & 0xFF for k in range(1, count + 1)
+                       if (index, k) in self.device.dictionary[index])
+            if bits > 8 * cia301.PDO_MAX_BYTES:
+                raise SdoAbortedError(cia301.SDO_ABORT_PDO_LENGTH)
+
+    # --- emergencies and faults -------------------------------------------------------------
+
+    def _send_emcy(self, code: int, register: int) -> None:
+        if self._silent:
+            return
+        if code == cia301.EMCY_NO_ERROR:
+            self.emcy.reset(register)
+        else:
+            self.emcy.send(code, register)
+
+    def _act_fault(self, fault: Fault) -> None:
+        if fault is Fault.HEARTBEAT_STOPS:
+            self.stop_heartbeat()
+        elif fault is Fault.SILENT:
+            self.go_silent()
+        elif fault is Fault.TPDO_LATE:
+            self._late_once = True
+        elif fault is Fault.TPDO_TWICE:
+            self._twice_once = True
+        elif fault is Fault.BUS_FLOOD:
+            threading.Thread(target=self._flood, daemon=True, name="bus-flood").start()
+        elif fault is Fault.REBOOT:
+            # a power glitch: application and communication restart, boot-up, disabled
+            self._reboot_in_cycle = True
+            self.device.reset_application()
+            self._restart()
+
+    def _flood(self) -> None:
+        end = time.monotonic() + FLOOD_SECONDS
+        while time.monotonic() < end:
+            self.network.send_message(FLOOD_COB_ID, bytes(8))
+
+    def stop_heartbeat(self) -> None:
+        """Fault injection: the heartbeat producer dies while the rest keeps working."""
+        self._heartbeat.stop()
+
+    def go_silent(self) -> None:
+        """Fault injection: the node disappears from the bus (power loss, cable cut)."""
+        self._silent = True
+        self._heartbeat.stop()
+
+    def close(self) -> None:
+        self._heartbeat.stop()
+        self._stop_pdos()
+        self.network.unsubscribe(cia301.SYNC_COB_ID, self._on_sync)
+        self.network.unsubscribe(cia301.NMT_COB_ID, self._on_nmt)
+        self.network.unsubscribe(self.sdo.rx_cobid, self.sdo.on_request)
+
+
+class _HeartbeatProducer:
+    """0x1017 heartbeat: a wall-clock thread in real time, every N cycles in lock-step. The
+    first beat comes one period after the boot-up message, as on real devices: a beat right
+    behind the boot-up can overtake it in a master waiting for the boot-up (canopen's own
+    wait_for_bootup reads the latest state)."""
+
+    def __init__(self, node: CanOpenNode):
+        self._node = node
+        self._stop: threading.Event | None = None
+        self._cycles_per_beat = 0
+        self._cycles = 0
+
+    def start(self) -> None:
+        self.stop()
+        period_ms = self._node.device.read(objects.PRODUCER_HEARTBEAT_MS)
+        if period_ms <= 0:
+            return
+        if self._node.lockstep:
+            self._cycles_per_beat = max(1, round(period_ms * 1e-3 / self._node.device.period))
+            self._cycles = 0
+            return
+        self._stop = stop = threading.Event()
+        threading.Thread(target=self._run, args=(stop, period_ms * 1e-3), daemon=True,
+                         name=f"heartbeat-{self._node.node_id}").start()
+
+    def stop(self) -> None:
+        self._cycles_per_beat = 0
+        if self._stop is not None:
+            self._stop.set()
+            self._stop = None
+
+    def count_cycle(self) -> None:
+        if self._cycles_per_beat:
+            self._cycles += 1
+            if self._cycles >= self._cycles_per_beat:
+                self._cycles = 0
+                self._beat()
+
+    def _run(self, stop: threading.Event, period: float) -> None:
+        while not stop.wait(period):
+            self._beat()
+
+    def _beat(self) -> None:
+        node = self._node
+        node.network.send_message(cia301.HEARTBEAT_BASE + node.node_id,
+                                  bytes([node.nmt_state]))
+
