@@ -18,8 +18,9 @@ from driver.canopen_drive import CanOpenDrive, open_network
 
 
 def _lockstep_in_process(cycles: int) -> float:
-    from model.parameters import load_model
     from sim_bus.drive import VirtualDrive
+
+    from model.parameters import load_model
 
     channel = f"virtual:bench-{random.getrandbits(32)}"
     sim_network = open_network(channel)

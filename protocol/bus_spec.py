@@ -1,10 +1,13 @@
 """Bus specs as users type them (`vcan0`, `virtual:NAME`, `udp_multicast:GROUP[:PORT]`) turned
-into python-can constructor arguments. Pure: opening the bus is the caller's job."""
+into python-can constructor arguments, and `ethercat:IFACE` (an Ethernet interface carrying an
+EtherCAT line) into its interface name. Pure: opening the bus is the caller's job."""
 
 import ipaddress
 import re
 
 _SOCKETCAN_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_.-]{0,14}$")
+_NETWORK_INTERFACE_NAME = _SOCKETCAN_NAME  # Linux: IFNAMSIZ - 1 characters
+ETHERCAT = "ethercat"
 DEFAULT_UDP_PORT = 43113  # python-can's UdpMulticastBus default
 
 
@@ -33,8 +36,25 @@ def parse_bus_spec(spec: str) -> dict:
         return {"interface": "virtual", "channel": rest, "receive_own_messages": False}
     if kind == "udp_multicast":
         return _udp_multicast(spec, rest)
+    if kind == ETHERCAT:
+        raise BusSpecError(f"bus spec {spec!r}: EtherCAT is not a CAN bus (ethercat_interface "
+                           "reads it)")
     raise BusSpecError(f"bus spec {spec!r}: unknown interface {kind!r}; expected socketcan, "
-                       "virtual or udp_multicast")
+                       "virtual, udp_multicast or ethercat")
+
+
+def ethercat_interface(spec: str) -> str | None:
+    """The Ethernet interface of an `ethercat:IFACE` spec; None for every other kind of spec
+    (CAN buses, see `parse_bus_spec`)."""
+    if not isinstance(spec, str):
+        return None
+    kind, sep, rest = spec.strip().partition(":")
+    if kind != ETHERCAT or not sep:
+        return None
+    if not _NETWORK_INTERFACE_NAME.match(rest):
+        raise BusSpecError(f"bus spec {spec!r}: {rest!r} is not a network interface name "
+                           "(expected e.g. ethercat:eth1)")
+    return rest
 
 
 def _udp_multicast(spec: str, rest: str) -> dict:

@@ -42,6 +42,8 @@ HEARTBEAT_CONSUMER_NODE_SHIFT = 16
 HEARTBEAT_CONSUMER_TIME_MASK = 0xFFFF
 
 # SDO abort codes (CiA 301 table 22); the same codes travel in EtherCAT CoE SDO aborts
+SDO_ABORT_TOGGLE = 0x05030000  # toggle bit not alternated (segmented transfer)
+SDO_ABORT_COMMAND = 0x05040001  # command specifier not valid or unknown
 SDO_ABORT_UNSUPPORTED_ACCESS = 0x06010000
 SDO_ABORT_READ_WRITE_ONLY = 0x06010001
 SDO_ABORT_WRITE_READ_ONLY = 0x06010002

@@ -2,9 +2,12 @@
 sync manager layout, FMMU use, the PDOs and the CoE details. Only what the virtual slave's SII
 image and the master's checks need; the object dictionary itself stays in the EDS."""
 
+import copy
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
+
+from canopen.objectdictionary import ObjectDictionary, ODVariable
 
 from protocol import ethercat as ec
 
@@ -95,10 +98,30 @@ class EsiDevice:
     def sm_number(self, kind: str) -> int:
         return self.sync_managers.index(self.sync_manager(kind))
 
+    @property
+    def pdo_objects(self) -> frozenset[tuple[int, int]]:
+        """(index, subindex) of every object the ESI's PDOs carry: what may be mapped into
+        process data over EtherCAT."""
+        return frozenset((e.index, e.subindex) for p in self.rxpdos + self.txpdos
+                         for e in p.entries if e.index)
+
     def pdo_bytes(self, sync_manager: int) -> int:
         """Size of the default process data of one sync manager (its PDOs' entries)."""
         pdos = self.rxpdos + self.txpdos
         return sum(p.bits for p in pdos if p.sync_manager == sync_manager) // 8
+
+
+def ethercat_dictionary(dictionary: ObjectDictionary, device: EsiDevice) -> ObjectDictionary:
+    """The drive's dictionary (its EDS) as seen through its ESI: the same objects, mappable
+    into process data only where the ESI's PDOs carry them. The CiA 402 layer picks its cyclic
+    objects from this, so over EtherCAT it uses the ESI's (cyclic synchronous torque) layout
+    and the slave accepts exactly that."""
+    seen = copy.deepcopy(dictionary)
+    allowed = device.pdo_objects
+    for obj in seen.values():
+        for var in obj.values() if not isinstance(obj, ODVariable) else (obj,):
+            var.pdo_mappable = var.pdo_mappable and (var.index, var.subindex) in allowed
+    return seen
 
 
 def load_esi(path: str | Path) -> EsiDevice:

@@ -216,7 +216,7 @@ def map_process_data(escs):
     """SM2 4 bytes at 0x1100, SM3 5 bytes at 0x1180; slave k's outputs at logical 4k, its
     inputs after all outputs, as SOEM's config_map lays them out."""
     n = len(escs)
-    for k, esc in enumerate(escs):
+    for k in range(n):
         address = 0x1001 + k
         exchange(escs, (Cmd.FPWR, physical(address, ec.REG_SM0 + 16),
                         sync_manager(0x1100, 4, 0x64) + sync_manager(0x1180, 5, 0x20)))

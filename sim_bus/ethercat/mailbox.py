@@ -9,6 +9,7 @@ answers for the device's objects and the EtherCAT communication objects.
 import struct
 from typing import Protocol
 
+from protocol import cia301
 from protocol import ethercat as ec
 
 _U32 = struct.Struct("<I")
@@ -16,10 +17,6 @@ _EMERGENCY = struct.Struct("<HB5s")  # error code, error register, manufacturer 
 _MAILBOX_ERROR = struct.Struct("<HH")  # service, detail
 # SDO request/response: CoE header + command, index, subindex + 4 data bytes
 SDO_FRAME_SIZE = ec.COE_HEADER.size + ec.SDO_HEADER_SIZE + 4
-ABORT_TOGGLE = 0x05030000
-ABORT_COMMAND = 0x05040001
-ABORT_UNSUPPORTED_ACCESS = 0x06010000
-ABORT_LENGTH = 0x06070010
 
 
 class SdoAbort(Exception):
@@ -121,7 +118,7 @@ class CoeMailbox:
             if specifier == ec.SDO_CCS_ABORT:
                 self._upload = self._download = None
                 return None
-            raise SdoAbort(ABORT_COMMAND)
+            raise SdoAbort(cia301.SDO_ABORT_COMMAND)
         except SdoAbort as abort:
             if specifier in (ec.SDO_CCS_UPLOAD_SEGMENT, ec.SDO_CCS_DOWNLOAD_SEGMENT):
                 index, subindex = self._transfer_object()
@@ -136,9 +133,9 @@ class CoeMailbox:
     def _upload_initiate(self, command: int, index: int, subindex: int) -> bytes:
         self._upload = None
         if command & ec.SDO_COMPLETE_ACCESS:
-            raise SdoAbort(ABORT_UNSUPPORTED_ACCESS)
+            raise SdoAbort(cia301.SDO_ABORT_UNSUPPORTED_ACCESS)
         value = self.objects.upload(index, subindex)
-        if len(value) <= 4:
+        if 0 < len(value) <= 4:
             flags = ec.SDO_EXPEDITED | ec.SDO_SIZE_INDICATED | (4 - len(value)) << 2
             return self._response(ec.SDO_SCS_UPLOAD | flags, index, subindex, value)
         # normal transfer: size, then as much data as the mailbox holds, then segments
@@ -152,10 +149,10 @@ class CoeMailbox:
 
     def _upload_segment(self, command: int) -> bytes:
         if self._upload is None:
-            raise SdoAbort(ABORT_COMMAND)
+            raise SdoAbort(cia301.SDO_ABORT_COMMAND)
         index, subindex, rest, toggle = self._upload
         if command & ec.SDO_TOGGLE != toggle:
-            raise SdoAbort(ABORT_TOGGLE)
+            raise SdoAbort(cia301.SDO_ABORT_TOGGLE)
         room = self.size - ec.MAILBOX_HEADER_SIZE - ec.COE_HEADER.size - 1
         chunk, rest = rest[:room], rest[room:]
         self._upload = (index, subindex, rest, toggle ^ ec.SDO_TOGGLE) if rest else None
@@ -168,16 +165,16 @@ class CoeMailbox:
                            sdo: bytes) -> bytes:
         self._download = None
         if command & ec.SDO_COMPLETE_ACCESS:
-            raise SdoAbort(ABORT_UNSUPPORTED_ACCESS)
+            raise SdoAbort(cia301.SDO_ABORT_UNSUPPORTED_ACCESS)
         payload = sdo[ec.SDO_HEADER_SIZE:]
         if command & ec.SDO_EXPEDITED:
             size = 4 - (command >> 2 & 0x03) if command & ec.SDO_SIZE_INDICATED else 4
             if len(payload) < size:
-                raise SdoAbort(ABORT_LENGTH)
+                raise SdoAbort(cia301.SDO_ABORT_LENGTH_MISMATCH)
             self.objects.download(index, subindex, bytes(payload[:size]))
             return self._response(ec.SDO_SCS_DOWNLOAD, index, subindex)
         if len(payload) < 4:
-            raise SdoAbort(ABORT_LENGTH)
+            raise SdoAbort(cia301.SDO_ABORT_LENGTH_MISMATCH)
         (size,) = _U32.unpack_from(payload, 0)
         data = bytearray(payload[4:4 + size])
         if len(data) >= size:
@@ -188,20 +185,20 @@ class CoeMailbox:
 
     def _download_segment(self, command: int, sdo: bytes) -> bytes:
         if self._download is None:
-            raise SdoAbort(ABORT_COMMAND)
+            raise SdoAbort(cia301.SDO_ABORT_COMMAND)
         index, subindex, size, data, toggle = self._download
         if command & ec.SDO_TOGGLE != toggle:
-            raise SdoAbort(ABORT_TOGGLE)
+            raise SdoAbort(cia301.SDO_ABORT_TOGGLE)
         segment = sdo[1:]
         if len(segment) == ec.SDO_SEGMENT_MIN_DATA:
             segment = segment[:ec.SDO_SEGMENT_MIN_DATA - (command >> 1 & 0x07)]
         data += segment
         if len(data) > size:
-            raise SdoAbort(ABORT_LENGTH)
+            raise SdoAbort(cia301.SDO_ABORT_LENGTH_MISMATCH)
         if command & ec.SDO_LAST_SEGMENT:
             self._download = None
             if len(data) != size:
-                raise SdoAbort(ABORT_LENGTH)
+                raise SdoAbort(cia301.SDO_ABORT_LENGTH_MISMATCH)
             self.objects.download(index, subindex, bytes(data))
         else:
             self._download = (index, subindex, size, data, toggle ^ ec.SDO_TOGGLE)

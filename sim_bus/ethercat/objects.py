@@ -5,7 +5,8 @@ EtherCAT communication objects the ESI defines, with EtherCAT's rules on top.
 - 0x1C12 / 0x1C13 PDO assignment of SM2 / SM3: the ESI's PDOs, changeable in PRE-OP only,
   sub-index 0 first set to 0 (ETG.1000.6).
 - 0x1600.. / 0x1A00.. PDO mapping: held by the device (it validates the entries), changeable in
-  PRE-OP only, an RxPDO mapping only objects the master may write, a TxPDO only readable ones.
+  PRE-OP only, sub-index 0 first set to 0, only objects the ESI's PDOs carry, an RxPDO only
+  objects the master may write, a TxPDO only readable ones.
 - CANopen PDO communication parameters (COB-IDs, transmission types) do not exist on EtherCAT.
 """
 
@@ -21,7 +22,6 @@ from sim_bus.ethercat.mailbox import SdoAbort
 
 _U8 = struct.Struct("<B")
 _U16 = struct.Struct("<H")
-ABORT_SUBINDEX_ZERO_NOT_ZERO = 0x06010003  # ETG.1000.6: write sub-index 0 to 0 first
 _MASTER_WRITES = frozenset(("rw", "wo", "rww"))
 _MASTER_READS = frozenset(("rw", "ro", "const", "rwr"))
 _CANOPEN_PDO_COMMUNICATION = (range(0x1400, 0x1600), range(0x1800, 0x1A00))
@@ -127,7 +127,7 @@ class CoeObjects:
         if subindex > len(entries):
             raise SdoAbort(cia301.SDO_ABORT_NO_SUBINDEX)
         if self._counts[index]:
-            raise SdoAbort(ABORT_SUBINDEX_ZERO_NOT_ZERO)
+            raise SdoAbort(ec.SDO_ABORT_SUBINDEX_ZERO_NOT_ZERO)
         if len(data) != 2:
             raise SdoAbort(cia301.SDO_ABORT_LENGTH_MISMATCH)
         (pdo,) = _U16.unpack(data)
@@ -142,17 +142,23 @@ class CoeObjects:
             raise SdoAbort(cia301.SDO_ABORT_WRITE_READ_ONLY)
         if subindex == 0:
             count = int.from_bytes(data, "little")
-            if not all(self.device.read(index, k) for k in range(1, count + 1)):
+            try:
+                complete = all(self.device.read(index, k) for k in range(1, count + 1))
+            except DeviceAccessError as exc:
+                raise SdoAbort(cia301.SDO_ABORT_PDO_LENGTH) from exc
+            if not complete:
                 raise SdoAbort(cia301.SDO_ABORT_VALUE_RANGE)  # entries missing
             return
         if self.device.read(index, 0):
-            raise SdoAbort(ABORT_SUBINDEX_ZERO_NOT_ZERO)
+            raise SdoAbort(ec.SDO_ABORT_SUBINDEX_ZERO_NOT_ZERO)
         if len(data) != 4:
             return  # the device names the length mismatch
         entry = int.from_bytes(data, "little")
         if not entry:
             return
         mapped, mapped_sub, _ = split_mapping_entry(entry)
+        if (mapped, mapped_sub) not in self.esi.pdo_objects:
+            raise SdoAbort(cia301.SDO_ABORT_NOT_MAPPABLE)  # the ESI does not offer it
         var = variable(self.device.dictionary, mapped, mapped_sub)
         allowed = _MASTER_WRITES if _is_rx_mapping(index) else _MASTER_READS
         if var is not None and var.access_type not in allowed:
