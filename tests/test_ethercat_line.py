@@ -8,23 +8,32 @@ import time
 
 import pysoem
 import pytest
-from ethercat_line import entered, network_namespace, slave_line
 
 from driver.ethercat_transport import open_ethercat_transports
 from driver.interface import DriveError, DriveLost
+from model.parameters import load_model
 from protocol import esi_path, objects
 from protocol import ethercat as ec
 from protocol.dictionary import mapped_object, variable
 from protocol.esi import load_esi
+from sim_bus.ethercat.netns import LinkUnavailable, SlaveProcess, VirtualLink
 
 ESI = load_esi(esi_path())
 CONTROLWORD_ENABLE = 0x0F
 
 
 @pytest.fixture
-def namespace():
-    with network_namespace() as ns:
-        yield ns
+def link():
+    try:
+        virtual = VirtualLink()
+    except LinkUnavailable as exc:
+        pytest.skip(str(exc))
+    with virtual:
+        yield virtual
+
+
+def slaves(link, count):
+    return SlaveProcess(link, count, load_model())
 
 
 def cst_profile(dictionary):
@@ -53,10 +62,10 @@ def close(transports):
         transport.close()
 
 
-def test_soem_finds_the_slaves_reads_their_sii_and_maps_the_cst_layout(namespace):
-    with slave_line(namespace, 2), entered(namespace):
+def test_soem_finds_the_slaves_reads_their_sii_and_maps_the_cst_layout(link):
+    with slaves(link, 2), link.entered():
         master = pysoem.Master()
-        master.open(namespace.master)
+        master.open(link.master_port)
         try:
             assert master.config_init() == 2
             for slave in master.slaves:
@@ -82,9 +91,9 @@ def test_soem_finds_the_slaves_reads_their_sii_and_maps_the_cst_layout(namespace
             master.close()
 
 
-def test_lockstep_cycles_move_each_joint_the_commanded_way(namespace):
-    with slave_line(namespace, 2) as line, entered(namespace):
-        transports = open_ethercat_transports(namespace.master, [0, 1], lockstep=True)
+def test_lockstep_cycles_move_each_joint_the_commanded_way(link):
+    with slaves(link, 2) as line, link.entered():
+        transports = open_ethercat_transports(link.master_port, [0, 1], lockstep=True)
         try:
             bring_up(transports)
             for transport in transports:
@@ -103,9 +112,9 @@ def test_lockstep_cycles_move_each_joint_the_commanded_way(namespace):
     assert [r["cycles"] for r in report] == [r["cycles"] for r in report[:1]] * 2
 
 
-def test_killed_slave_process_is_lost_within_one_cycle(namespace):
-    with slave_line(namespace, 1) as line, entered(namespace):
-        [transport] = open_ethercat_transports(namespace.master, [0], lockstep=True,
+def test_killed_slave_process_is_lost_within_one_cycle(link):
+    with slaves(link, 1) as line, link.entered():
+        [transport] = open_ethercat_transports(link.master_port, [0], lockstep=True,
                                                response_timeout=0.2)
         try:
             bring_up([transport])
@@ -120,10 +129,10 @@ def test_killed_slave_process_is_lost_within_one_cycle(namespace):
             close([transport])
 
 
-def test_bootstrap_request_is_refused_by_name(namespace):
-    with slave_line(namespace, 1), entered(namespace):
+def test_bootstrap_request_is_refused_by_name(link):
+    with slaves(link, 1), link.entered():
         master = pysoem.Master()
-        master.open(namespace.master)
+        master.open(link.master_port)
         try:
             master.config_init()
             slave = master.slaves[0]
@@ -137,9 +146,9 @@ def test_bootstrap_request_is_refused_by_name(namespace):
             master.close()
 
 
-def test_safe_op_refused_for_a_wrong_output_size_names_the_code(namespace):
-    with slave_line(namespace, 1), entered(namespace):
-        [transport] = open_ethercat_transports(namespace.master, [0], lockstep=True)
+def test_safe_op_refused_for_a_wrong_output_size_names_the_code(link):
+    with slaves(link, 1), link.entered():
+        [transport] = open_ethercat_transports(link.master_port, [0], lockstep=True)
         try:
             bring_up([transport])
             line = transport.line
@@ -157,9 +166,9 @@ def test_safe_op_refused_for_a_wrong_output_size_names_the_code(namespace):
             close([transport])
 
 
-def test_master_loss_trips_the_watchdog_and_the_drive_stops_on_its_brake(namespace):
-    with slave_line(namespace, 1) as line, entered(namespace):
-        [transport] = open_ethercat_transports(namespace.master, [0], lockstep=False)
+def test_master_loss_trips_the_watchdog_and_the_drive_stops_on_its_brake(link):
+    with slaves(link, 1) as line, link.entered():
+        [transport] = open_ethercat_transports(link.master_port, [0], lockstep=False)
         bring_up([transport])
         enable(transport)
         for _ in range(50):
@@ -176,9 +185,9 @@ def test_master_loss_trips_the_watchdog_and_the_drive_stops_on_its_brake(namespa
     assert slave["brake_engaged"]
 
 
-def test_drive_fault_arrives_as_a_coe_emergency(namespace):
-    with slave_line(namespace, 1), entered(namespace):
-        [transport] = open_ethercat_transports(namespace.master, [0], lockstep=True)
+def test_drive_fault_arrives_as_a_coe_emergency(link):
+    with slaves(link, 1), link.entered():
+        [transport] = open_ethercat_transports(link.master_port, [0], lockstep=True)
         emergencies = []
         transport.on_emergency = lambda code, register: emergencies.append((code, register))
         try:
@@ -193,10 +202,10 @@ def test_drive_fault_arrives_as_a_coe_emergency(namespace):
     assert emergencies == [(0x2310, 0x02)]  # over-current, current bit of 0x1001
 
 
-def test_malformed_frames_do_not_stop_the_line(namespace):
-    with slave_line(namespace, 2) as line, entered(namespace):
+def test_malformed_frames_do_not_stop_the_line(link):
+    with slaves(link, 2) as line, link.entered():
         raw = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ec.ETHERTYPE))
-        raw.bind((namespace.master, ec.ETHERTYPE))
+        raw.bind((link.master_port, ec.ETHERTYPE))
         raw.settimeout(2.0)
         good = ec.encode_frame([(ec.Command.BRD, 1, 0, bytes(2))])
         bad = [
