@@ -107,6 +107,8 @@ class Esc:
         # enabled sync managers in process RAM: (number, start, end, mailbox, master_writes,
         # watchdog trigger)
         self._sms: list[tuple[int, int, int, bool, bool, bool]] = []
+        # the FMMUs as precomputed copies (writes, reads), or None: use the checked path
+        self._plan: tuple[list, list] | None = ([], [])
         self._watchdog_period = 0.0
         self._watchdog_deadline: float | None = None
         self._last_in_line = True
@@ -132,6 +134,7 @@ class Esc:
         self.set_link(self._last_in_line)
         self._reload_configuration()
         self._fmmus, self._sms = [], []
+        self._plan = ([], [])
         self._watchdog_deadline = None
         self._update_watchdog_period()
 
@@ -309,6 +312,39 @@ class Esc:
                  data: int) -> int:
         """Through the FMMUs: outputs are taken from the frame first, so the firmware's cycle
         runs, then inputs go into the frame (also right for overlapping images)."""
+        if self._plan is None:
+            return self._logical_checked(command, address, length, view, data)
+        end = address + length
+        wrote = read = False
+        memory = self.view
+        writes, reads = self._plan
+        if command != ec.Command.LRD:
+            for start, stop, physical, completes, watchdog in writes:
+                if start < end and address < stop:
+                    low = start if start > address else address
+                    high = stop if stop < end else end
+                    memory[physical + low - start:physical + high - start] = view[
+                        data + low - address:data + high - address]
+                    wrote = True
+                    if completes and high == stop:
+                        if watchdog:
+                            self._trigger_watchdog()
+                        self.firmware.outputs_received(self)
+        if command != ec.Command.LWR:
+            for start, stop, physical in reads:
+                if start < end and address < stop:
+                    low = start if start > address else address
+                    high = stop if stop < end else end
+                    view[data + low - address:data + high - address] = memory[
+                        physical + low - start:physical + high - start]
+                    read = True
+        if command == ec.Command.LRW:
+            return (1 if read else 0) + (2 if wrote else 0)
+        return 1 if read or wrote else 0
+
+    def _logical_checked(self, command: int, address: int, length: int, view: memoryview,
+                         data: int) -> int:
+        """The general path: every FMMU access through the sync manager rules."""
         end = address + length
         wrote = read = False
         if command != ec.Command.LRD:
@@ -469,6 +505,7 @@ class Esc:
             sms.append((key, start, start + length, mailbox, master_writes,
                         bool(control & ec.SM_CONTROL_WATCHDOG)))
         self._sms = sms
+        self._plan_process_data()
 
     def _rebuild_fmmus(self) -> None:
         fmmus = []
@@ -479,6 +516,36 @@ class Esc:
                 fmmus.append((logical, logical + length, physical, bool(kind & ec.FMMU_READ),
                               bool(kind & ec.FMMU_WRITE)))
         self._fmmus = fmmus
+        self._plan_process_data()
+
+    def _plan_process_data(self) -> None:
+        """The FMMU accesses as plain copies, decided once per configuration change instead
+        of per frame: each FMMU of process RAM that lies inside one buffered sync manager (or
+        outside all of them) becomes (logical start, end, physical start[, completes the
+        buffer, retriggers the watchdog]); accesses the sync manager refuses are left out
+        (they count nothing). Anything else (registers, mailboxes, straddling) keeps the
+        checked path for every FMMU."""
+        writes, reads = [], []
+        for start, stop, physical, does_read, does_write in self._fmmus:
+            physical_end = physical + stop - start
+            if physical < ec.PROCESS_RAM_START or physical_end > ec.ADDRESS_SPACE:
+                self._plan = None
+                return
+            inside = [sm for sm in self._sms if sm[1] < physical_end and physical < sm[2]]
+            if len(inside) > 1 or inside and not (inside[0][1] <= physical
+                                                  and physical_end <= inside[0][2]):
+                self._plan = None
+                return
+            if inside and inside[0][3]:  # a mailbox behind an FMMU: checked path
+                self._plan = None
+                return
+            sm = inside[0] if inside else None
+            if does_write and (sm is None or sm[0] >= 0 and sm[4]):
+                completes = sm is not None and physical_end == sm[2]
+                writes.append((start, stop, physical, completes, completes and sm[5]))
+            if does_read and (sm is None or sm[0] >= 0 and not sm[4]):
+                reads.append((start, stop, physical))
+        self._plan = (writes, reads)
 
     # --- the SII EEPROM interface ------------------------------------------------------------
 
