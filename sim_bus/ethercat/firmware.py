@@ -46,6 +46,7 @@ class SlaveFirmware:
         self.mailbox = CoeMailbox(self.objects, size)
         self.esc: Esc | None = None
         self._outbox: deque[bytes] = deque()
+        self._deferred: list[bytes] | None = None
         self._last_sent: bytes | None = None
         self._op_requested = False
         self._outputs_seen = False
@@ -259,7 +260,12 @@ class SlaveFirmware:
     def mailbox_received(self, esc: Esc, message: bytes) -> None:
         if esc.al_status & ec.AL_STATE_MASK == ec.AlState.INIT:
             return  # the mailbox runs from PRE-OP on
-        self._outbox.extend(self.mailbox.handle(message))
+        self._deferred = []  # an emergency the request itself causes follows its answer
+        try:
+            self._outbox.extend(self.mailbox.handle(message))
+        finally:
+            deferred, self._deferred = self._deferred, None
+            self._outbox.extend(deferred)
         self.frame_passed(esc)
 
     def mailbox_read(self, esc: Esc) -> None:
@@ -282,7 +288,8 @@ class SlaveFirmware:
         """The device's emergency, as a CoE emergency (from PRE-OP on; lost in INIT, as on
         a real slave). Posted at the next frame: this may run in another thread."""
         if self.esc is not None and self.state != ec.AlState.INIT:
-            self._outbox.append(self.mailbox.emergency(code, register))
+            message = self.mailbox.emergency(code, register)
+            (self._deferred if self._deferred is not None else self._outbox).append(message)
 
     # --- faults of the communication (the device acts out its own) ---------------------------
 
