@@ -106,7 +106,12 @@ class SlaveProcess:
         if not self._pipe.poll(START_TIMEOUT):
             self.process.kill()
             raise RuntimeError(f"the slave process did not start within {START_TIMEOUT} s")
-        message = self._pipe.recv()
+        try:
+            message = self._pipe.recv()
+        except EOFError:
+            self.process.join(5)
+            raise RuntimeError("the slave process died at start (exit code "
+                               f"{self.process.exitcode})") from None
         if message != "ready":
             self.process.join(5)
             raise RuntimeError(f"the slave process failed: {message}")
