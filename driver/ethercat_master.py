@@ -13,6 +13,7 @@ state and AL status code, as read right after the failed frame.
 """
 
 import logging
+import time
 from collections.abc import Callable
 
 import pysoem
@@ -27,6 +28,7 @@ STATE_TIMEOUT_US = 2_000_000  # SOEM's EC_TIMEOUTSTATE: what a state change may 
 OP_FRAMES = 200  # frames sent after the OP request before giving up (OP comes with outputs)
 LOCKSTEP_RESPONSE_TIMEOUT = 1.0  # s: in lock-step a late frame is not a failure, only none is
 REALTIME_RESPONSE_TIMEOUT = 0.1  # s: the slaves' default process data watchdog
+KEEP_ALIVE = 0.02  # s: a fifth of the ESC's default watchdog
 
 
 class EthercatMaster:
@@ -57,6 +59,7 @@ class EthercatMaster:
         self._mapped = False
         self._released: set[int] = set()  # positions taken out of the cycle on purpose
         self._expected_wkc = 0
+        self._last_frame = 0.0  # time.monotonic() of the last process data frame
         self._claimed: dict[int, Callable[[], bool]] = {}  # position -> "ready for OP"
 
     # --- bring-up ----------------------------------------------------------------------------
@@ -140,6 +143,7 @@ class EthercatMaster:
             master.receive_processdata(self.response_timeout_us)
             if master.state_check(pysoem.OP_STATE, 1000) == pysoem.OP_STATE:
                 self.operational = True
+                self._last_frame = time.monotonic()
                 return
         self._require_state(pysoem.OP_STATE, "OP")
 
@@ -170,12 +174,26 @@ class EthercatMaster:
 
     def cycle(self) -> None:
         """Send the one frame of this cycle and check its working counter."""
+        self.frames += 1
+        self._frame()
+
+    def keep_alive(self) -> None:
+        """Real time, while OP: a frame when none went out for KEEP_ALIVE s, so an acyclic
+        sequence between cycles (enabling the drive by CoE) does not starve the slaves'
+        watchdog. Lock-step needs none (the watchdog is off) and gets none (a frame is a
+        cycle of the drive's time there)."""
+        if (self.lockstep or not self.operational or self.failure is not None
+                or time.monotonic() - self._last_frame < KEEP_ALIVE):
+            return
+        self._frame()
+
+    def _frame(self) -> None:
         if self.failure is not None:
             raise self.failure
         master = self.master
         master.send_processdata()
         wkc = master.receive_processdata(self.response_timeout_us)
-        self.frames += 1
+        self._last_frame = time.monotonic()
         if wkc != self._expected_wkc:
             self.failure = DriveLost(self._diagnose(wkc))
             log.error("%s", self.failure)

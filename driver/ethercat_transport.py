@@ -73,6 +73,7 @@ class EthercatTransport(Transport):
 
     def read(self, index: int, subindex: int = 0) -> int:
         var = self._variable(index, subindex)
+        self.line.keep_alive()
         try:
             data = self.slave.sdo_read(index, subindex)
         except pysoem.SdoError as exc:
@@ -85,6 +86,7 @@ class EthercatTransport(Transport):
 
     def write(self, index: int, subindex: int, value: int) -> None:
         var = self._variable(index, subindex)
+        self.line.keep_alive()
         try:
             self.slave.sdo_write(index, subindex, var.encode_raw(value))
         except pysoem.SdoError as exc:
