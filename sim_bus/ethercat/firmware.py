@@ -52,8 +52,8 @@ class SlaveFirmware:
         self._outputs_seen = False
         self._out_keys: tuple[tuple[int, int], ...] = ()
         self._in_keys: tuple[tuple[int, int], ...] = ()
-        self._out_codec: PdoLayout | None = None
-        self._in_codec: PdoLayout | None = None
+        self._unpack_outputs = self._pack_inputs = None
+        self._out_start = self._in_start = 0
         self.cycles = 0
         self.refused_outputs = 0  # output values the device refused (out of its range)
         self.delay_next_frame = 0.0  # s, fault injection: hold the frame this long
@@ -185,7 +185,11 @@ class SlaveFirmware:
                             "expected %d bytes for the assigned PDOs", number, start, length,
                             control, activate, codec.size)
                 return code
-        self._out_codec, self._in_codec = out_codec, in_codec
+        # the cycle's codecs and buffer addresses (an enabled sync manager cannot move)
+        self._unpack_outputs = out_codec.struct.unpack_from
+        self._pack_inputs = in_codec.struct.pack_into
+        self._out_start = self.esc.sync_manager(self.outputs_sm)[0]
+        self._in_start = self.esc.sync_manager(self.inputs_sm)[0]
         self._out_keys = tuple((o.index, o.subindex) for o in outputs)
         self._in_keys = tuple((o.index, o.subindex) for o in inputs)
         self._outputs_seen = self._op_requested = False
@@ -219,31 +223,27 @@ class SlaveFirmware:
 
     def outputs_received(self, esc: Esc) -> None:
         self._outputs_seen = True
-        state = esc.al_status & ec.AL_STATE_MASK
+        memory = esc.memory
         if self._op_requested:
             self._op_requested = False
-            state = ec.AlState.OP
-            esc.set_al_status(ec.AlState.OP | (esc.al_status & ec.AL_ERROR),
-                              _u16(esc, ec.REG_AL_STATUS_CODE))
+            memory[ec.REG_AL_STATUS] = ec.AlState.OP | memory[ec.REG_AL_STATUS] & ec.AL_ERROR
         device = self.device
-        if state == ec.AlState.OP and self._out_keys:
-            start = esc.sync_manager(self.outputs_sm)[0]
-            values = self._out_codec.struct.unpack_from(esc.memory, start)
+        if memory[ec.REG_AL_STATUS] & ec.AL_STATE_MASK == ec.AlState.OP and self._out_keys:
             try:
-                device.write_outputs(self._out_keys, values)
+                device.write_outputs(self._out_keys, self._unpack_outputs(memory,
+                                                                          self._out_start))
             except DeviceAccessError as exc:
                 self.refused_outputs += 1
                 log.debug("outputs refused: %s", exc)
         device.cycle()
         self.cycles += 1
-        self._write_inputs()
+        if self._in_keys:
+            self._pack_inputs(memory, self._in_start, *device.values_of(self._in_keys))
 
     def _write_inputs(self) -> None:
-        if not self._in_keys:
-            return
-        start = self.esc.sync_manager(self.inputs_sm)[0]
-        self._in_codec.struct.pack_into(self.esc.memory, start,
-                                        *self.device.values_of(self._in_keys))
+        if self._in_keys:
+            self._pack_inputs(self.esc.memory, self._in_start,
+                              *self.device.values_of(self._in_keys))
 
     def watchdog_expired(self, esc: Esc) -> None:
         """No outputs within the watchdog time: the master is gone. OP drops to SAFE-OP with
