@@ -56,20 +56,24 @@ class EthercatMaster:
         self.frames = 0  # cyclic frames sent since the line went operational
         self.failure: DriveError | None = None
         self.operational = False
-        self._mapped = False
+        self.mapped = False  # the process image exists (config_map done)
         self._released: set[int] = set()  # positions taken out of the cycle on purpose
         self._expected_wkc = 0
         self._last_frame = 0.0  # time.monotonic() of the last process data frame
-        self._claimed: dict[int, Callable[[], bool]] = {}  # position -> "ready for OP"
+        # position -> (ready for OP, stage its outputs)
+        self._claimed: dict[int, tuple[Callable[[], bool], Callable[[], None]]] = {}
 
     # --- bring-up ----------------------------------------------------------------------------
 
-    def claim(self, position: int, ready: Callable[[], bool]) -> None:
-        """A transport takes the slave at `position`; `ready()` says when its process data is
-        mapped, so the line goes to OP once every claimed slave is ready."""
+    def claim(self, position: int, ready: Callable[[], bool],
+              stage: Callable[[], None]) -> None:
+        """A transport takes the slave at `position`: `ready()` says when its process data is
+        mapped (the line goes to OP once every claimed slave is ready), `stage()` puts its
+        outputs into the process image (called once the image exists, before the first
+        frame, so a drive enabled before OP stays enabled)."""
         if position in self._claimed:
             raise ValueError(f"slave {position} on {self.interface} is already in use")
-        self._claimed[position] = ready
+        self._claimed[position] = (ready, stage)
 
     def unclaim(self, position: int) -> None:
         """A transport is done with its slave; the last one closes the line."""
@@ -114,7 +118,7 @@ class EthercatMaster:
         return self.slaves[position]
 
     def all_ready(self) -> bool:
-        return all(ready() for ready in self._claimed.values())
+        return all(ready() for ready, _ in self._claimed.values())
 
     def go_operational(self) -> None:
         """PRE-OP -> SAFE-OP -> OP for the whole line: the process data image (SOEM's
@@ -123,7 +127,7 @@ class EthercatMaster:
         if self.operational:
             return
         master = self.master
-        if not self._mapped:
+        if not self.mapped:
             if self.lockstep or self.watchdog is not None:
                 milliseconds = 0.0 if self.lockstep else self.watchdog * 1e3
                 for slave in self.slaves:
@@ -133,7 +137,9 @@ class EthercatMaster:
             except pysoem.ConfigMapError as exc:
                 raise DriveError(f"EtherCAT {self.interface}: reading the PDO assignment "
                                  f"failed: {_errors(exc.error_list)}") from None
-            self._mapped = True
+            self.mapped = True
+        for _, stage in self._claimed.values():
+            stage()
         self._require_state(pysoem.SAFEOP_STATE, "SAFE_OP")
         self._expected_wkc = master.expected_wkc
         master.state = pysoem.OP_STATE
@@ -241,7 +247,7 @@ class EthercatMaster:
             self.master.close()
             self.master = None
             self.slaves = []
-            self.operational = self._mapped = False
+            self.operational = self.mapped = False
 
 
 def _errors(error_list: list) -> str:

@@ -56,7 +56,7 @@ class EthercatTransport(Transport):
         self._emergency_polls = 0
         self._mapped = False
         self._closed = False
-        line.claim(position, lambda: self._mapped)
+        line.claim(position, lambda: self._mapped, self._stage)
 
     @property
     def slave(self):
@@ -166,14 +166,13 @@ class EthercatTransport(Transport):
             self.write(objects.CYCLE_PERIOD_US, 0, int(round(period * 1e6)))
         if self.line.all_ready():
             self.line.go_operational()
-            self._stage()
 
     def send(self, outputs: Sequence[int]) -> None:
         self._staged[:] = outputs
         self._stage()
 
     def _stage(self) -> None:
-        if self.line.operational:
+        if self.line.mapped and self._mapped:
             self.slave.output = self._out_codec.struct.pack(*self._staged)
 
     def exchange(self) -> tuple[int, ...]:
@@ -183,7 +182,6 @@ class EthercatTransport(Transport):
                 raise DriveError(f"{self.name}: the line is not operational: a slave in use "
                                  "has no process data mapped yet")
             line.go_operational()
-            self._stage()
         if self._seen == line.frames:
             line.cycle()  # this cycle's frame, for every slave on the line
         elif line.failure is not None:
