@@ -11,7 +11,7 @@ import logging
 import socket
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from protocol import esi_path as shipped_esi_path
@@ -129,12 +129,16 @@ def run(sock: socket.socket, segment: Segment, stop: threading.Event) -> None:
 
 
 def serve(interface: str, devices: Sequence[Cia402Device], stop: threading.Event,
-          esi_path: str | Path | None = None) -> Segment:
+          esi_path: str | Path | None = None,
+          on_ready: Callable[[Segment], None] | None = None) -> Segment:
     """Run `devices` as a line of EtherCAT slaves on `interface` until `stop` is set (the
-    library entry of `sim-bus --bus ethercat:IFACE`). Raises OSError when the interface
-    cannot be opened and EsiError for a bad ESI file; returns the segment for inspection."""
+    library entry of `sim-bus --bus ethercat:IFACE`); `on_ready(segment)` once the interface
+    is open. Raises OSError when the interface cannot be opened and EsiError for a bad ESI
+    file; returns the segment for inspection."""
     segment = Segment(devices, load_esi(esi_path) if esi_path is not None else None)
     sock = open_socket(interface)
+    if on_ready is not None:
+        on_ready(segment)
     try:
         run(sock, segment, stop)
     finally:
