@@ -29,6 +29,7 @@ OP_FRAMES = 200  # frames sent after the OP request before giving up (OP comes w
 LOCKSTEP_RESPONSE_TIMEOUT = 1.0  # s: in lock-step a late frame is not a failure, only none is
 REALTIME_RESPONSE_TIMEOUT = 0.1  # s: the slaves' default process data watchdog
 KEEP_ALIVE = 0.02  # s: a fifth of the ESC's default watchdog
+SCAN_RETRY = 0.1  # s between two scans of a line that did not answer right
 
 
 class EthercatMaster:
@@ -81,9 +82,26 @@ class EthercatMaster:
         if not self._claimed:
             self.close_line()
 
-    def scan(self) -> None:
+    def scan(self, timeout: float) -> None:
         """INIT -> PRE-OP for the whole line (SOEM's config_init: addresses, SII, mailbox),
-        each slave's identity checked against the ESI. Again after a failure: a fresh start."""
+        each slave's identity checked against the ESI. Again after a failure: a fresh start.
+        A line that does not answer, or answers with an identity that is not the ESI's, is
+        scanned again until `timeout` s have passed (SOEM gives each register access a few
+        ms: a busy slave host can miss one), then refused."""
+        deadline = time.monotonic() + timeout
+        while True:
+            problem = self._scan_once()
+            if problem is None:
+                break
+            if time.monotonic() > deadline:
+                raise problem
+            time.sleep(SCAN_RETRY)
+        self._require_state(pysoem.PREOP_STATE, "PRE_OP")
+        self.failure = None
+        self._released.clear()
+        self.frames = 0
+
+    def _scan_once(self) -> DriveError | None:
         self.close_line()
         master = pysoem.Master()
         try:
@@ -92,24 +110,20 @@ class EthercatMaster:
             raise DriveLost(f"EtherCAT {self.interface}: cannot open the interface ({exc}; "
                             "needs root or CAP_NET_RAW)") from None
         self.master = master
-        found = master.config_init()
-        if found <= 0:
-            raise DriveLost(f"EtherCAT {self.interface}: no slave answers (line unplugged or "
-                            "powered off?)")
+        if master.config_init() <= 0:
+            return DriveLost(f"EtherCAT {self.interface}: no slave answers (line unplugged or "
+                             "powered off?)")
         self.slaves = list(master.slaves)
         for position, slave in enumerate(self.slaves):
             identity = (slave.man, slave.id, slave.rev)
             if identity != self.esi.identity:
-                raise ProfileError(
+                return ProfileError(
                     f"EtherCAT {self.interface} slave {position} ({slave.name!r}): SII identity "
                     f"vendor 0x{identity[0]:08X} product 0x{identity[1]:08X} revision "
                     f"0x{identity[2]:08X}, the ESI describes vendor 0x{self.esi.vendor_id:08X} "
                     f"product 0x{self.esi.product_code:08X} revision 0x{self.esi.revision:08X} "
                     f"({self.esi.name})")
-        self._require_state(pysoem.PREOP_STATE, "PRE_OP")
-        self.failure = None
-        self._released.clear()
-        self.frames = 0
+        return None
 
     def slave(self, position: int):
         if not 0 <= position < len(self.slaves):
@@ -224,7 +238,7 @@ class EthercatMaster:
     def release(self, position: int) -> None:
         """Take one slave out of the cycle (to PRE-OP) without failing the others: the
         expected working counter drops by its share."""
-        if position in self._released or self.master is None:
+        if position in self._released or not 0 <= position < len(self.slaves):
             return
         slave = self.slaves[position]
         if self.operational:

@@ -68,7 +68,7 @@ class EthercatTransport(Transport):
         """The line from INIT to PRE-OP (once for all its slaves; again after a failure).
         There is no other master to find: a line has one master port."""
         if self.line.master is None or self.line.failure is not None:
-            self.line.scan()
+            self.line.scan(timeout)
         self.slave.add_emergency_callback(self._on_emergency)
 
     def read(self, index: int, subindex: int = 0) -> int:

@@ -143,11 +143,13 @@ class SlaveProcess:
 
 def _serve_line(namespace: str, port: str, count: int, model: ActuatorModel, payload: Payload,
                 noise: SensorNoise, pipe) -> None:
-    """The slave process: into the namespace, the drives, the port; serve until SIGTERM, then
-    send the end state of every slave."""
+    """The slave process: into the namespace, the drives on the port until SIGTERM, then the
+    end state of every slave down the pipe."""
     from protocol import ethercat as ec
-    from sim_bus.ethercat.segment import Segment, open_socket, run
+    from sim_bus.ethercat.segment import serve
 
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:
         libc = ctypes.CDLL(None, use_errno=True)
         with open(f"/run/netns/{namespace}") as target:
@@ -157,15 +159,10 @@ def _serve_line(namespace: str, port: str, count: int, model: ActuatorModel, pay
                                                             None if noise.seed is None
                                                             else noise.seed + k))
                    for k in range(count)]
-        segment = Segment(devices)
-        sock = open_socket(port)
+        segment = serve(port, devices, stop, on_ready=lambda _: pipe.send("ready"))
     except Exception as exc:  # the parent raises it with the reason
         pipe.send(f"{type(exc).__name__}: {exc}")
         return
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    pipe.send("ready")
-    run(sock, segment, stop)
     pipe.send([{
         "al_status": esc.al_status,
         "al_status_code": esc.memory[ec.REG_AL_STATUS_CODE]
