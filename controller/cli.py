@@ -113,9 +113,10 @@ def main(argv: list[str] | None = None) -> int:
         from sim_bus.embedded import EmbeddedDrive
         from sim_bus.plant import SensorNoise
 
-        sim = EmbeddedDrive(sim_model, payload, SensorNoise(seed=args.seed), args.node_id)
+        sim = EmbeddedDrive(sim_model, payload, SensorNoise(seed=args.seed), args.node_id,
+                            lockstep=args.lockstep)
         for fault, seconds in schedule:
-            sim.drive.schedule(fault, seconds)
+            sim.device.schedule(fault, seconds)
     try:
         session = open_session(args)
     except ValueError as exc:
@@ -136,7 +137,9 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, lambda *_: loop.stop())
     try:
         # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host
-        timing = {"period": period, "response_timeout": 1.0 if args.lockstep else 0.1}
+        timing = {"period": period, "response_timeout": 1.0 if args.lockstep else 0.1,
+                  "lockstep": args.lockstep, "velocity_limit": model.limits.velocity_max,
+                  "drive_gain": model.parameters.drive_gain}
         drive = (CanOpenDrive(sim.master_network, args.node_id, **timing) if sim is not None
                  else CanOpenDrive.open(bus, args.node_id, **timing))
     except Exception as exc:

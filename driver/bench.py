@@ -18,15 +18,19 @@ from driver.canopen_drive import CanOpenDrive, open_network
 
 
 def _lockstep_in_process(cycles: int) -> float:
-    from sim_bus.drive import VirtualDrive
+    from model.parameters import Payload, load_model
+    from sim_bus.canopen_node import CanOpenNode
+    from sim_bus.device import Cia402Device
+    from sim_bus.plant import SensorNoise
 
-    from model.parameters import load_model
-
+    model = load_model()
     channel = f"virtual:bench-{random.getrandbits(32)}"
     sim_network = open_network(channel)
-    sim = VirtualDrive(sim_network, 2, load_model())
+    sim = CanOpenNode(sim_network, 2, Cia402Device(model, Payload(), SensorNoise(), node_id=2),
+                      lockstep=True)
     sim.boot()
-    master = CanOpenDrive(open_network(channel), 2)
+    master = CanOpenDrive(open_network(channel), 2, velocity_limit=model.limits.velocity_max,
+                          lockstep=True)
     try:
         master.start()
         start = time.perf_counter()
@@ -47,7 +51,7 @@ def _two_processes(cycles: int) -> dict:
     try:
         if "ready" not in proc.stdout.readline():
             raise RuntimeError("sim-bus did not start")
-        master = CanOpenDrive.open(bus, 2)
+        master = CanOpenDrive.open(bus, 2, velocity_limit=_velocity_limit())
         try:
             master.start()
             sample_latency, cycle_time = [], []
@@ -69,6 +73,12 @@ def _two_processes(cycles: int) -> dict:
             "sync_tpdo_rpdo_cycle_median_us": round(float(np.median(cyc)), 1),
             "sync_tpdo_rpdo_cycle_p99_us": round(float(np.percentile(cyc, 99)), 1),
             "cycles": cycles}
+
+
+def _velocity_limit() -> float:
+    from model.parameters import load_model
+
+    return load_model().limits.velocity_max
 
 
 def main(argv: list[str] | None = None) -> int:

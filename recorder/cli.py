@@ -120,7 +120,8 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         from sim_bus.embedded import EmbeddedDrive
         from sim_bus.plant import SensorNoise
 
-        sim = EmbeddedDrive(sim_model, payload, SensorNoise(seed=args.seed), args.node_id)
+        sim = EmbeddedDrive(sim_model, payload, SensorNoise(seed=args.seed), args.node_id,
+                            lockstep=args.lockstep)
     metadata = {
         "payload_mass": payload.mass, "payload_position": f"{payload.x},{payload.y}",
         "experiment": "sinusoid" if args.sinusoid else "exciting_trajectory",
@@ -129,8 +130,10 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         "node_id": args.node_id, "period_s": 1e-3,
         "recorded_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
     try:
-        drive = (CanOpenDrive(sim.master_network, args.node_id) if sim is not None
-                 else CanOpenDrive.open(bus, args.node_id))
+        options = {"lockstep": args.lockstep, "velocity_limit": model.limits.velocity_max,
+                   "drive_gain": model.parameters.drive_gain}
+        drive = (CanOpenDrive(sim.master_network, args.node_id, **options) if sim is not None
+                 else CanOpenDrive.open(bus, args.node_id, **options))
     except Exception as exc:
         print(f"recorder: error: cannot open bus {bus!r}: {exc}", file=sys.stderr)
         return 1

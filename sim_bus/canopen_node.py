@@ -13,6 +13,7 @@ judge it deterministically. Counted in cycles, the beats fall on the same cycles
 """
 
 import logging
+import operator
 import threading
 import time
 
@@ -37,12 +38,15 @@ NMT_STATE_NAMES = {cia301.NMT_BOOT_UP: "INITIALISING", cia301.NMT_STOPPED: "STOP
 class _Pdo:
     """One enabled PDO as configured in the dictionary: COB-ID, codec, the objects' keys."""
 
-    __slots__ = ("cob_id", "codec", "keys", "every", "synchronous")
+    __slots__ = ("cob_id", "codec", "keys", "values_of", "every", "synchronous")
 
     def __init__(self, cob_id: int, layout: PdoLayout, transmission: int):
         self.cob_id = cob_id
         self.codec = layout.struct
         self.keys = tuple((o.index, o.subindex) for o in layout.objects)
+        getter = operator.itemgetter(*self.keys)
+        # the values of the mapped objects from the device's value table, always as a tuple
+        self.values_of = getter if len(self.keys) > 1 else lambda table: (getter(table),)
         self.every = transmission if 1 <= transmission <= cia301.SYNC_COUNTER_MAX else 1
         self.synchronous = transmission <= cia301.SYNC_COUNTER_MAX
 
@@ -177,14 +181,23 @@ class CanOpenNode:
             self._heartbeat.count_cycle()
         if self._silent or self._reboot_in_cycle:
             return
-        frames = [(pdo.cob_id, pdo.codec.pack(*device.values_of(pdo.keys)))
+        table = device.values
+        frames = [(pdo.cob_id, pdo.codec.pack(*pdo.values_of(table)))
                   for pdo in self._tpdos if self.sync_count % pdo.every == 0]
-        if self._late_once:
-            self._late_once = False
-            time.sleep(TPDO_DELAY)
         if self._twice_once:
             self._twice_once = False
             frames = frames * 2
+        if self._late_once:
+            # from another thread, as a drive's late answer: the bus (and, embedded, the
+            # master's thread that sent the SYNC) is not held up meanwhile
+            self._late_once = False
+            late = threading.Timer(TPDO_DELAY, self._send, (frames,))
+            late.daemon = True
+            late.start()
+            return
+        self._send(frames)
+
+    def _send(self, frames: list[tuple[int, bytes]]) -> None:
         send = self.network.send_message
         for cob_id, payload in frames:
             send(cob_id, payload)

@@ -20,7 +20,7 @@ CoE mailbox both send back as is.
 import logging
 import math
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 from model.parameters import ActuatorModel, Payload
@@ -48,6 +48,15 @@ _DEVICE_FAULTS = frozenset((Fault.ENCODER_GLITCH, Fault.TORQUE_SENSOR_SATURATED,
 _POWERED = frozenset((State.SWITCHED_ON, State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE))
 # quick stop option codes 1..4 end in switch on disabled once the motor stands still
 _QUICK_STOP_ENDS_DISABLED = range(1, 5)
+# keys of the objects every cycle writes (built once, not per cycle)
+_SYNC_ECHO = (objects.SYNC_ECHO, 0)
+_POSITION_ACTUAL = (objects.POSITION_ACTUAL, 0)
+_JOINT_TORQUE_SENSOR = (objects.JOINT_TORQUE_SENSOR, 0)
+_STATUSWORD = (objects.STATUSWORD, 0)
+_VELOCITY_ACTUAL = (objects.VELOCITY_ACTUAL, 0)
+_MOTOR_CURRENT_ACTUAL = (objects.MOTOR_CURRENT_ACTUAL, 0)
+_CURRENT_ACTUAL = (objects.CURRENT_ACTUAL, 0)
+_TORQUE_ACTUAL = (objects.TORQUE_ACTUAL, 0)
 _WRITABLE = frozenset(("rw", "wo", "rww", "rwr"))
 _READABLE = frozenset(("rw", "ro", "const", "rww", "rwr"))
 
@@ -130,7 +139,6 @@ class Cia402Device:
 
     def _set_state(self, state: State) -> None:
         self._state = state
-        self._values[(objects.STATUSWORD, 0)] = cia402.statusword_for(state)
 
     # --- resets -----------------------------------------------------------------------------
 
@@ -206,6 +214,8 @@ class Cia402Device:
         if var.access_type not in _READABLE:
             raise DeviceAccessError(cia301.SDO_ABORT_READ_WRITE_ONLY,
                                     f"0x{index:04X}:{subindex:02X} is write-only")
+        if index == objects.STATUSWORD:
+            return cia402.statusword_for(self._state)  # acyclic reads see the state now
         return self._values[(index, subindex)]
 
     def read_bytes(self, index: int, subindex: int = 0) -> bytes:
@@ -303,10 +313,11 @@ class Cia402Device:
             for (index, subindex), value in zip(keys, values, strict=True):
                 self._act(index, subindex, value)
 
-    def values_of(self, keys: tuple[tuple[int, int], ...]) -> list[int]:
-        """Current values of objects an input PDO carries, in its order."""
-        v = self._values
-        return [v[key] for key in keys]
+    @property
+    def values(self) -> Mapping[tuple[int, int], int]:
+        """Every object's value by (index, subindex), live objects as sampled by the last
+        cycle: what an input PDO carries (read-only; `read` for checked access)."""
+        return self._values
 
     # --- CiA 402 ----------------------------------------------------------------------------
 
@@ -383,7 +394,7 @@ class Cia402Device:
         the sensors, fire the faults due. `counter` is the cycle's number as the bus gives it
         (the SYNC counter byte), echoed in 0x2004 where the drive has it."""
         with self._lock:
-            self._values[(objects.SYNC_ECHO, 0)] = counter
+            self._values[_SYNC_ECHO] = counter
             command = self._commanded_current()
             if abs(command) > self.trip_current:
                 self._fault(cia301.EMCY_OVERCURRENT, cia301.ERROR_REGISTER_CURRENT)
@@ -401,23 +412,26 @@ class Cia402Device:
             if self._once:
                 once, self._once = self._once, set()
                 if Fault.ENCODER_GLITCH in once:
-                    self._values[(objects.POSITION_ACTUAL, 0)] += ENCODER_JUMP
+                    self._values[_POSITION_ACTUAL] += ENCODER_JUMP
                 if Fault.TORQUE_SENSOR_SATURATED in once:
-                    self._values[(objects.JOINT_TORQUE_SENSOR, 0)] = cia301.INT32_MAX
+                    self._values[_JOINT_TORQUE_SENSOR] = cia301.INT32_MAX
 
     def _sample(self, m) -> None:
-        """The sensors' reading in the dictionary's units."""
+        """The sensors' reading and the statusword, in the dictionary's units, as the input
+        process data carries them: latched here, so a fault due later in the same cycle shows
+        in the next sample (its emergency goes out at once)."""
         v = self._values
+        v[_STATUSWORD] = cia402.statusword_for(self._state)
         per_rad = self.increments_per_rad
-        v[(objects.POSITION_ACTUAL, 0)] = int(round(m.position * per_rad))
-        v[(objects.VELOCITY_ACTUAL, 0)] = int(round(m.velocity * per_rad))
-        v[(objects.MOTOR_CURRENT_ACTUAL, 0)] = objects.amps_to_milliamps(m.motor_current)
-        v[(objects.JOINT_TORQUE_SENSOR, 0)] = int(round(m.joint_torque_reading * objects.MILLI))
+        v[_POSITION_ACTUAL] = int(round(m.position * per_rad))
+        v[_VELOCITY_ACTUAL] = int(round(m.velocity * per_rad))
+        v[_MOTOR_CURRENT_ACTUAL] = objects.amps_to_milliamps(m.motor_current)
+        v[_JOINT_TORQUE_SENSOR] = int(round(m.joint_torque_reading * objects.MILLI))
         if self.rated_current > 0:
-            v[(objects.CURRENT_ACTUAL, 0)] = int(round(
+            v[_CURRENT_ACTUAL] = int(round(
                 m.motor_current / self.rated_current * objects.MILLI))
         if self.rated_torque > 0:
-            v[(objects.TORQUE_ACTUAL, 0)] = int(round(
+            v[_TORQUE_ACTUAL] = int(round(
                 self.drive_gain * m.motor_current / self.rated_torque * objects.MILLI))
 
     # --- faults -----------------------------------------------------------------------------

@@ -26,9 +26,16 @@ class LinkedNetwork(canopen.Network):
         self._periodic: list[_PeriodicFrame] = []
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
-        frame, now = bytearray(data), time.time()
+        # canopen's own services send lists; every receiver here reads bytes
+        frame, now = data if type(data) is bytes else bytes(data), time.time()
         for peer in self.peers:
             peer.notify(can_id, frame, now)
+
+    def notify(self, can_id: int, data: bytes, timestamp: float) -> None:
+        """canopen's dispatch to the subscribers, without its node scanner (nobody scans a
+        link that has exactly one node behind it)."""
+        for callback in self.subscribers.get(can_id, ()):
+            callback(can_id, data, timestamp)
 
     def send_periodic(self, can_id: int, data: bytes, period: float,
                       remote: bool = False) -> "_PeriodicFrame":

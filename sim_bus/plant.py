@@ -7,12 +7,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from model import dynamics
-from model.parameters import GRAVITY, ActuatorParameters, Payload
+from model.parameters import ActuatorParameters, Payload
 
 PHYSICS_SUBSTEPS = 20  # 50 us: within 1 encoder count of 1000 substeps (tests/test_dynamics.py)
 # assumed: above the motor's rated torque (30 N.m, 0x6076) as holding brakes are sized, and
 # above the 25 N.m the paper's heaviest payload (30 kg at 5 cm) hangs on the joint
 BRAKE_HOLDING_TORQUE = 40.0  # N.m
+NOISE_BATCH = 4096  # sensor-noise draws per numpy call
 
 
 @dataclass(frozen=True)
@@ -46,6 +47,8 @@ class Plant:
         self.base_parameters = parameters
         self.noise = noise
         self._rng = np.random.default_rng(noise.seed)
+        self._draws: list[float] = []
+        self._next_draw = 0
         self.set_payload(payload)
         self.position = (dynamics.rest_position(self._packed) if initial_position is None
                          else initial_position)
@@ -84,16 +87,24 @@ class Plant:
         sensor, so the sensor does not see them directly."""
         p = self.parameters
         share = p.dry_friction_joint / self._dry_level if self._dry_level > 0 else 0.0
-        gravity = GRAVITY * (p.first_moment_y * np.sin(self.position)
-                             + p.first_moment_x * np.cos(self.position))
+        gravity = float(dynamics.gravity_torque(self.position, self._packed))
         return (p.link_inertia * self._acceleration + gravity
                 + p.viscous_friction_joint * self.velocity + share * self._dry
                 + p.torque_offset_joint)
 
+    def _standard_normal(self) -> float:
+        """The generator's next N(0, 1) draw, taken in batches (one numpy call per draw cost
+        more than the rest of a measurement); the sequence is the one scalar draws give."""
+        if self._next_draw == len(self._draws):
+            self._draws = self._rng.standard_normal(NOISE_BATCH).tolist()
+            self._next_draw = 0
+        self._next_draw += 1
+        return self._draws[self._next_draw - 1]
+
     def measure(self) -> Measurement:
-        current = self._current + self._rng.normal(0.0, self.noise.current)
+        current = self._current + self.noise.current * self._standard_normal()
         reading = (self.joint_torque() / self.parameters.torque_sensor_gain
-                   + self._rng.normal(0.0, self.noise.joint_torque))
+                   + self.noise.joint_torque * self._standard_normal())
         return Measurement(
             position=self.position,
             velocity=self.velocity,

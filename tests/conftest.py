@@ -1,5 +1,3 @@
-import itertools
-import os
 import random
 import socket
 import subprocess
@@ -9,32 +7,29 @@ from contextlib import contextmanager
 
 import pytest
 
-from driver.canopen_drive import CanOpenDrive, open_network
+from driver.canopen_drive import CanOpenDrive
 from model.parameters import Payload, load_model
-from sim_bus.canopen_node import CanOpenNode
-from sim_bus.device import Cia402Device
+from sim_bus.embedded import EmbeddedDrive
 from sim_bus.plant import SensorNoise
-
-_channels = itertools.count()
 
 
 @contextmanager
 def virtual_pair(payload: Payload = Payload(), noise: SensorNoise = SensorNoise(), model=None,
-                 **drive_kwargs):
-    """A virtual drive (its CANopen node; the device is `sim.device`) and our master on a
-    private python-can `virtual` channel."""
-    channel = f"virtual:test-{os.getpid()}-{next(_channels)}"
-    sim_network = open_network(channel)
-    device = Cia402Device(model or load_model(), payload, noise, node_id=2)
-    sim = CanOpenNode(sim_network, 2, device)
-    sim.boot()
-    master = CanOpenDrive(open_network(channel), 2, **drive_kwargs)
+                 lockstep: bool = True, **drive_kwargs):
+    """A virtual drive (its CANopen node; the device is `sim.device`) and our master, linked
+    as `--sim` links them: each frame is delivered in its sender's thread, so a SYNC comes back
+    with its TPDOs before `send` returns and no thread scheduling can delay an answer. Lock-step
+    by default: both sides' watchdogs count cycles, so a busy host cannot trip them."""
+    model = model or load_model()
+    embedded = EmbeddedDrive(model, payload, noise, 2, lockstep=lockstep)
+    master = CanOpenDrive(embedded.master_network, 2, velocity_limit=model.limits.velocity_max,
+                          drive_gain=model.parameters.drive_gain, lockstep=lockstep,
+                          **drive_kwargs)
     try:
-        yield sim, master
+        yield embedded.node, master
     finally:
         master.close()
-        sim.close()
-        sim_network.disconnect()
+        embedded.close()
 
 
 @pytest.fixture

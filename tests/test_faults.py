@@ -73,7 +73,8 @@ def test_benign_faults_are_reported_and_the_loop_goes_on(fault, cause):
 
 
 def test_heartbeat_stop_is_caught_by_the_heartbeat_consumer():
-    """The heartbeat is wall-clock: the loop runs until the consumer's 200 ms pass."""
+    """In lock-step the consumer counts cycles: the loop runs until two producer periods
+    (200 cycles) pass without a heartbeat, whatever the host's speed."""
     report, commands, faults, final_state = run_with(Fault.HEARTBEAT_STOPS, duration=30.0)
     assert report.exit_code == 1 and "heartbeat missing" in report.reason
     assert all(abs(c) <= MODEL.limits.current_max for c in commands)
@@ -101,7 +102,8 @@ def test_a_stall_in_real_time_is_reported_on_the_fault_topic():
     from sim_bus.plant import SensorNoise
 
     sim = EmbeddedDrive(MODEL, Payload(), SensorNoise())
-    drive = CanOpenDrive(sim.master_network, 2, response_timeout=1.0)
+    drive = CanOpenDrive(sim.master_network, 2, velocity_limit=MODEL.limits.velocity_max,
+                         response_timeout=1.0)
     messages = []
     try:
         drive.start()

@@ -20,7 +20,7 @@ from tests.test_drive_virtual_bus import HALF_COUNT, current_profile
 def test_master_drives_sim_bus_process_and_motion_matches_the_model():
     bus = udp_bus_spec()
     with sim_bus_process(bus, "--node-id", "3"):
-        master = CanOpenDrive.open(bus, 3)
+        master = CanOpenDrive.open(bus, 3, velocity_limit=load_model().limits.velocity_max)
         try:
             master.start()
             first = master.sync()

@@ -1,0 +1,171 @@
+"""The CANopen transport (canopen + python-can): `driver.transport.Transport` for one drive,
+made of its bring-up (`canopen_bringup`), its cycle (`canopen_cycle`) and its health watch
+(`canopen_health`)."""
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import can
+import canopen
+
+from driver.canopen_bringup import SdoAccess, plan_pdos, write_pdos
+from driver.canopen_cycle import PlannedPdo, SyncCycle
+from driver.canopen_health import Health
+from driver.interface import DriveError, DriveLost
+from driver.transport import Transport
+from protocol import cia301, eds_path, objects
+from protocol.bus_spec import parse_bus_spec
+from protocol.dictionary import has, load_dictionary, mapped_object, variable
+from protocol.pdo import MappedObject
+
+NOTIFIER_CYCLE = 0.05  # s; bounds how long closing the network waits for the receive thread
+DEFAULT_HEARTBEAT_MS = 100  # the drive's producer period the master asks for (0x1017)
+
+
+def open_network(bus_spec: str) -> canopen.Network:
+    """A connected canopen Network for a bus spec (see protocol.bus_spec)."""
+    network = canopen.Network()
+    network.NOTIFIER_CYCLE = NOTIFIER_CYCLE
+    network.connect(**parse_bus_spec(bus_spec))
+    return network
+
+
+class CanOpenTransport(Transport):
+    """Drive `node_id` on `network`, described by `eds` (default: the shipped elbow EDS). The
+    transport owns the network and disconnects it on close.
+
+    `lockstep`: watchdogs count cycles (see `driver.canopen_health`); `response_timeout` (s)
+    bounds the wait for a cycle's TPDOs.
+    """
+
+    def __init__(self, network: canopen.Network, node_id: int, *,
+                 eds: str | Path | None = None, lockstep: bool = False,
+                 response_timeout: float = 1.0, heartbeat_ms: int = DEFAULT_HEARTBEAT_MS):
+        if not 1 <= node_id <= 127:
+            raise ValueError(f"node id {node_id} outside 1..127")
+        self.network = network
+        self.node_id = node_id
+        self.name = f"node {node_id}"
+        self.dictionary = load_dictionary(eds if eds is not None else eds_path(), node_id)
+        self.node = canopen.RemoteNode(node_id, self.dictionary)
+        network.add_node(self.node)
+        self.heartbeat_ms = heartbeat_ms
+        self.period = 0.0
+        self._warnings: list[str] = []
+        self.sdo = SdoAccess(self.node, self.name)
+        self.sync_cycle = SyncCycle(network, self.name, lockstep=lockstep,
+                                    response_timeout=response_timeout, warnings=self._warnings)
+        self.health = Health(network, self.node, self.name, lockstep=lockstep,
+                             on_failure=self.sync_cycle.fail,
+                             on_emergency=lambda code, register: self.on_emergency(code,
+                                                                                   register),
+                             warnings=self._warnings)
+        self._plan: tuple[list[PlannedPdo], list[PlannedPdo], bool, int] | None = None
+        self._closed = False
+
+    # --- acyclic ----------------------------------------------------------------------------
+
+    def boot(self, timeout: float) -> None:
+        """NMT reset communication and wait for the boot-up message."""
+        self.health.expect_boot()
+        try:
+            self.node.nmt.state = "RESET COMMUNICATION"
+        except (can.CanError, OSError) as exc:
+            raise DriveError(f"{self.name}: cannot send NMT: {exc}") from exc
+        if not self.health.booted.wait(timeout):
+            raise DriveLost(f"{self.name}: no boot-up message within {timeout} s "
+                            "(is the drive powered and on this bus?)")
+        self.sync_cycle.failure = None
+
+    def read(self, index: int, subindex: int = 0) -> int:
+        return self.sdo.read(index, subindex)
+
+    def write(self, index: int, subindex: int, value: int) -> None:
+        self.sdo.write(index, subindex, value)
+
+    # --- process data -----------------------------------------------------------------------
+
+    def map_process_data(self, outputs: Sequence[MappedObject],
+                         inputs: Sequence[MappedObject]) -> None:
+        """RPDOs event-driven (applied on arrival, so a command sent after sample k acts at
+        SYNC k+1), TPDOs on every SYNC. SYNCs carry the counter byte where the drive counts
+        them (0x1019), and then the drive's SYNC echo (0x2004), where it has one, closes the
+        first TPDO."""
+        counting = has(self.dictionary, objects.SYNC_COUNTER_OVERFLOW)
+        if counting:
+            self.write(objects.SYNC_COUNTER_OVERFLOW, 0, cia301.SYNC_COUNTER_MAX)
+        echo_var = variable(self.dictionary, objects.SYNC_ECHO)
+        echo = (mapped_object(echo_var) if counting and echo_var is not None
+                and echo_var.pdo_mappable else None)
+        rpdos = plan_pdos(self.dictionary, self.node_id, outputs, True, None, self.name)
+        tpdos = plan_pdos(self.dictionary, self.node_id, inputs, False, echo, self.name)
+        write_pdos(self.sdo, rpdos, True, cia301.TRANSMISSION_ASYNC)
+        write_pdos(self.sdo, tpdos, False, cia301.TRANSMISSION_SYNC)
+        self._plan = (rpdos, tpdos, counting, len(inputs))
+
+    def start(self, period: float) -> None:
+        """Cycle period, synchronous window (one period) and heartbeat by SDO, then NMT
+        operational; the heartbeat consumer starts watching."""
+        if self._plan is None:
+            raise DriveError(f"{self.name}: start before map_process_data")
+        rpdos, tpdos, counting, inputs = self._plan
+        self.period = period
+        period_us = int(round(period * 1e6))
+        if has(self.dictionary, objects.CYCLE_PERIOD_US):
+            self.write(objects.CYCLE_PERIOD_US, 0, period_us)
+        window = None
+        if has(self.dictionary, objects.SYNC_WINDOW_US):
+            self.write(objects.SYNC_WINDOW_US, 0, period_us)
+            window = period
+        heartbeat_ms = 0
+        if has(self.dictionary, objects.PRODUCER_HEARTBEAT_MS):
+            self.write(objects.PRODUCER_HEARTBEAT_MS, 0, self.heartbeat_ms)
+            heartbeat_ms = self.heartbeat_ms
+        self.sync_cycle.configure(rpdos, tpdos, inputs, counting, window)
+        try:
+            self.node.nmt.state = "OPERATIONAL"
+        except (can.CanError, OSError) as exc:
+            raise DriveError(f"{self.name}: cannot send NMT: {exc}") from exc
+        self.health.watch(heartbeat_ms)
+
+    def send(self, outputs: Sequence[int]) -> None:
+        try:
+            self.sync_cycle.send(outputs)
+        except (can.CanError, OSError) as exc:
+            raise DriveError(f"{self.name}: cannot send RPDO: {exc}") from exc
+
+    def exchange(self) -> tuple[int, ...]:
+        try:
+            values = self.sync_cycle.exchange()
+        except (can.CanError, OSError) as exc:
+            raise DriveError(f"{self.name}: cannot send SYNC: {exc}") from exc
+        self.health.count_cycle(self.period)
+        return values
+
+    @property
+    def failure(self) -> DriveError | None:
+        return self.sync_cycle.failure
+
+    def warnings(self) -> list[str]:
+        if not self._warnings:
+            return []
+        out = self._warnings[:]
+        del self._warnings[:len(out)]
+        return out
+
+    # --- shutdown ---------------------------------------------------------------------------
+
+    def stop(self) -> None:
+        self.health.close()
+        try:
+            self.node.nmt.state = "PRE-OPERATIONAL"
+        except (can.CanError, OSError, RuntimeError):
+            pass  # best effort: the bus may be gone
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self.health.close()
+        self.sync_cycle.close()
+        self.network.disconnect()

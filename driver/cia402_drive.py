@@ -1,0 +1,236 @@
+"""The CiA 402 layer, transport-neutral: a `Drive` on any `driver.transport.Transport`.
+
+It owns what is the same on every fieldbus: which objects to use (`driver.profile`), their
+units, steering the power state machine, turning process data into `Sample`s and currents into
+targets, judging samples (`driver.sample_guard`, limits passed in) and drive faults from
+emergencies. Transports own the bus: frames, timing, watchdogs.
+"""
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass
+
+from canopen.emcy import EmcyError
+
+from driver.interface import (
+    CommandRangeError,
+    Drive,
+    DriveError,
+    DriveFault,
+    DriveTimeout,
+    EncoderGlitch,
+    Sample,
+)
+from driver.profile import Profile, Scaling, read_scaling, select_profile
+from driver.sample_guard import SampleGuard
+from driver.transport import Transport
+from protocol import cia301, cia402, objects
+from protocol.cia402 import State
+
+log = logging.getLogger(__name__)
+
+ENABLE_STEP_TIMEOUT = 0.5  # s for the drive to show each CiA 402 transition
+BOOT_TIMEOUT = 5.0  # s for the drive to answer the reset at bring-up
+
+
+@dataclass(frozen=True)
+class Emergency:
+    """An emergency as the drive sent it (CiA 301 codes on CANopen and EtherCAT alike)."""
+
+    code: int
+    register: int
+
+    @property
+    def description(self) -> str:
+        return EmcyError(self.code, self.register, b"", 0.0).get_desc()
+
+
+class Cia402Drive(Drive):
+    """A CiA 402 torque drive for one joint, through `transport`.
+
+    `velocity_limit` (rad/s) is the joint's, for the sample guard; `drive_gain` (N.m/A) is
+    the model's, needed when the drive is commanded in torque (0x6071). The profile is chosen
+    from the transport's dictionary here, before any traffic: ProfileError if the drive lacks
+    what the loop needs.
+    """
+
+    def __init__(self, transport: Transport, *, velocity_limit: float, period: float = 1e-3,
+                 drive_gain: float | None = None):
+        if not 50e-6 <= period <= 1.0:
+            raise ValueError(f"period {period} s outside 50 us .. 1 s")
+        self.transport = transport
+        self.name = transport.name
+        self.period = period
+        self.drive_gain = drive_gain
+        self.profile: Profile = select_profile(transport.dictionary, drive_gain)
+        self.guard = SampleGuard(velocity_limit, period)
+        self.scaling: Scaling | None = None
+        self.current_limit = 0.0
+        self.cycle = 0
+        self.last_emergency: Emergency | None = None
+        self._fault: DriveError | None = None
+        self._latest: Sample | None = None
+        self._warnings: list[str] = []
+        self._lock = threading.Lock()  # emergencies arrive in the transport's receive thread
+        self._closed = False
+        transport.on_emergency = self._on_emergency
+
+    # --- bring-up ---------------------------------------------------------------------------
+
+    def start(self) -> None:
+        t = self.transport
+        t.boot(BOOT_TIMEOUT)
+        self.scaling = read_scaling(self.profile, t.read, t.dictionary, self.drive_gain)
+        self.current_limit = self.scaling.current_limit
+        t.write(objects.MODES_OF_OPERATION, 0, self.profile.mode)
+        t.map_process_data(self.profile.outputs, self.profile.inputs)
+        t.start(self.period)
+        self.enable()
+
+    # --- CiA 402 ----------------------------------------------------------------------------
+
+    def state(self) -> State:
+        return cia402.state_from_statusword(self.transport.read(objects.STATUSWORD))
+
+    def enable(self) -> None:
+        self._steer(State.OPERATION_ENABLED)
+        with self._lock:
+            self._fault = None
+
+    def disable(self) -> None:
+        self._send(cia402.Command.DISABLE_VOLTAGE.value, 0.0)
+        self._steer(State.SWITCH_ON_DISABLED)
+
+    def fault_reset(self) -> None:
+        self.transport.write(objects.CONTROLWORD, 0, 0)
+        self._steer(State.SWITCH_ON_DISABLED)
+        with self._lock:
+            self.last_emergency = None
+            self._fault = None
+
+    def _steer(self, goal: State) -> None:
+        """Walk the CiA 402 graph by acyclic controlword writes until the statusword shows
+        goal (acyclic: it works before cyclic exchange runs and on every transport)."""
+        for _ in range(8):
+            state = self.state()
+            controlword = cia402.controlword_toward(state, goal)
+            if controlword is None:
+                return
+            if controlword == cia402.Command.FAULT_RESET.value:
+                self.transport.write(objects.CONTROLWORD, 0, 0)  # bit 7 acts on its rising edge
+            self.transport.write(objects.CONTROLWORD, 0, controlword)
+            deadline = time.monotonic() + ENABLE_STEP_TIMEOUT
+            while self.state() is state and time.monotonic() < deadline:
+                time.sleep(0.001)
+        raise DriveFault(f"{self.name}: cannot reach '{goal.value}' "
+                         f"(stuck in '{self.state().value}')")
+
+    # --- cyclic -----------------------------------------------------------------------------
+
+    @property
+    def fault(self) -> DriveError | None:
+        """What stops this drive: a drive fault, a glitch, or the transport's failure."""
+        return self._fault or self.transport.failure
+
+    def sync(self) -> Sample:
+        self._raise_if_unhealthy()
+        try:
+            values = self.transport.exchange()
+        except DriveTimeout:
+            if self._fault is not None:
+                raise self._fault from None  # the drive faulted and stopped answering
+            raise
+        self.cycle += 1
+        scaling = self.scaling
+        joint_torque = math.nan
+        if self.profile.has_joint_torque:
+            reading = values[4]
+            if self.guard.saturated(reading):
+                self._warnings.append(f"joint torque sensor reading saturated ({reading} mN.m)")
+            else:
+                joint_torque = reading * scaling.joint_torque_per_unit
+        sample = Sample(
+            t=self.cycle * self.period,
+            position=values[1] * scaling.rad_per_increment,
+            velocity=values[2] * scaling.rad_per_increment,
+            motor_current=values[3] * scaling.amps_per_feedback_unit,
+            joint_torque=joint_torque,
+            statusword=values[0],
+        )
+        previous, self._latest = self._latest, sample
+        if previous is not None:
+            try:
+                self.guard.check_step(previous.position, sample.position, self.name)
+            except EncoderGlitch as error:
+                self._fault = error
+                raise
+        if cia402.state_from_statusword(sample.statusword) is State.FAULT:
+            with self._lock:
+                if self._fault is None:
+                    self._fault = DriveFault(self._fault_text(), self._emergency_code())
+        return sample
+
+    def read(self) -> Sample | None:
+        return self._latest
+
+    def warnings(self) -> list[str]:
+        out, self._warnings = self._warnings, []
+        return out + self.transport.warnings()
+
+    def command_current(self, current: float) -> None:
+        if not isinstance(current, int | float) or not math.isfinite(current):
+            raise CommandRangeError(f"motor current command {current!r} is not a finite number")
+        if abs(current) > self.current_limit:
+            raise CommandRangeError(f"motor current command {current:.3f} A outside the drive's "
+                                    f"limit of +/-{self.current_limit:.3f} A")
+        self._raise_if_unhealthy()
+        self._send(cia402.Command.ENABLE_OPERATION.value, current)
+
+    def _send(self, controlword: int, current: float) -> None:
+        target = int(round(current * self.scaling.target_units_per_amp))
+        self.transport.send((controlword, target))
+
+    # --- health -----------------------------------------------------------------------------
+
+    def _on_emergency(self, code: int, register: int) -> None:
+        if code == cia301.EMCY_NO_ERROR:
+            return
+        with self._lock:
+            self.last_emergency = Emergency(code, register)
+            log.error("%s: EMCY 0x%04X %s", self.name, code, self.last_emergency.description)
+            self._fault = DriveFault(self._fault_text(), code)
+
+    def _fault_text(self) -> str:
+        if self.last_emergency is None:
+            return f"{self.name}: drive in fault state"
+        return (f"{self.name}: drive fault, EMCY 0x{self.last_emergency.code:04X} "
+                f"({self.last_emergency.description})")
+
+    def _emergency_code(self) -> int:
+        return self.last_emergency.code if self.last_emergency is not None else 0
+
+    def _raise_if_unhealthy(self) -> None:
+        fault = self.fault
+        if fault is not None:
+            raise fault
+
+    # --- shutdown ---------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Leave the drive disabled: zero current and disable voltage cyclically, disable
+        voltage acyclically, leave cyclic operation. Each step best effort, so a dead drive
+        does not stop the rest. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            if self.scaling is not None:
+                self._send(cia402.Command.DISABLE_VOLTAGE.value, 0.0)
+            self.transport.write(objects.CONTROLWORD, 0, cia402.Command.DISABLE_VOLTAGE.value)
+        except DriveError as exc:
+            log.warning("%s: could not confirm disable on close: %s", self.name, exc)
+        finally:
+            self.transport.stop()
+            self.transport.close()
