@@ -28,6 +28,7 @@ from protocol.pdo import MappedObject, PdoLayout
 
 STATUSWORD_FAULT = 0x0008  # CiA 402 statusword bit 3
 EMERGENCY_POLLS = 8  # cycles to look for the emergency behind a fault bit before giving up
+MAILBOX_ATTEMPTS = 3
 _U8 = struct.Struct("<B")
 _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
@@ -73,32 +74,37 @@ class EthercatTransport(Transport):
 
     def read(self, index: int, subindex: int = 0) -> int:
         var = self._variable(index, subindex)
-        self.line.keep_alive()
         try:
-            data = self.slave.sdo_read(index, subindex)
+            data = self._mailbox(self.slave.sdo_read, index, subindex)
         except pysoem.SdoError as exc:
             raise DriveError(f"{self.name}: CoE read 0x{index:04X}:{subindex:02X} aborted: "
                              f"0x{exc.abort_code:08X} {exc.desc}") from None
-        except (pysoem.WkcError, pysoem.MailboxError, pysoem.PacketError) as exc:
-            raise DriveError(f"{self.name}: CoE read 0x{index:04X}:{subindex:02X} failed: "
-                             f"{exc!r}") from None
         return var.decode_raw(data)
 
     def write(self, index: int, subindex: int, value: int) -> None:
         var = self._variable(index, subindex)
-        self.line.keep_alive()
         try:
-            self.slave.sdo_write(index, subindex, var.encode_raw(value))
+            self._mailbox(self.slave.sdo_write, index, subindex, var.encode_raw(value))
         except pysoem.SdoError as exc:
             raise DriveError(f"{self.name}: CoE write 0x{index:04X}:{subindex:02X} = {value} "
                              f"aborted: 0x{exc.abort_code:08X} {exc.desc}") from None
-        except (pysoem.WkcError, pysoem.MailboxError, pysoem.PacketError) as exc:
-            raise DriveError(f"{self.name}: CoE write 0x{index:04X}:{subindex:02X} failed: "
-                             f"{exc!r}") from None
         for k, obj in enumerate(self._outputs):
             if (obj.index, obj.subindex) == (index, subindex):
                 self._staged[k] = value  # the next frame carries it too
                 self._stage()
+
+    def _mailbox(self, access, index: int, subindex: int, *data: bytes):
+        """One CoE SDO access, tried again when the mailbox exchange itself got no answer (a
+        register access SOEM gave up on after its few ms): an SDO abort is the drive's
+        answer and is not retried."""
+        for attempt in range(MAILBOX_ATTEMPTS):
+            self.line.keep_alive()
+            try:
+                return access(index, subindex, *data)
+            except (pysoem.WkcError, pysoem.MailboxError, pysoem.PacketError) as exc:
+                if attempt == MAILBOX_ATTEMPTS - 1:
+                    raise DriveError(f"{self.name}: CoE access 0x{index:04X}:{subindex:02X} "
+                                     f"failed {MAILBOX_ATTEMPTS} times: {exc!r}") from None
 
     def _variable(self, index: int, subindex: int):
         var = variable(self.dictionary, index, subindex)
@@ -142,7 +148,7 @@ class EthercatTransport(Transport):
         self._sdo_write(assign, 1, _U16.pack(pdo))
         self._sdo_write(assign, 0, _U8.pack(1))
         entries = [self.read(pdo, k) for k in range(1, self.read(pdo, 0) + 1)]
-        (assigned,) = _U16.unpack(self.slave.sdo_read(assign, 1, 2))
+        (assigned,) = _U16.unpack(self._mailbox(self.slave.sdo_read, assign, 1))
         if entries != [o.mapping_entry for o in mapped] or assigned != pdo:
             raise ProfileError(f"{self.name}: PDO 0x{pdo:04X} reads back as "
                                f"{[f'0x{e:08X}' for e in entries]} after the mapping was "
@@ -150,13 +156,10 @@ class EthercatTransport(Transport):
 
     def _sdo_write(self, index: int, subindex: int, data: bytes) -> None:
         try:
-            self.slave.sdo_write(index, subindex, data)
+            self._mailbox(self.slave.sdo_write, index, subindex, data)
         except pysoem.SdoError as exc:
             raise ProfileError(f"{self.name}: PDO configuration 0x{index:04X}:{subindex:02X} "
                                f"refused: 0x{exc.abort_code:08X} {exc.desc}") from None
-        except (pysoem.WkcError, pysoem.MailboxError, pysoem.PacketError) as exc:
-            raise DriveError(f"{self.name}: CoE write 0x{index:04X}:{subindex:02X} failed: "
-                             f"{exc!r}") from None
 
     def start(self, period: float) -> None:
         """The drive's cycle period (0x1006, the physics step of an SM-synchronous drive),

@@ -2,6 +2,7 @@
 namespace: bring-up as SOEM does it, CST process data, lock-step cycles, and the faults
 (slave killed, state refused, master lost, emergencies, malformed frames)."""
 
+import dataclasses
 import socket
 import struct
 import time
@@ -9,8 +10,9 @@ import time
 import pysoem
 import pytest
 
+from driver.ethercat_drive import JointOnLine, open_ethercat_drives
 from driver.ethercat_transport import open_ethercat_transports
-from driver.interface import DriveError, DriveLost
+from driver.interface import DriveError, DriveFault, DriveLost, ProfileError
 from model.parameters import load_model
 from protocol import esi_path, objects
 from protocol import ethercat as ec
@@ -19,7 +21,12 @@ from protocol.esi import load_esi
 from sim_bus.ethercat.netns import LinkUnavailable, SlaveProcess, VirtualLink
 
 ESI = load_esi(esi_path())
+MODEL = load_model()
 CONTROLWORD_ENABLE = 0x0F
+
+
+def joint(position: int) -> JointOnLine:
+    return JointOnLine(position, MODEL.limits.velocity_max, MODEL.parameters.drive_gain)
 
 
 @pytest.fixture
@@ -33,7 +40,7 @@ def link():
 
 
 def slaves(link, count):
-    return SlaveProcess(link, count, load_model())
+    return SlaveProcess(link, count, MODEL)
 
 
 def cst_profile(dictionary):
@@ -91,25 +98,42 @@ def test_soem_finds_the_slaves_reads_their_sii_and_maps_the_cst_layout(link):
             master.close()
 
 
-def test_lockstep_cycles_move_each_joint_the_commanded_way(link):
+def test_lockstep_drives_move_each_joint_the_commanded_way_one_frame_per_cycle(link):
     with slaves(link, 2) as line, link.entered():
-        transports = open_ethercat_transports(link.master_port, [0, 1], lockstep=True)
+        drives = open_ethercat_drives(link.master_port, [joint(0), joint(1)], lockstep=True)
         try:
-            bring_up(transports)
-            for transport in transports:
-                enable(transport)
-            start = [t.exchange()[1] for t in transports]
-            for _ in range(400):
-                transports[0].send((CONTROLWORD_ENABLE, 150))  # per mille of rated torque
-                transports[1].send((CONTROLWORD_ENABLE, -150))
-                samples = [t.exchange() for t in transports]
-            assert transports[0].line.frames == 401  # one frame per cycle for both joints
+            for drive in drives:
+                drive.start()
+            assert drives[0].profile.mode == objects.MODE_CYCLIC_SYNC_TORQUE  # CST over ESI
+            frames = drives[0].transport.line.frames
+            start = [drive.sync().position for drive in drives]
+            for _ in range(200):
+                drives[0].command_current(0.5)
+                drives[1].command_current(-0.5)
+                samples = [drive.sync() for drive in drives]
+            assert drives[0].transport.line.frames == frames + 201  # both joints, one frame
         finally:
-            close(transports)
+            for drive in drives:
+                drive.close()
         report = line.report()
-    assert samples[0][1] > start[0] + 1000  # increments
-    assert samples[1][1] < start[1] - 1000
-    assert [r["cycles"] for r in report] == [r["cycles"] for r in report[:1]] * 2
+    assert samples[0].position > start[0] + 0.005  # rad
+    assert samples[1].position < start[1] - 0.005
+    assert samples[0].motor_current == pytest.approx(0.5, abs=0.05)
+    assert report[0]["cycles"] == report[1]["cycles"]
+    assert [r["state"] for r in report] == ["SWITCH_ON_DISABLED"] * 2  # closed cleanly
+    assert not any(r["master_loss"] for r in report)
+
+
+def test_identity_other_than_the_esi_is_refused(link):
+    other = dataclasses.replace(ESI, product_code=0x999)
+    with slaves(link, 1), link.entered():
+        [transport] = open_ethercat_transports(link.master_port, [0], esi=other)
+        try:
+            with pytest.raises(ProfileError, match=r"slave 0 .*product 0x00000402.* the ESI "
+                                                   r"describes .*product 0x00000999"):
+                transport.boot(0.3)
+        finally:
+            close([transport])
 
 
 def test_killed_slave_process_is_lost_within_one_cycle(link):
@@ -168,15 +192,14 @@ def test_safe_op_refused_for_a_wrong_output_size_names_the_code(link):
 
 def test_master_loss_trips_the_watchdog_and_the_drive_stops_on_its_brake(link):
     with slaves(link, 1) as line, link.entered():
-        [transport] = open_ethercat_transports(link.master_port, [0], lockstep=False)
-        bring_up([transport])
-        enable(transport)
+        [drive] = open_ethercat_drives(link.master_port, [joint(0)], lockstep=False)
+        drive.start()
         for _ in range(50):
-            transport.send((CONTROLWORD_ENABLE, 0))
-            transport.exchange()
+            drive.sync()
+            drive.command_current(0.2)
         # the master dies: no close, no more frames
         time.sleep(0.5)
-        transport.line.master.close()
+        drive.transport.line.master.close()
         [slave] = line.report()
     assert slave["al_status"] == ec.AlState.SAFE_OP | ec.AL_ERROR
     assert slave["al_status_code"] == ec.AL_SM_WATCHDOG
@@ -185,21 +208,21 @@ def test_master_loss_trips_the_watchdog_and_the_drive_stops_on_its_brake(link):
     assert slave["brake_engaged"]
 
 
-def test_drive_fault_arrives_as_a_coe_emergency(link):
+def test_drive_fault_arrives_as_a_coe_emergency_with_its_code(link):
     with slaves(link, 1), link.entered():
-        [transport] = open_ethercat_transports(link.master_port, [0], lockstep=True)
-        emergencies = []
-        transport.on_emergency = lambda code, register: emergencies.append((code, register))
+        [drive] = open_ethercat_drives(link.master_port, [joint(0)], lockstep=True)
         try:
-            bring_up([transport])
-            enable(transport)
-            transport.exchange()
-            transport.write(objects.FAULT_INJECTION, 0, 7)  # over-current trip
-            statusword = transport.exchange()[0]
+            drive.start()
+            drive.sync()
+            drive.transport.write(objects.FAULT_INJECTION, 0, 7)  # over-current trip
+            sample = drive.sync()  # shows the fault; the emergency came with it
+            assert sample.statusword & 0x0008
+            assert isinstance(drive.fault, DriveFault) and drive.fault.error_code == 0x2310
+            with pytest.raises(DriveFault, match=r"EMCY 0x2310"):
+                drive.command_current(0.0)
         finally:
-            close([transport])
-    assert statusword & 0x0008  # fault
-    assert emergencies == [(0x2310, 0x02)]  # over-current, current bit of 0x1001
+            drive.close()
+    assert drive.last_emergency.register == 0x02
 
 
 def test_malformed_frames_do_not_stop_the_line(link):

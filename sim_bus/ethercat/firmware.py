@@ -13,6 +13,7 @@ inputs sampled into SM3, all before the frame leaves this slave.
 """
 
 import logging
+import operator
 from collections import deque
 
 from protocol import ethercat as ec
@@ -54,6 +55,7 @@ class SlaveFirmware:
         self._in_keys: tuple[tuple[int, int], ...] = ()
         self._unpack_outputs = self._pack_inputs = None
         self._out_start = self._in_start = 0
+        self._input_values = None  # the device's value table -> the inputs, in PDO order
         self.cycles = 0
         self.refused_outputs = 0  # output values the device refused (out of its range)
         self.delay_next_frame = 0.0  # s, fault injection: hold the frame this long
@@ -192,6 +194,10 @@ class SlaveFirmware:
         self._in_start = self.esc.sync_manager(self.inputs_sm)[0]
         self._out_keys = tuple((o.index, o.subindex) for o in outputs)
         self._in_keys = tuple((o.index, o.subindex) for o in inputs)
+        if self._in_keys:
+            getter = operator.itemgetter(*self._in_keys)
+            self._input_values = getter if len(self._in_keys) > 1 else (
+                lambda table: (getter(table),))
         self._outputs_seen = self._op_requested = False
         self.objects.pdo_config_allowed = False
         self._write_inputs()
@@ -238,12 +244,12 @@ class SlaveFirmware:
         device.cycle()
         self.cycles += 1
         if self._in_keys:
-            self._pack_inputs(memory, self._in_start, *device.values_of(self._in_keys))
+            self._pack_inputs(memory, self._in_start, *self._input_values(device.values))
 
     def _write_inputs(self) -> None:
         if self._in_keys:
             self._pack_inputs(self.esc.memory, self._in_start,
-                              *self.device.values_of(self._in_keys))
+                              *self._input_values(self.device.values))
 
     def watchdog_expired(self, esc: Esc) -> None:
         """No outputs within the watchdog time: the master is gone. OP drops to SAFE-OP with

@@ -26,6 +26,7 @@ from sim_bus.plant import SensorNoise
 MASTER_PORT, LINE_PORT = "ecm0", "ecs0"
 CLONE_NEWNET = 0x40000000
 START_TIMEOUT = 60.0  # s for the slave process to import, build its drives and open the port
+SLAVE_PRIORITY = 10  # SCHED_RR priority of the slave process (1..99; it blocks on its socket)
 _setns_lock = threading.Lock()
 
 
@@ -150,6 +151,12 @@ def _serve_line(namespace: str, port: str, count: int, model: ActuatorModel, pay
 
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        # an ESC answers within microseconds and SOEM allows a register access 2 ms: on a
+        # busy host the slaves' process needs the scheduler's preference to keep that
+        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(SLAVE_PRIORITY))
+    except (OSError, AttributeError):
+        pass  # not permitted here: the line still works, with SOEM retrying more often
     try:
         libc = ctypes.CDLL(None, use_errno=True)
         with open(f"/run/netns/{namespace}") as target:
