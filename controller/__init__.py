@@ -1,1 +1,1 @@
-"""iLQR with exponential barriers, the MPC loop at 1 kHz, Zenoh telemetry; `actuatord`."""
+"""iLQR with exponential barriers, the MPC loop at 1 kHz, Zenoh telemetry."""

@@ -86,7 +86,7 @@ class ControlLoop:
         drive's life cycle (start before, close after: close always disables it)."""
         options, report = self.options, self.report
         history = {k: [] for k in ("t", "position", "velocity", "reference", "current",
-                                   "planned_current", "joint_torque")}
+                                   "planned_current", "motor_current", "joint_torque")}
         if options.keep_history:
             report.history = history
         clock = report.clock = CycleClock(options.period, options.lockstep)
@@ -136,6 +136,7 @@ class ControlLoop:
                                    ("reference", result.reference_position),
                                    ("current", result.current),
                                    ("planned_current", result.planned_current),
+                                   ("motor_current", sample.motor_current),
                                    ("joint_torque", sample.joint_torque)):
                     history[key].append(value)
             if sample.t >= next_stats:

@@ -33,6 +33,9 @@ class TelemetryPublisher:
                 express=topic in EXPRESS_TOPICS)
             for topic in schema.TOPICS}
         self._queryables: list = []
+        # dashboards watch this token to tell a vanished actuatord from a quiet one
+        self._alive = session.liveliness().declare_token(
+            schema.key_expr(prefix, schema.LIVELINESS))
         self._audit = session.declare_publisher(schema.key_expr(prefix, schema.AUDIT),
                                                 encoding=zenoh.Encoding.APPLICATION_JSON)
         self._thread = threading.Thread(target=self._run, name="telemetry", daemon=True)
@@ -79,5 +82,5 @@ class TelemetryPublisher:
         """Flush what is queued, then undeclare everything."""
         self._queue.put(None)
         self._thread.join(5)
-        for entity in [*self._publishers.values(), *self._queryables, self._audit]:
+        for entity in [*self._publishers.values(), *self._queryables, self._audit, self._alive]:
             entity.undeclare()

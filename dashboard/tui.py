@@ -1,18 +1,104 @@
-"""`dashboard tui`: the actuator at a glance in a terminal on the robot. Live values, position
-and current against their limits as bars, solver and loop statistics, faults highlighted, and a
-short scrolling plot of position and current."""
+"""`dashboard tui`: the actuator at a glance in a terminal on the robot. A table with a row per
+joint, position and current against their limits as bars, solver and loop statistics, faults
+highlighted, a short scrolling plot of position and current, and a status line that says when
+the data is stale or actuatord has vanished.
 
+actuatord publishes at 1 kHz; a screen shows 20 frames a second. So Zenoh keeps only the
+newest message per topic (and every fault) and the screen takes what is there at its own
+rate: the dashboard's clock stays on the publisher's however fast it publishes, no Python runs
+per message, and quitting leaves no callback writing into a stopped app."""
+
+import time
 from collections import deque
+from dataclasses import dataclass
 
+import zenoh
 from rich.text import Text
 from textual.app import App, ComposeResult
 from textual.containers import Horizontal, Vertical
-from textual.widgets import Footer, Header, Log, Sparkline, Static
+from textual.widgets import DataTable, Footer, Header, Log, Sparkline, Static
 
+from dashboard.liveliness import watch_publisher
 from protocol import telemetry
 
-HISTORY = 200  # points in the scrolling plots
+# Every widget redrawn costs Textual a few ms of CPU, so each part is redrawn only as often as
+# eyes need it: the status line (clock, stale, vanished) every frame, the plots every
+# PLOT_EVERY frames, the numbers every READOUT_EVERY (faster is unreadable anyway).
+REFRESH_HZ = 20  # frames a second
+PLOT_EVERY = 2  # 10 Hz
+READOUT_EVERY = 4  # 5 Hz
+STALE_S = 0.5  # no state for this long (500 cycles at 1 kHz) and the values are marked stale
+HISTORY = 200  # points in the scrolling plots: 10 s at REFRESH_HZ
 BAR_WIDTH = 40
+LATEST_ONLY = ("state", "command", "solver", "loop_stats")  # not the large plan
+FAULTS_KEPT = 1000  # faults waiting for the next frame; a fault storm drops the oldest
+
+
+class Feed:
+    """actuatord's topics under a prefix as a screen wants them. Zenoh keeps only the newest
+    message of each topic (a ring channel of one, filled in Zenoh's own threads: no Python
+    runs per message), every fault up to FAULTS_KEPT, and the liveliness of actuatord
+    (`alive`: None until known)."""
+
+    def __init__(self, session: zenoh.Session, prefix: str):
+        self._latest = {topic: session.declare_subscriber(
+            telemetry.key_expr(prefix, topic), zenoh.handlers.RingChannel(1))
+            for topic in LATEST_ONLY}
+        self._faults = session.declare_subscriber(telemetry.key_expr(prefix, "fault"),
+                                                  zenoh.handlers.RingChannel(FAULTS_KEPT))
+        self.alive: bool | None = None
+        self._liveliness = watch_publisher(session, prefix, self._set_alive)
+
+    def _set_alive(self, alive: bool) -> None:
+        self.alive = alive
+
+    def take(self) -> tuple[dict[str, bytes], list[bytes]]:
+        """What arrived since the last call: the newest message per topic, the faults."""
+        latest = {}
+        for topic, subscriber in self._latest.items():
+            sample = subscriber.try_recv()
+            if sample is not None:
+                latest[topic] = sample.payload.to_bytes()
+        faults = []
+        while (sample := self._faults.try_recv()) is not None:
+            faults.append(sample.payload.to_bytes())
+        return latest, faults
+
+    def close(self) -> None:
+        for subscriber in [*self._latest.values(), self._faults, self._liveliness]:
+            subscriber.undeclare()
+
+
+@dataclass(frozen=True)
+class JointRow:
+    """One joint as the table shows it. Today a row comes from one actuatord's State and
+    Command; the many-joint message gives one per joint from its arrays."""
+
+    name: str
+    position: float
+    reference: float
+    velocity: float
+    motor_current: float
+    commanded_current: float
+    joint_torque: float
+    drive_state: str
+
+
+JOINT_COLUMNS = ("joint", "position rad", "reference rad", "velocity rad/s", "current A",
+                 "commanded A", "torque N.m", "drive state")
+
+
+def joint_row(name: str, state, command) -> JointRow:
+    nan = float("nan")
+    return JointRow(name, state.position, command.reference_position if command else nan,
+                    state.velocity, state.motor_current, command.current if command else nan,
+                    state.joint_torque, state.drive_state)
+
+
+def row_cells(row: JointRow) -> tuple[str, ...]:
+    return (row.name, f"{row.position:+.4f}", f"{row.reference:+.3f}", f"{row.velocity:+.4f}",
+            f"{row.motor_current:+.3f}", f"{row.commanded_current:+.3f}",
+            f"{row.joint_torque:+.3f}", row.drive_state)
 
 
 def limit_bar(value: float, low: float, high: float, width: int = BAR_WIDTH) -> Text:
@@ -28,10 +114,26 @@ def limit_bar(value: float, low: float, high: float, width: int = BAR_WIDTH) -> 
     return bar
 
 
+def status_line(alive: bool | None, state_age: float | None, t: float | None,
+                prefix: str) -> Text:
+    """What the viewer must know before reading any value: is it live, stale or orphaned."""
+    clock = f"t {t:10.3f} s" if t is not None else "no state yet"
+    if alive is False:
+        return Text(f" actuatord under {prefix} VANISHED (liveliness token gone): values are "
+                    f"its last · {clock} ", style="bold white on red")
+    if state_age is None:
+        return Text(f" waiting for {prefix}/state ... ", style="bold black on yellow")
+    if state_age > STALE_S:
+        return Text(f" STALE: no state for {state_age:.1f} s · {clock} ",
+                    style="bold black on yellow")
+    return Text(f" live · {clock} ", style="bold black on green")
+
+
 class ElbowDashboard(App):
     CSS = """
-    #values { height: 7; border: round $accent; padding: 0 1; }
-    #bars { height: 6; border: round $accent; padding: 0 1; }
+    #status { height: 1; }
+    #joints { height: auto; max-height: 12; border: round $accent; }
+    #bars { height: 5; border: round $accent; padding: 0 1; }
     #stats { height: 5; border: round $accent; padding: 0 1; }
     #plots { height: 7; }
     .plot { width: 1fr; height: 7; border: round $accent; }
@@ -39,22 +141,35 @@ class ElbowDashboard(App):
     """
     BINDINGS = [("q", "quit", "quit")]
 
-    def __init__(self, prefix: str = telemetry.DEFAULT_PREFIX):
+    def __init__(self, feed: Feed, prefix: str = telemetry.DEFAULT_PREFIX):
         super().__init__()
         self.prefix = prefix
+        self.feed = feed
         self.title = f"actuator-link: {prefix}"
+        self.joint_name = prefix.rstrip("/").rsplit("/", 1)[-1]
         self.positions: deque[float] = deque(maxlen=HISTORY)
         self.currents: deque[float] = deque(maxlen=HISTORY)
         self.state = None
         self.command = None
         self.solver = None
         self.loop_stats = None
+        self.state_received: float | None = None  # time.monotonic() of the latest state
         self.faults = 0
+        self._frame = 0
+        self._new_state = False  # a state came since the plots were last drawn
+        self._message_classes = {topic: telemetry.message_class(telemetry.TOPICS[topic])
+                         for topic in (*LATEST_ONLY, "fault")}
+
+    @property
+    def clock(self) -> float | None:
+        """Drive time of the state on screen: how far the dashboard has got."""
+        return self.state.t if self.state is not None else None
 
     def compose(self) -> ComposeResult:
         yield Header()
         with Vertical():
-            yield Static(id="values")
+            yield Static(id="status")
+            yield DataTable(id="joints", show_cursor=False, zebra_stripes=True)
             yield Static(id="bars")
             yield Static(id="stats")
             with Horizontal(id="plots"):
@@ -64,18 +179,44 @@ class ElbowDashboard(App):
         yield Footer()
 
     def on_mount(self) -> None:
-        self.query_one("#values", Static).border_title = "live"
+        self.query_one("#joints", DataTable).border_title = "joints"
+        self.query_one("#joints", DataTable).add_columns(*JOINT_COLUMNS)
         self.query_one("#bars", Static).border_title = "limits"
         self.query_one("#stats", Static).border_title = "solver and loop"
         self.query_one("#position_plot", Sparkline).border_title = "position"
         self.query_one("#current_plot", Sparkline).border_title = "current"
         self.query_one("#faults", Log).border_title = "faults"
         self.refresh_view()
+        # the frame timer belongs to the screen it draws, so it stops before the screen's
+        # widgets go away on quit (an app timer fired once more into a torn-down screen)
+        self.screen.set_interval(1 / REFRESH_HZ, self.poll)
+
+    def poll(self) -> None:
+        """One frame: take what arrived since the last, show it."""
+        latest, faults = self.feed.take()
+        for topic, data in latest.items():
+            message = self._message_classes[topic]()
+            message.ParseFromString(data)
+            self.ingest(topic, message)
+        for data in faults:
+            message = self._message_classes["fault"]()
+            message.ParseFromString(data)
+            self.ingest("fault", message)
+        self._new_state = self._new_state or "state" in latest
+        self._draw_status()
+        if self._frame % PLOT_EVERY == 0 and self._new_state:
+            self._draw_plots()
+            self._new_state = False
+        if self._frame % READOUT_EVERY == 0:
+            self._draw_readouts()
+        self._frame += 1
 
     def ingest(self, topic: str, message) -> None:
-        """Take one decoded telemetry message (call on the app's thread)."""
+        """Take one decoded telemetry message (on the app's thread); shown at the next
+        frame."""
         if topic == "state":
             self.state = message
+            self.state_received = time.monotonic()  # within a frame of its arrival
             self.positions.append(message.position)
             self.currents.append(message.motor_current)
         elif topic == "command":
@@ -88,22 +229,29 @@ class ElbowDashboard(App):
             self.faults += 1
             self.query_one("#faults", Log).write_line(
                 f"t={message.t:9.3f} s [{message.source}] {message.cause} -> {message.action}")
-        self.refresh_view()
+
+    def joint_rows(self) -> list[JointRow]:
+        return [joint_row(self.joint_name, self.state, self.command)] if self.state else []
 
     def refresh_view(self) -> None:
+        self._draw_status()
+        self._draw_plots()
+        self._draw_readouts()
+
+    def _draw_status(self) -> None:
+        """Live, stale or vanished, and the clock."""
+        age = None if self.state_received is None else time.monotonic() - self.state_received
+        self.query_one("#status", Static).update(
+            status_line(self.feed.alive, age, self.clock, self.prefix), layout=False)
+
+    def _draw_plots(self) -> None:
+        self.query_one("#position_plot", Sparkline).data = list(self.positions)
+        self.query_one("#current_plot", Sparkline).data = list(self.currents)
+
+    def _draw_readouts(self) -> None:
         s, c = self.state, self.command
-        if s is None:
-            self.query_one("#values", Static).update(f"waiting for {self.prefix}/state ...")
-            return
-        reference = f"{c.reference_position:+.3f}" if c else "?"
-        self.query_one("#values", Static).update(
-            f"t {s.t:10.3f} s   drive: {s.drive_state}\n"
-            f"position {s.position:+.4f} rad   reference {reference} rad\n"
-            f"velocity {s.velocity:+.4f} rad/s\n"
-            f"current  {s.motor_current:+.3f} A   commanded "
-            f"{(c.current if c else float('nan')):+.3f} A\n"
-            f"joint torque {s.joint_torque:+.3f} N.m")
-        if c is not None:
+        self._show_joints(self.joint_rows())
+        if s is not None and c is not None:
             bars = Text("position ")
             bars.append(limit_bar(s.position, c.position_min, c.position_max))
             bars.append("\ncurrent  ")
@@ -112,7 +260,7 @@ class ElbowDashboard(App):
                 bars.append("\nSAFETY FALLBACK ACTIVE", style="bold white on red")
             elif c.saturated:
                 bars.append("\ncommand saturated at the current limit", style="bold yellow")
-            self.query_one("#bars", Static).update(bars)
+            self.query_one("#bars", Static).update(bars, layout=False)
         lines = []
         if self.solver is not None:
             lines.append(f"solve {self.solver.solve_time_us:7.1f} us   iterations "
@@ -124,26 +272,23 @@ class ElbowDashboard(App):
             lines.append(f"jitter p99 {ls.period_jitter_p99_us:.1f} us  cycles {ls.cycles}  "
                          f"missed {ls.missed_cycles}  dropped {ls.dropped_messages}")
         lines.append(f"faults {self.faults}")
-        self.query_one("#stats", Static).update("\n".join(lines))
-        self.query_one("#position_plot", Sparkline).data = list(self.positions)
-        self.query_one("#current_plot", Sparkline).data = list(self.currents)
+        self.query_one("#stats", Static).update("\n".join(lines), layout=False)
+
+    def _show_joints(self, rows: list[JointRow]) -> None:
+        table = self.query_one("#joints", DataTable)
+        if [str(key.value) for key in table.rows] != [r.name for r in rows]:
+            table.clear()
+            for row in rows:
+                table.add_row(*row_cells(row), key=row.name)
+            return
+        for row in rows:
+            for column, cell in zip(table.ordered_columns, row_cells(row), strict=True):
+                table.update_cell(row.name, column.key, cell)
 
 
-def run_tui(session, prefix: str) -> None:
-    app = ElbowDashboard(prefix)
-    classes = {topic: telemetry.message_class(name) for topic, name in telemetry.TOPICS.items()}
-
-    def on_sample(sample) -> None:
-        topic = str(sample.key_expr).rsplit("/", 1)[-1]
-        if topic in classes:
-            message = classes[topic]()
-            message.ParseFromString(sample.payload.to_bytes())
-            if topic == "state" and message.t % 0.05 > 1e-3:  # 20 Hz is plenty for eyes
-                return
-            app.call_from_thread(app.ingest, topic, message)
-
-    subscriber = session.declare_subscriber(f"{prefix}/*", on_sample)
+def run_tui(session: zenoh.Session, prefix: str) -> None:
+    feed = Feed(session, prefix)
     try:
-        app.run()
+        ElbowDashboard(feed, prefix).run()
     finally:
-        subscriber.undeclare()
+        feed.close()

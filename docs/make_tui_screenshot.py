@@ -6,15 +6,13 @@ payload, the paper's sinusoid) for six seconds. Needs cairosvg (pip install cair
 
 import asyncio
 import json
-import queue
 import subprocess
 import sys
-import time
 
 import cairosvg
 import zenoh
 
-from dashboard.tui import ElbowDashboard
+from dashboard.tui import ElbowDashboard, Feed
 from protocol import telemetry
 
 PORT = 7461
@@ -22,7 +20,7 @@ PORT = 7461
 
 def main() -> None:
     actuatord = subprocess.Popen(
-        [sys.executable, "-m", "controller.cli", "--sim", "--duration", "30", "--payload-mass",
+        [sys.executable, "-m", "commands.actuatord", "--sim", "--duration", "30", "--payload-mass",
          "30", "--payload-position", "0,0.05", "--listen", f"tcp/127.0.0.1:{PORT}",
          "--no-multicast-scouting"], stdout=subprocess.PIPE, text=True)
     actuatord.stdout.readline()
@@ -30,25 +28,16 @@ def main() -> None:
     config.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{PORT}"]))
     config.insert_json5("scouting/multicast/enabled", "false")
     session = zenoh.open(config)
-    inbox: queue.Queue = queue.Queue()
-    session.declare_subscriber(f"{telemetry.DEFAULT_PREFIX}/*", lambda s: inbox.put(
-        (str(s.key_expr).rsplit("/", 1)[-1], s.payload.to_bytes())))
+    feed = Feed(session, telemetry.DEFAULT_PREFIX)
 
     async def scenario() -> str:
-        app = ElbowDashboard()
+        app = ElbowDashboard(feed)
         async with app.run_test(size=(110, 42)) as pilot:
-            end = time.monotonic() + 6.0
-            while time.monotonic() < end:
-                while not inbox.empty():
-                    topic, data = inbox.get()
-                    if topic in telemetry.TOPICS:
-                        message = telemetry.decode(telemetry.TOPICS[topic], data)
-                        if topic != "state" or int(message.t * 1000) % 25 == 0:
-                            app.ingest(topic, message)
-                await pilot.pause(0.05)
+            await pilot.pause(6.0)
             return app.export_screenshot()
 
     svg = asyncio.run(scenario())
+    feed.close()
     session.close()
     actuatord.terminate()
     actuatord.wait(30)

@@ -23,7 +23,7 @@ def main() -> None:
     parser.add_argument("--minutes", type=float, default=10.0)
     args = parser.parse_args()
     seconds = args.minutes * 60
-    proc = subprocess.Popen([sys.executable, "-m", "controller.cli", "--sim", "--duration",
+    proc = subprocess.Popen([sys.executable, "-m", "commands.actuatord", "--sim", "--duration",
                              str(seconds), "--no-multicast-scouting"], stdout=subprocess.PIPE,
                             text=True)
     proc.stdout.readline()

@@ -69,37 +69,3 @@ def effects_from_tables(tables: dict[str, dict[str, float]]) -> Effects:
                                f"{', '.join(EFFECT_KEYS[name])}")
             values[EFFECT_KEYS[name][key][0]] = float(value)
     return Effects(**values)
-
-
-def parse_effect_option(text: str) -> tuple[str, dict[str, float]]:
-    """'stribeck:breakaway_friction=1.5,velocity=0.05' -> ('stribeck', {...})."""
-    name, _, rest = text.partition(":")
-    if name not in EFFECT_KEYS:
-        raise ValueError(f"effect {name!r}: expected one of {', '.join(EFFECT_NAMES)}")
-    table = {}
-    for item in filter(None, rest.split(",")):
-        key, sep, value = item.partition("=")
-        if not sep or key not in EFFECT_KEYS[name]:
-            raise ValueError(f"effect {name}: {item!r}: expected KEY=VALUE with KEY one of "
-                             f"{', '.join(EFFECT_KEYS[name])}")
-        try:
-            table[key] = float(value)
-        except ValueError:
-            raise ValueError(f"effect {name}.{key}: {value!r} is not a number") from None
-    return name, table
-
-
-def with_truth_effects(model, options: list[str]):
-    """The model with effects given as CLI options (`NAME:KEY=VALUE,...`) added: the hidden
-    "truth" a virtual drive can carry. ValueError names the option at fault."""
-    from dataclasses import replace
-
-    parameters = model.parameters
-    for option in options:
-        name, table = parse_effect_option(option)
-        try:
-            parameters = parameters.with_effect(name, {**parameters.effects.section(name),
-                                                       **table})
-        except (KeyError, ValueError) as exc:
-            raise ValueError(f"--truth-effect {option}: {exc}") from None
-    return replace(model, parameters=parameters)

@@ -144,6 +144,13 @@ def load_model(path: str | Path | None = None) -> ActuatorModel:
         raise ModelFileError(f"{path}: model file not found") from None
     except tomllib.TOMLDecodeError as exc:
         raise ModelFileError(f"{path}: not valid TOML: {exc}") from None
+    except UnicodeDecodeError as exc:
+        raise ModelFileError(f"{path}: not UTF-8 text (byte {exc.start}); expected a TOML "
+                             "model file") from None
+    except RecursionError:
+        raise ModelFileError(f"{path}: nested too deeply for a model file") from None
+    except IsADirectoryError:
+        raise ModelFileError(f"{path}: is a directory; expected a TOML model file") from None
     except OSError as exc:
         raise ModelFileError(f"{path}: cannot read: {exc.strerror}") from None
 
@@ -167,6 +174,13 @@ def load_model(path: str | Path | None = None) -> ActuatorModel:
         raise ModelFileError(f"{path}: [limits]: position_min must be below position_max")
     if limits.velocity_max <= 0 or limits.current_max <= 0:
         raise ModelFileError(f"{path}: [limits]: velocity_max and current_max must be > 0")
+    # an offset the drive's peak torque cannot balance leaves no current that holds the joint
+    peak = values["drive_gain"] * limits.current_max
+    for name in ("torque_offset_motor", "torque_offset_joint"):
+        if not abs(values[name]) <= peak:
+            raise ModelFileError(f"{path}: [parameters].{name}: {values[name]:g} N.m; expected "
+                                 f"at most the drive's peak torque drive_gain x current_max = "
+                                 f"{peak:g} N.m in size")
 
     provenance = _strings(path, doc, "provenance", param_names, required=True)
     provenance.update({f"limits.{k}": v for k, v in
@@ -230,11 +244,18 @@ def _numbers(path: Path, doc: dict, table: str, names: list[str],
     _check_keys(path, table, section, names, required)
     out = {}
     for key, value in section.items():
-        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(
-                value):
+        if isinstance(value, bool) or not isinstance(value, int | float):
             raise ModelFileError(f"{path}: [{table}].{key}: expected a finite number, "
                                  f"got {value!r}")
-        out[key] = float(value)
+        try:
+            number = float(value)
+        except OverflowError:  # TOML integers are unbounded; printing one may be too
+            raise ModelFileError(f"{path}: [{table}].{key}: expected a finite number, got an "
+                                 "integer too large for a float") from None
+        if not math.isfinite(number):
+            raise ModelFileError(f"{path}: [{table}].{key}: expected a finite number, "
+                                 f"got {value!r}")
+        out[key] = number
     return out
 
 
@@ -246,18 +267,3 @@ def _strings(path: Path, doc: dict, table: str, names: list[str],
         if not isinstance(value, str) or not value.strip():
             raise ModelFileError(f"{path}: [{table}].{key}: expected a provenance string")
     return dict(section)
-
-
-def parse_payload(mass: float, position: str | None) -> Payload:
-    """Payload from CLI text: mass in kg and 'X,Y' in metres in the link frame."""
-    x = y = 0.0
-    if position is not None:
-        parts = position.split(",")
-        try:
-            x, y = (float(v) for v in parts)
-        except ValueError:
-            raise ValueError(f"payload position {position!r}: expected X,Y in metres, "
-                             "e.g. 0,0.05") from None
-    if mass > 0 and position is None:
-        raise ValueError("payload mass given without --payload-position X,Y")
-    return Payload(mass=mass, x=x, y=y)

@@ -1,12 +1,15 @@
-"""Bus specs as users type them (`vcan0`, `virtual:NAME`, `udp_multicast:GROUP[:PORT]`) turned
-into python-can constructor arguments, and `ethercat:IFACE` (an Ethernet interface carrying an
-EtherCAT line) into its interface name. Pure: opening the bus is the caller's job."""
+"""Bus specs as users type them (`vcan0`, `virtual:NAME`, `udp_multicast:GROUP[:PORT]`,
+`ethercat:IFACE`, `INTERFACE:CHANNEL` for any other python-can interface) turned into
+constructor arguments: python-can's for CAN, the network interface for EtherCAT. Pure: opening
+the bus is the caller's job."""
 
 import ipaddress
 import re
 
+from can import VALID_INTERFACES
+
 _SOCKETCAN_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_.-]{0,14}$")
-_NETWORK_INTERFACE_NAME = _SOCKETCAN_NAME  # Linux: IFNAMSIZ - 1 characters
+_NETWORK_INTERFACE = _SOCKETCAN_NAME  # Linux IFNAMSIZ: 15 characters
 ETHERCAT = "ethercat"
 DEFAULT_UDP_PORT = 43113  # python-can's UdpMulticastBus default
 
@@ -37,24 +40,20 @@ def parse_bus_spec(spec: str) -> dict:
     if kind == "udp_multicast":
         return _udp_multicast(spec, rest)
     if kind == ETHERCAT:
-        raise BusSpecError(f"bus spec {spec!r}: EtherCAT is not a CAN bus (ethercat_interface "
-                           "reads it)")
-    raise BusSpecError(f"bus spec {spec!r}: unknown interface {kind!r}; expected socketcan, "
-                       "virtual, udp_multicast or ethercat")
+        if _NETWORK_INTERFACE.match(rest):
+            return {"interface": ETHERCAT, "channel": rest}
+        raise BusSpecError(f"bus spec {spec!r}: not a network interface name")
+    if kind in VALID_INTERFACES:
+        # the interface's own channel syntax (PCAN_USBBUS1, /dev/ttyACM0@115200, 0, ...);
+        # none given: the interface's default channel
+        return {"interface": kind, "channel": rest} if rest else {"interface": kind}
+    raise BusSpecError(f"bus spec {spec!r}: unknown interface {kind!r}; expected ethercat or "
+                       f"one of python-can's: {', '.join(sorted(VALID_INTERFACES))}")
 
 
-def ethercat_interface(spec: str) -> str | None:
-    """The Ethernet interface of an `ethercat:IFACE` spec; None for every other kind of spec
-    (CAN buses, see `parse_bus_spec`)."""
-    if not isinstance(spec, str):
-        return None
-    kind, sep, rest = spec.strip().partition(":")
-    if kind != ETHERCAT or not sep:
-        return None
-    if not _NETWORK_INTERFACE_NAME.match(rest):
-        raise BusSpecError(f"bus spec {spec!r}: {rest!r} is not a network interface name "
-                           "(expected e.g. ethercat:eth1)")
-    return rest
+def is_ethercat(spec: str) -> bool:
+    """Whether a spec names an EtherCAT segment rather than a CAN bus."""
+    return isinstance(spec, str) and spec.strip().partition(":")[0] == ETHERCAT
 
 
 def _udp_multicast(spec: str, rest: str) -> dict:

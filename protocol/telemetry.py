@@ -13,6 +13,8 @@ Key expressions live under a prefix, e.g. `actuators/elbow`:
     {prefix}/reference   queryable: set the reference, payload JSON; reply {"ok", "reason"}
     {prefix}/weights     queryable: set cost weights, e.g. {"position": 300}; same reply
     {prefix}/audit       JSON line for every change request, accepted or refused
+    {prefix}/alive       liveliness token of the actuatord publishing under the prefix: gone
+                         when the process is (dashboards show it)
 """
 
 from functools import cache
@@ -91,6 +93,7 @@ PARAMETERS = "parameters"
 REFERENCE = "reference"
 WEIGHTS = "weights"
 AUDIT = "audit"
+LIVELINESS = "alive"
 DEFAULT_PREFIX = "actuators/elbow"
 
 

@@ -1,2 +1,2 @@
-"""Experiments on the drive (exciting trajectories), recordings in MCAP and CSV, identification
-and Zenoh-to-MCAP recording; `recorder` and `identify`."""
+"""Experiments on the drive (exciting trajectories), recordings in MCAP and CSV, and
+Zenoh-to-MCAP recording."""

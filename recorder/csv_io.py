@@ -1,4 +1,6 @@
-"""CSV recordings as in DESIGN.md's contract."""
+"""CSV recordings as in DESIGN.md's contract: UTF-8 text (a byte-order mark, as spreadsheets
+write, is allowed), a header `t,q,current,joint_torque` (s, rad, A, N.m) after optional
+`# key=value` metadata lines, one row per sample."""
 
 import csv
 from pathlib import Path
@@ -11,9 +13,20 @@ COLUMNS = ("t", "q", "current", "joint_torque")
 
 
 def read_csv(path: Path) -> Recording:
+    try:
+        return _read_csv(path)
+    except UnicodeDecodeError as exc:
+        raise RecordingError(f"{path}: not UTF-8 text (byte 0x{exc.object[exc.start]:02X}); "
+                             f"expected a CSV recording with the header {','.join(COLUMNS)} or "
+                             "an MCAP file") from None
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot read: {exc.strerror}") from None
+
+
+def _read_csv(path: Path) -> Recording:
     metadata: dict[str, str] = {}
     rows: list[list[float]] = []
-    with open(path, newline="") as fh:
+    with open(path, newline="", encoding="utf-8-sig") as fh:
         lines = iter(enumerate(fh, start=1))
         header = None
         for number, line in lines:

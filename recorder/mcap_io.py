@@ -3,41 +3,82 @@ and indexed, flushed chunk by chunk so a killed writer loses at most the open ch
 
 Chunks are 16 KiB of messages: at 1 kHz (State + Command, ~130 bytes a cycle) a chunk closes
 and reaches the file about every 0.12 s. SIGINT/SIGTERM finish the file properly (nothing
-lost); after SIGKILL the file has no summary, and `read_mcap` still reads every complete chunk.
+lost). After every flushed chunk the file ends in a provisional DataEnd (with the data-section
+CRC so far), an empty Footer and the magic, which the next chunk overwrites: a file whose writer
+was SIGKILLed is still a valid MCAP without summary, which any MCAP reader opens and this
+reader checks; `recorder repair` adds the summary and indexes.
+
+Times: `log_time` is the wall clock (ns since the Unix epoch) when the recorder wrote the message,
+as MCAP viewers expect; `publish_time` is the time the message speaks for (drive time for
+experiments), the same as the `t` inside the message.
 """
 
-import struct
+import time
+import zlib
+from collections.abc import Iterator
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
-from mcap.exceptions import McapError
-from mcap.records import Channel, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from google.protobuf.message import DecodeError
+from mcap.data_stream import RecordBuilder
+from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
 from protocol import telemetry
+from recorder.mcap_records import MAGIC, DamagedMcap, DataSection, chunk_records
 from recorder.recording import Recording, RecordingError
 
 CHUNK_SIZE = 16 * 1024
+# Holds a whole closed chunk with its message indexes and the provisional end, so that all of
+# it reaches the file in one write.
+WRITE_BUFFER = 4 * CHUNK_SIZE
 METADATA_NAME = "recording"
 
 
+class _DataFile:
+    """The file under the mcap Writer, keeping the CRC of the data section written so far."""
+
+    def __init__(self, path: Path):
+        self.file = open(path, "wb", buffering=WRITE_BUFFER)
+        self.crc = 0
+
+    def write(self, data: bytes) -> int:
+        self.crc = zlib.crc32(data, self.crc)
+        return self.file.write(data)
+
+    def tell(self) -> int:
+        return self.file.tell()
+
+    def flush(self) -> None:
+        self.file.flush()
+
+
+def _provisional_end(data_section_crc: int) -> bytes:
+    builder = RecordBuilder()
+    DataEnd(data_section_crc).write(builder)
+    Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(builder)
+    return builder.end() + MAGIC
+
+
 class McapRecorder:
-    """Writes telemetry messages to an MCAP file, one channel per topic."""
+    """Writes telemetry messages to an MCAP file, one channel per topic. Opening raises OSError
+    when the file cannot be created."""
 
     def __init__(self, path: str | Path, metadata: dict[str, str] | None = None):
         self.path = Path(path)
-        self._file = open(self.path, "wb")
+        self._file = _DataFile(self.path)
         self._writer = Writer(self._file, chunk_size=CHUNK_SIZE,
-                              compression=CompressionType.ZSTD)
+                              compression=CompressionType.ZSTD, enable_data_crcs=True)
         self._writer.start(profile="", library="actuator-link recorder")
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
+        self._counts: dict[int, int] = {}
         self._sequence = 0
         self.messages = 0
         if metadata:
             self._writer.add_metadata(METADATA_NAME, {k: str(v) for k, v in metadata.items()})
-        self._file.flush()
+        self._end_here()
 
     def channel(self, topic: str, message: str) -> int:
         """The channel id for `topic` carrying telemetry message `message` (e.g. 'State')."""
@@ -47,74 +88,118 @@ class McapRecorder:
                     telemetry.schema_name(message), "protobuf", telemetry.file_descriptor_set())
             self._channels[topic] = self._writer.register_channel(
                 topic, "protobuf", self._schemas[message])
+            self._counts[self._channels[topic]] = 0
         return self._channels[topic]
 
-    def write(self, channel_id: int, log_time_ns: int, data: bytes) -> None:
+    def write(self, channel_id: int, data: bytes, *, publish_time_ns: int,
+              log_time_ns: int | None = None) -> None:
+        """One message. `publish_time_ns`: the time the message speaks for (drive time for an
+        experiment); `log_time_ns`: when it was logged, the wall clock now unless given (a
+        Zenoh recording passes the time the sample arrived)."""
+        log_time = time.time_ns() if log_time_ns is None else log_time_ns
         before = self._file.tell()
-        self._writer.add_message(channel_id, log_time_ns, data, log_time_ns, self._sequence)
+        self._writer.add_message(channel_id, log_time, data, publish_time_ns, self._sequence)
         self._sequence += 1
         self.messages += 1
+        self._counts[channel_id] += 1
         if self._file.tell() != before:  # a chunk was closed: get it to the file now
-            self._file.flush()
+            self._end_here()
+
+    def messages_on(self, channel_id: int) -> int:
+        """Messages written on a channel so far (those in the open chunk included)."""
+        return self._counts[channel_id]
+
+    def _end_here(self) -> None:
+        """Write the provisional end after what the Writer wrote, flush, and step back over it
+        so the Writer's next records replace it."""
+        position = self._file.tell()
+        self._file.file.write(_provisional_end(self._file.crc))
+        self._file.flush()
+        self._file.file.seek(position)
 
     def close(self) -> None:
+        """Finish the file: the last chunk, the real DataEnd, summary, indexes, statistics."""
         self._writer.finish()
-        self._file.close()
+        self._file.file.close()
+
+    def discard(self) -> None:
+        """Close and delete the file: for a run that failed before its first message, so no
+        file is left that claims to be a recording."""
+        self._file.file.close()
+        self.path.unlink(missing_ok=True)
 
 
-def iter_mcap(path: Path):
-    """(topic, schema name, log_time_ns, data) for every message, plus metadata records as
-    ('metadata', name, 0, dict). A file whose writer was killed (no summary, ending at a record
-    boundary) reads up to its last complete chunk; a file cut inside a record is refused."""
-    size = path.stat().st_size
-    with open(path, "rb") as fh:
-        schemas: dict[int, str] = {}
-        channels: dict[int, tuple[str, str]] = {}
-        good = 0
-        try:
-            for record in StreamReader(fh, skip_magic=False).records:
-                good = fh.tell()
-                if isinstance(record, Schema):
-                    schemas[record.id] = record.name
-                elif isinstance(record, Channel):
-                    channels[record.id] = (record.topic, schemas.get(record.schema_id, ""))
-                elif isinstance(record, Message):
-                    topic, schema = channels[record.channel_id]
-                    yield topic, schema, record.log_time, record.data
-                elif isinstance(record, Metadata):
-                    yield "metadata", record.name, 0, dict(record.metadata)
-        except (McapError, struct.error, EOFError, ValueError) as exc:
-            if good < 8:
-                raise RecordingError(f"{path}: not an MCAP file ({exc or type(exc).__name__})") \
-                    from None
-            if fh.tell() < size or good != size:
-                raise RecordingError(f"{path}: truncated MCAP: ends inside a record (last "
-                                     f"complete record at byte {good} of {size})") from None
+class McapMessage(NamedTuple):
+    topic: str
+    schema: str  # schema name, e.g. 'actuator.State'
+    log_time: int  # ns
+    data: bytes
+
+
+def _contents(path: Path) -> Iterator[McapMessage | Metadata]:
+    """Messages and metadata records in file order, every chunk checked (chunk_records)."""
+    schemas: dict[int, str] = {}
+    channels: dict[int, tuple[str, str]] = {}
+    chunks = 0
+    for offset, record in DataSection(path).records():
+        if isinstance(record, Chunk):
+            chunks += 1
+            inner = chunk_records(f"{path}: chunk {chunks} at byte {offset}", record)
+        else:
+            inner = [record]
+        for item in inner:
+            if isinstance(item, Schema):
+                schemas[item.id] = item.name
+            elif isinstance(item, Channel):
+                if item.schema_id != 0 and item.schema_id not in schemas:
+                    raise RecordingError(f"{path}: channel {item.topic!r} refers to schema "
+                                         f"{item.schema_id}, which no Schema record defines")
+                channels[item.id] = (item.topic, schemas.get(item.schema_id, ""))
+            elif isinstance(item, Message):
+                if item.channel_id not in channels:
+                    raise RecordingError(f"{path}: a message near byte {offset} is on channel "
+                                         f"{item.channel_id}, which no Channel record defines")
+                topic, schema = channels[item.channel_id]
+                yield McapMessage(topic, schema, item.log_time, item.data)
+            elif isinstance(item, Metadata):
+                yield item
+
+
+def iter_mcap(path: Path) -> Iterator[McapMessage]:
+    """Every message of a recording, in file order. A file whose writer was killed reads up to
+    its last complete chunk; damage anywhere raises RecordingError."""
+    for item in _contents(path):
+        if isinstance(item, McapMessage):
+            yield item
 
 
 def read_mcap(path: Path) -> Recording:
-    """The contract's columns from the State messages of a recording."""
+    """The contract's columns from the State messages of a recording, with its metadata."""
     t, q, current, torque = [], [], [], []
     metadata: dict[str, str] = {}
-    state_class = telemetry.message_class("State")
-    for topic, schema, _, data in iter_mcap(path):
-        if topic == "metadata":
-            if schema == METADATA_NAME:
-                metadata.update(data)
-            continue
-        if schema != telemetry.schema_name("State"):
-            continue
-        state = state_class()
-        try:
-            state.ParseFromString(data)
-        except Exception:
-            raise RecordingError(f"{path}: a {schema} message on {topic} does not parse") \
-                from None
-        t.append(state.t)
-        q.append(state.position)
-        current.append(state.motor_current)
-        torque.append(state.joint_torque)
+    state_name = telemetry.schema_name("State")
+    state = telemetry.message_class("State")()
+    try:
+        for item in _contents(path):
+            if isinstance(item, Metadata):
+                if item.name == METADATA_NAME:
+                    metadata.update(item.metadata)
+                continue
+            if item.schema != state_name:
+                continue
+            try:
+                state.ParseFromString(item.data)
+            except DecodeError:
+                raise RecordingError(f"{path}: {state_name} message {len(t) + 1} on "
+                                     f"{item.topic} does not parse") from None
+            t.append(state.t)
+            q.append(state.position)
+            current.append(state.motor_current)
+            torque.append(state.joint_torque)
+    except DamagedMcap as exc:
+        raise DamagedMcap(f"{exc}; `recorder repair {path} -o REPAIRED.mcap` keeps what is "
+                          "sound") from None
     if not t:
-        raise RecordingError(f"{path}: no {telemetry.schema_name('State')} messages")
+        raise RecordingError(f"{path}: no {state_name} messages")
     return Recording(np.array(t), np.array(q), np.array(current), np.array(torque), metadata,
                      str(path))

@@ -1,16 +1,20 @@
 """A recording in memory: the contract's columns as arrays, plus metadata.
 
 MCAP is the native format, CSV the interchange one (DESIGN.md: `t,q,current,joint_torque`,
-optional extra columns, optional `# key=value` lines before the header); every reader returns
-this class, so every tool accepts both.
+optional extra columns, optional `# key=value` lines before the header). Both readers
+(`csv_io`, `mcap_io`) return this class and raise this module's error, and `reader.load_recording`
+picks between them, so every tool accepts both. This module imports neither reader.
 """
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from model.parameters import Payload
+
+# Identification and model-gap filter at tens of Hz, so no tool here can use slower samples;
+# the usual mistake it catches is time written in ms (1 kHz data then looks 1 s apart).
+SLOWEST_SAMPLE_PERIOD = 0.1  # s
 
 
 class RecordingError(ValueError):
@@ -41,7 +45,8 @@ class Recording:
             raise RecordingError(f"{self.source}: metadata payload: {exc}") from None
 
     def check(self) -> "Recording":
-        """Refuse what no tool can use: NaN, too short, time not increasing."""
+        """Refuse what no tool can use: NaN, too short, time not increasing or not in
+        seconds."""
         for name in ("t", "q", "current", "joint_torque"):
             column = getattr(self, name)
             if not np.all(np.isfinite(column)):
@@ -55,18 +60,10 @@ class Recording:
             row = int(np.argmax(np.diff(self.t) <= 0)) + 1
             raise RecordingError(f"{self.source}: column t: time does not increase at "
                                  f"sample {row}")
+        period = float(np.median(np.diff(self.t)))
+        if period > SLOWEST_SAMPLE_PERIOD:
+            raise RecordingError(f"{self.source}: column t: samples {period:g} apart; t is in "
+                                 f"seconds and a recording is sampled every "
+                                 f"{SLOWEST_SAMPLE_PERIOD:g} s or faster (time in ms?)")
         return self
 
-
-def load_recording(path: str | Path) -> Recording:
-    """Read MCAP (by extension .mcap) or CSV (anything else) and check it."""
-    path = Path(path)
-    if not path.exists():
-        raise RecordingError(f"{path}: no such file")
-    if path.suffix == ".mcap":
-        from recorder.mcap_io import read_mcap
-
-        return read_mcap(path).check()
-    from recorder.csv_io import read_csv
-
-    return read_csv(path).check()

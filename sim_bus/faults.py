@@ -23,20 +23,4 @@ TPDO_DELAY = 0.2  # s
 ENCODER_JUMP = 5000  # increments
 FLOOD_SECONDS = 0.5
 FLOOD_COB_ID = 0x001  # above SYNC (0x080) in priority
-
-
-def parse_schedule(text: str) -> tuple[Fault, float]:
-    """'encoder_glitch@2.5' -> (Fault.ENCODER_GLITCH, 2.5 s of drive time)."""
-    name, sep, when = text.partition("@")
-    try:
-        fault = Fault[name.upper()]
-    except KeyError:
-        names = ", ".join(f.name.lower() for f in Fault if f is not Fault.NONE)
-        raise ValueError(f"fault {name!r}: expected one of {names}") from None
-    try:
-        seconds = float(when) if sep else 0.0
-    except ValueError:
-        raise ValueError(f"fault {text!r}: {when!r} is not a time in seconds") from None
-    if fault is Fault.NONE or seconds < 0:
-        raise ValueError(f"fault {text!r}: need a fault and a time >= 0")
-    return fault, seconds
+SATURATED_READING = 2**31 - 1  # mN.m: the INT32 ceiling of 0x2002

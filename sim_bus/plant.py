@@ -58,6 +58,9 @@ class Plant:
         self._dry = 0.0
         self._dry_level = parameters.dry_friction
         self._current = 0.0
+        # load the compiled physics now, not inside the first SYNC: on a busy host that takes
+        # seconds, far longer than a master waits for its first sample (the result is unused)
+        dynamics.step(self.position, 0.0, 0.0, self._packed, 1e-3, PHYSICS_SUBSTEPS)
 
     def set_payload(self, payload: Payload) -> None:
         self.payload = payload

@@ -51,8 +51,10 @@ def udp_bus_spec() -> str:
 
 
 @contextmanager
-def sim_bus_process(bus: str, *extra: str):
-    proc = subprocess.Popen([sys.executable, "-m", "sim_bus.cli", "--bus", bus, *extra],
+def sim_bus_process(bus: str | None, *extra: str):
+    """sim-bus in its own process on `bus` (a --bus spec; None: the bus options in `extra`)."""
+    where = ["--bus", bus] if bus is not None else []
+    proc = subprocess.Popen([sys.executable, "-m", "commands.sim_bus", *where, *extra],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         line = proc.stdout.readline()

@@ -23,7 +23,7 @@ def dashboard_session(port: int) -> zenoh.Session:
 
 def start_actuatord(port: int, *extra: str) -> subprocess.Popen:
     return subprocess.Popen(
-        [sys.executable, "-m", "controller.cli", "--sim", "--lockstep", "--prefix", PREFIX,
+        [sys.executable, "-m", "commands.actuatord", "--sim", "--lockstep", "--prefix", PREFIX,
          "--listen", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting", *extra],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
@@ -94,7 +94,7 @@ def test_sigterm_disables_and_exits_zero_with_loop_statistics():
 
 
 def test_bad_input_exits_2_with_one_line(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "controller.cli", "--sim", "--reference",
+    proc = subprocess.run([sys.executable, "-m", "commands.actuatord", "--sim", "--reference",
                            '{"kind": "setpoint", "position": "up"}'],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
@@ -112,16 +112,17 @@ def test_recorder_writes_live_telemetry_to_mcap(tmp_path):
     from pathlib import Path
 
     from recorder.mcap_io import iter_mcap
-    from recorder.recording import load_recording
+    from recorder.reader import load_recording
 
     port = free_port()
     proc = start_actuatord(port, "--duration", "60")
     output = tmp_path / "live.mcap"
     try:
         assert "enabled" in proc.stdout.readline()
+        started = time.time_ns()
         rec = subprocess.run(
-            [sys.executable, "-m", "recorder.cli", "--zenoh", f"{PREFIX}/**", "-o", str(output),
-             "--duration", "2", "--connect", f"tcp/127.0.0.1:{port}",
+            [sys.executable, "-m", "commands.recorder", "--zenoh", f"{PREFIX}/**", "-o",
+             str(output), "--duration", "2", "--connect", f"tcp/127.0.0.1:{port}",
              "--no-multicast-scouting"], capture_output=True, text=True, timeout=60)
     finally:
         proc.terminate()
@@ -133,3 +134,5 @@ def test_recorder_writes_live_telemetry_to_mcap(tmp_path):
     assert len(recording) > 100
     assert all(telemetry.decode("Command", data).current_limit == 6.0
                for topic, _, _, data in iter_mcap(Path(output)) if topic.endswith("/command"))
+    # log_time: the wall clock when each sample arrived
+    assert all(started <= log_time <= time.time_ns() for _, _, log_time, _ in iter_mcap(output))

@@ -4,12 +4,13 @@ message on the fault topic, and the state the drive is left in."""
 
 import pytest
 
+from commands.options import parse_fault
 from controller.loop import ControlLoop, LoopOptions
 from controller.mpc import Mpc
 from model.parameters import load_model
 from protocol import objects
 from protocol.cia402 import State
-from sim_bus.faults import Fault, parse_schedule
+from sim_bus.faults import Fault
 from tests.conftest import virtual_pair
 
 MODEL = load_model()
@@ -86,11 +87,11 @@ def test_sdo_injection_and_schedules_are_validated():
         drive.start()
         drive.node.sdo[objects.FAULT_INJECTION].raw = int(Fault.OVERCURRENT_TRIP)
         assert sim.device.state is State.FAULT
-    assert parse_schedule("encoder_glitch@2.5") == (Fault.ENCODER_GLITCH, 2.5)
+    assert parse_fault("encoder_glitch@2.5") == (Fault.ENCODER_GLITCH, 2.5)
     with pytest.raises(ValueError, match="expected one of heartbeat_stops"):
-        parse_schedule("meltdown@1")
+        parse_fault("meltdown@1")
     with pytest.raises(ValueError, match="is not a time"):
-        parse_schedule("silent@soon")
+        parse_fault("silent@soon")
 
 
 def test_a_stall_in_real_time_is_reported_on_the_fault_topic():

@@ -13,7 +13,7 @@ from controller.loop import ControlLoop, LoopOptions
 from controller.mpc import Mpc
 from model.parameters import load_model
 from recorder.csv_io import write_csv
-from recorder.recording import load_recording
+from recorder.reader import load_recording
 from tests.conftest import virtual_pair
 
 TRUE = load_model()
@@ -21,12 +21,12 @@ SHORT = ["--velocity-min", "0.8", "--steps", "3", "--no-progress"]  # 15 s of da
 
 
 def recorder(*args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "recorder.cli", *args],
+    return subprocess.Popen([sys.executable, "-m", "commands.recorder", *args],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
 def identify(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "recorder.identify_cli", *args],
+    return subprocess.run([sys.executable, "-m", "commands.identify", *args],
                           capture_output=True, text=True, timeout=120)
 
 
@@ -72,7 +72,7 @@ def test_identify_from_csv_gives_the_same_model(recordings, tmp_path):
     csvs = []
     for path in recordings:
         csv_path = tmp_path / (path.stem + ".csv")
-        proc = subprocess.run([sys.executable, "-m", "recorder.cli", "export", str(path), "-o",
+        proc = subprocess.run([sys.executable, "-m", "commands.recorder", "export", str(path), "-o",
                                str(csv_path)], capture_output=True, text=True, timeout=60)
         assert proc.returncode == 0, proc.stderr
         csvs.append(csv_path)

@@ -54,7 +54,7 @@ def test_drive_fault_stops_the_loop_with_exit_code_1_and_a_fault_message():
 
 def test_plot_option_writes_the_figures(tmp_path):
     proc = subprocess.run(
-        [sys.executable, "-m", "controller.cli", "--sim", "--lockstep", "--duration", "0.5",
+        [sys.executable, "-m", "commands.actuatord", "--sim", "--lockstep", "--duration", "0.5",
          "--no-multicast-scouting", "--plot", str(tmp_path)],
         capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
@@ -64,7 +64,9 @@ def test_plot_option_writes_the_figures(tmp_path):
 
 
 def test_commands_print_help():
-    for module in ("sim_bus.cli", "controller.cli", "controller.bench", "driver.bench"):
+    for module in ("commands.sim_bus", "commands.actuatord", "commands.bench", "commands.bus_bench",
+                   "commands.recorder", "commands.identify", "commands.model_gap",
+                   "commands.dashboard"):
         proc = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True,
                               text=True, timeout=60)
         assert proc.returncode == 0 and "usage:" in proc.stdout, module

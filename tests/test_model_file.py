@@ -3,7 +3,8 @@ import sys
 
 import pytest
 
-from model.parameters import ModelFileError, default_model_path, load_model, parse_payload
+from commands.options import parse_payload
+from model.parameters import ModelFileError, default_model_path, load_model
 
 DEFAULT = default_model_path().read_text()
 
@@ -35,6 +36,12 @@ def test_default_model_has_provenance_for_every_parameter():
     (("drive_gain = 5.0", "drive_gain = nan"), r"drive_gain: expected a finite number"),
     (("[limits]", "[limitz]"), r"unknown table \[limitz\]"),
     (("drive_gain = 5.0", "drive_gain = = 5.0"), r"not valid TOML"),
+    (("drive_gain = 5.0", "drive_gain = " + "9" * 401),
+     r"drive_gain: expected a finite number, got an integer too large for a float"),
+    (("drive_gain = 5.0", "drive_gain = " + "[" * 5000 + "]" * 5000),
+     r"nested too deeply for a model file"),
+    (("torque_offset_motor = 0.0", "torque_offset_motor = 1e12"),
+     r"torque_offset_motor: 1e\+12 N.m; expected at most the drive's peak torque"),
 ])
 def test_bad_model_files_name_file_and_field(tmp_path, edit, message):
     path = write(tmp_path, DEFAULT.replace(*edit, 1))
@@ -61,6 +68,16 @@ provenance = "test"
         load_model(bad)
 
 
+def test_a_model_file_that_is_not_utf8_names_the_file(tmp_path):
+    path = tmp_path / "latin1.toml"
+    path.write_bytes(DEFAULT.replace("# TALOS", "# TALOS \xe9", 1).encode("latin-1"))
+    with pytest.raises(ModelFileError, match="not UTF-8 text") as info:
+        load_model(path)
+    assert str(path) in str(info.value)
+    with pytest.raises(ModelFileError, match="is a directory"):
+        load_model(tmp_path)
+
+
 def test_missing_model_file(tmp_path):
     with pytest.raises(ModelFileError, match="model file not found"):
         load_model(tmp_path / "nope.toml")
@@ -77,7 +94,7 @@ def test_sim_bus_bad_input_exits_2_with_one_line(tmp_path, args, needle):
     args = [a.replace("{bad}", str(bad)) for a in args]
     if "--bus" not in args:
         args += ["--bus", "virtual:never-opened"]
-    proc = subprocess.run([sys.executable, "-m", "sim_bus.cli", *args], capture_output=True,
+    proc = subprocess.run([sys.executable, "-m", "commands.sim_bus", *args], capture_output=True,
                           text=True, timeout=60)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()

@@ -41,10 +41,10 @@ def record(folder: Path, truth: str | None) -> dict[str, Path]:
             ["--sinusoid", *common, "--duration", "20", "--seed", "2", "-o",
              str(files["sinusoid"])]]
     with ThreadPoolExecutor(2) as pool:
-        for proc in pool.map(lambda job: run("recorder.cli", *job), jobs):
+        for proc in pool.map(lambda job: run("commands.recorder", *job), jobs):
             assert proc.returncode == 0, proc.stderr
     files["baseline"] = folder / "baseline.toml"
-    proc = run("recorder.identify_cli", str(files["noload"]), str(files["load"]), "-o",
+    proc = run("commands.identify", str(files["noload"]), str(files["load"]), "-o",
                str(files["baseline"]))
     assert proc.returncode == 0, proc.stderr
     return files
@@ -60,7 +60,7 @@ def scenarios(tmp_path_factory) -> dict[str, dict[str, Path]]:
 
 def model_gap(files: dict[str, Path], *extra: str) -> tuple[subprocess.CompletedProcess, dict]:
     report = files["baseline"].parent / "gap.json"
-    proc = run("recorder.gap_cli", str(files["noload"]), str(files["load"]),
+    proc = run("commands.model_gap", str(files["noload"]), str(files["load"]),
                str(files["sinusoid"]), "--model", str(files["baseline"]), "--report",
                str(report), *extra)
     return proc, json.loads(report.read_text()) if report.exists() else {}
@@ -132,6 +132,6 @@ def _scaled(text: str, key: str, factor: float) -> str:
 def test_bad_recording_is_refused(tmp_path, scenarios):
     bad = tmp_path / "bad.csv"
     bad.write_text("time,q,current,joint_torque\n0,0,0,0\n")
-    proc = run("recorder.gap_cli", str(bad), "--model", str(scenarios["none"]["baseline"]))
+    proc = run("commands.model_gap", str(bad), "--model", str(scenarios["none"]["baseline"]))
     assert proc.returncode == 2
     assert "header" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1

@@ -46,6 +46,11 @@ def test_mapping_entries_are_validated():
                                  "port": 43113, "receive_own_messages": False}),
     ("udp_multicast:239.1.2.3:5000", {"interface": "udp_multicast", "channel": "239.1.2.3",
                                       "port": 5000, "receive_own_messages": False}),
+    # every other python-can interface, its channel in the interface's own syntax
+    ("pcan:PCAN_USBBUS1", {"interface": "pcan", "channel": "PCAN_USBBUS1"}),
+    ("kvaser:0", {"interface": "kvaser", "channel": "0"}),
+    ("slcan:/dev/ttyACM0@115200", {"interface": "slcan", "channel": "/dev/ttyACM0@115200"}),
+    ("ixxat:", {"interface": "ixxat"}),
 ])
 def test_bus_specs(spec, expected):
     assert parse_bus_spec(spec) == expected
@@ -53,7 +58,7 @@ def test_bus_specs(spec, expected):
 
 @pytest.mark.parametrize("spec,message", [
     ("", "empty bus spec"),
-    ("pcan:1", "unknown interface 'pcan'"),
+    ("can:0", "unknown interface 'can'; expected one of python-can's: canalystii"),
     ("udp_multicast:10.0.0.1", "not a multicast group"),
     ("udp_multicast:239.0.0.1:99999", "port '99999'"),
     ("virtual:", "needs a channel name"),

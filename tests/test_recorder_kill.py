@@ -8,16 +8,17 @@ import time
 
 import numpy as np
 import pytest
+from mcap.reader import make_reader
 
-from recorder.recording import load_recording
+from recorder.reader import load_recording
 
 
 def start(path) -> subprocess.Popen:
-    proc = subprocess.Popen([sys.executable, "-m", "recorder.cli", "--exciting-trajectory",
+    proc = subprocess.Popen([sys.executable, "-m", "commands.recorder", "--exciting-trajectory",
                              "--sim", "--lockstep", "--no-progress", "-o", str(path)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline and (not path.exists() or path.stat().st_size < 100_000):
+    deadline = time.monotonic() + 60  # 120 kB: about 1200 samples (State + Command)
+    while time.monotonic() < deadline and (not path.exists() or path.stat().st_size < 120_000):
         time.sleep(0.05)
     assert proc.poll() is None, proc.stderr.read()
     return proc
@@ -60,19 +61,25 @@ def test_twenty_kills_at_random_moments_leave_twenty_readable_files(tmp_path):
     def one(seed: int) -> tuple[int, float]:
         rng = random.Random(seed)
         path = tmp_path / f"kill{seed}.mcap"
-        proc = subprocess.Popen([sys.executable, "-m", "recorder.cli", "--sinusoid",
+        proc = subprocess.Popen([sys.executable, "-m", "commands.recorder", "--sinusoid",
                                  "--duration", "30", "--sim", "--lockstep", "--no-progress",
                                  "--seed", str(seed), "-o", str(path)],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        # 2 kB: past the header, metadata and provisional end (about 460 bytes), so the first
+        # chunk is in the file. A recorder that fails before that leaves no file at all.
         deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and (not path.exists()
-                                               or path.stat().st_size < 2_000):
+        while proc.poll() is None and time.monotonic() < deadline and (
+                not path.exists() or path.stat().st_size < 2_000):
             time.sleep(0.01)
         time.sleep(rng.uniform(0.0, 1.5))
         proc.kill()
-        proc.wait(30)
+        _, err = proc.communicate(timeout=30)
+        assert proc.returncode == -signal.SIGKILL, f"{path.name}: the recorder ended by " \
+            f"itself before the kill: {err.strip()}"
         recording = load_recording(path)
         contiguous(recording)
+        with open(path, "rb") as fh:  # the standard reader finds the same samples
+            assert len(recording) == sum(1 for _ in make_reader(fh).iter_messages("state"))
         return len(recording), recording.t[-1]
 
     with ThreadPoolExecutor(2) as pool:

@@ -1,7 +1,6 @@
 """`model-gap RECORDING... --model MODEL.toml`: where the model and the measurements disagree,
 which missing effect explains it, and the improved model."""
 
-import argparse
 import datetime
 import json
 import sys
@@ -9,21 +8,28 @@ from pathlib import Path
 
 import numpy as np
 
+from commands.options import (
+    CommandParser,
+    add_logging_argument,
+    check_output_file,
+    check_output_folder,
+    configure_logging,
+    positive_float,
+    read_recording,
+    usage_error,
+)
 from model.effects import EFFECT_KEYS
 from model.gap import GapError, GapResult, find_gap
 from model.identify import Experiment
+from model.model_file import write_model
 from model.parameters import ModelFileError, Payload, load_model
-from recorder.model_file import write_model
-from recorder.recording import RecordingError, load_recording
+from recorder.recording import RecordingError
+
+PROG = "model-gap"
 
 
-def _usage_error(message: str) -> int:
-    print(f"model-gap: error: {message}", file=sys.stderr)
-    return 2
-
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="model-gap", description=__doc__.splitlines()[0])
+def build_parser() -> CommandParser:
+    parser = CommandParser(prog=PROG, description=__doc__.splitlines()[0])
     parser.add_argument("recordings", nargs="+", metavar="RECORDING",
                         help="MCAP or CSV recordings (payload from their metadata, else none)")
     parser.add_argument("--model", required=True, metavar="MODEL.toml")
@@ -31,19 +37,26 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--plots", metavar="DIR", help="before/after figures")
     parser.add_argument("-o", "--output", metavar="IMPROVED.toml",
                         help="write the improved model (only when an effect is found)")
-    parser.add_argument("--horizon", type=float, default=0.5, metavar="S",
-                        help="simulation horizon before restarting from the measured state "
-                             "(default: %(default)s s)")
+    parser.add_argument("--horizon", type=positive_float, default=0.5, metavar="S",
+                        help="simulation horizon before restarting from the measured state, "
+                             "0.01..10 (default: %(default)s s)")
+    add_logging_argument(parser)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    configure_logging(PROG, args.log_level)
     try:
+        for option, path in (("--report", args.report), ("-o", args.output)):
+            if path:
+                check_output_file(option, path)
+        if args.plots:
+            check_output_folder("--plots", args.plots)
         model = load_model(args.model)
         experiments = []
         for path in args.recordings:
-            recording = load_recording(path)
+            recording = read_recording(path)
             experiments.append(Experiment(recording.t, recording.q, recording.current,
                                           recording.joint_torque,
                                           recording.payload() or Payload(), path))
@@ -51,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"--horizon {args.horizon}: expected 0.01..10 s")
         result = find_gap(experiments, model, args.horizon)
     except (ModelFileError, RecordingError, GapError, ValueError) as exc:
-        return _usage_error(str(exc))
+        return usage_error(PROG, str(exc))
 
     improved_path = args.model
     if result.effect != "none" and args.output:

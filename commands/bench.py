@@ -5,13 +5,13 @@ Every figure comes from the same problem in the same run: the paper's sinusoid (
 paper's robot setting N = 5 steps of 3.3 ms under `paper_robot`.
 """
 
-import argparse
 import json
 import sys
 import time
 
 import numpy as np
 
+from commands.options import CommandParser, add_logging_argument, configure_logging, int_range
 from controller import ilqr_reference
 from controller.mpc import Mpc
 from controller.problem import OcpSettings
@@ -94,11 +94,13 @@ def measure(settings: OcpSettings, ticks: int, numpy_ticks: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="bench", description=__doc__.splitlines()[0])
+    parser = CommandParser(prog="bench", description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="print one JSON object")
-    parser.add_argument("--ticks", type=int, default=20000)
-    parser.add_argument("--numpy-ticks", type=int, default=300)
+    parser.add_argument("--ticks", type=int_range(1, 10_000_000), default=20000)
+    parser.add_argument("--numpy-ticks", type=int_range(1, 10_000_000), default=300)
+    add_logging_argument(parser)
     args = parser.parse_args(argv)
+    configure_logging(parser.prog, args.log_level)
     result = measure(OcpSettings(), args.ticks, args.numpy_ticks)
     result["paper_tick_us"] = PAPER_TICK_US
     result["speedup_over_paper"] = round(PAPER_TICK_US / result["tick_median_us"], 1)

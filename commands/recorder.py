@@ -4,6 +4,7 @@ export a recording to CSV.
     recorder --exciting-trajectory [--bus vcan0 | --sim [--lockstep]] -o FILE.mcap
     recorder --zenoh KEYEXPR -o FILE.mcap [--duration S]
     recorder export FILE.mcap -o FILE.csv
+    recorder repair FILE.mcap -o REPAIRED.mcap
 """
 
 import argparse
@@ -15,25 +16,46 @@ import threading
 import time
 from pathlib import Path
 
-from model.effects import with_truth_effects
-from model.parameters import ModelFileError, load_model, parse_payload
+from commands.options import (
+    CommandParser,
+    DriveOpenError,
+    add_bus_arguments,
+    add_logging_argument,
+    add_model_argument,
+    add_payload_arguments,
+    add_virtual_drive_arguments,
+    add_zenoh_arguments,
+    check_drive_arguments,
+    check_key_expr,
+    check_output_file,
+    check_payload,
+    configure_logging,
+    finite_float,
+    int_range,
+    job_error,
+    open_drive,
+    open_session,
+    payload_from_args,
+    positive_float,
+    read_recording,
+    usage_error,
+    with_truth_effects,
+)
+from model.parameters import ModelFileError, load_model
 from protocol import cia402, telemetry
-from protocol.bus_spec import BusSpecError, parse_bus_spec
+from protocol.bus_spec import BusSpecError
 from recorder.exciting import ExcitingTrajectory, SlowSinusoid
 from recorder.recording import RecordingError
 
-
-def _usage_error(message: str) -> int:
-    print(f"recorder: error: {message}", file=sys.stderr)
-    return 2
+PROG = "recorder"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from controller.zenoh_session import add_zenoh_arguments
-
-    parser = argparse.ArgumentParser(
-        prog="recorder", description=__doc__.splitlines()[0],
-        epilog="`recorder export FILE.mcap -o FILE.csv` writes the CSV interchange format.")
+    parser = CommandParser(
+        prog=PROG, description=__doc__.splitlines()[0],
+        epilog="`recorder export FILE.mcap -o FILE.csv` writes the CSV interchange format; "
+               "`recorder repair FILE.mcap -o REPAIRED.mcap` rewrites a killed, truncated or "
+               "damaged recording as a complete MCAP file.")
     job = parser.add_mutually_exclusive_group(required=True)
     job.add_argument("--exciting-trajectory", action="store_true",
                      help="run the paper's exciting trajectory on the drive and record it")
@@ -43,29 +65,23 @@ def build_parser() -> argparse.ArgumentParser:
     job.add_argument("--zenoh", metavar="KEYEXPR",
                      help="record live telemetry, e.g. 'actuators/elbow/**'")
     parser.add_argument("-o", "--output", required=True, metavar="FILE.mcap")
-    where = parser.add_mutually_exclusive_group()
-    where.add_argument("--bus", default="vcan0", help="bus spec (default: vcan0)")
-    where.add_argument("--sim", action="store_true", help="embedded virtual drive")
-    parser.add_argument("--lockstep", action="store_true", help="with --sim: faster than real time")
-    parser.add_argument("--node-id", type=int, default=2)
-    parser.add_argument("--model", help="nominal model TOML for the tracking feedforward "
-                                        "(and for --sim's drive)")
-    parser.add_argument("--payload-mass", type=float, default=0.0, metavar="KG")
-    parser.add_argument("--payload-position", metavar="X,Y")
+    add_bus_arguments(parser)
+    add_model_argument(parser, help="nominal model TOML for the tracking feedforward (and for "
+                                    "--sim's drive)")
+    add_payload_arguments(parser)
     defaults = ExcitingTrajectory()
-    parser.add_argument("--position-low", type=float, default=defaults.position_low)
-    parser.add_argument("--position-high", type=float, default=defaults.position_high)
-    parser.add_argument("--velocity-min", type=float, default=defaults.velocity_min)
-    parser.add_argument("--velocity-max", type=float, default=defaults.velocity_max)
-    parser.add_argument("--steps", type=int, default=defaults.steps,
+    parser.add_argument("--position-low", type=finite_float, default=defaults.position_low)
+    parser.add_argument("--position-high", type=finite_float, default=defaults.position_high)
+    parser.add_argument("--velocity-min", type=positive_float, default=defaults.velocity_min)
+    parser.add_argument("--velocity-max", type=positive_float, default=defaults.velocity_max)
+    parser.add_argument("--steps", type=int_range(1, 1000), default=defaults.steps,
                         help="cruise velocities from min to max (default: %(default)s)")
-    parser.add_argument("--seed", type=int, default=0, help="--sim sensor-noise seed")
-    parser.add_argument("--truth-effect", action="append", default=[], metavar="NAME:K=V,...",
-                        help="--sim: hidden effect in the virtual drive's physics (as sim-bus)")
-    parser.add_argument("--duration", type=float,
+    add_virtual_drive_arguments(parser, faults=False)
+    parser.add_argument("--duration", type=positive_float, metavar="S",
                         help="--zenoh: stop after S seconds; --sinusoid: its length")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_zenoh_arguments(parser)
+    add_logging_argument(parser)
     return parser
 
 
@@ -73,7 +89,16 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "export":
         return _export(argv[1:])
+    if argv and argv[0] == "repair":
+        return _repair(argv[1:])
     args = build_parser().parse_args(argv)
+    configure_logging(PROG, args.log_level)
+    try:
+        check_output_file("-o", args.output)
+        if args.zenoh:
+            check_key_expr("--zenoh", args.zenoh, wildcards=True)
+    except ValueError as exc:
+        return usage_error(PROG, str(exc))
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
@@ -86,7 +111,8 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     try:
         model = load_model(args.model)
         sim_model = with_truth_effects(model, args.truth_effect)
-        payload = parse_payload(args.payload_mass, args.payload_position)
+        payload = payload_from_args(args)
+        check_payload(model, payload)
         if args.sinusoid:
             trajectory = SlowSinusoid(duration=args.duration or SlowSinusoid.duration)
             trajectory_range = (trajectory.center - trajectory.amplitude,
@@ -95,10 +121,7 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
             trajectory = ExcitingTrajectory(args.position_low, args.position_high,
                                             args.velocity_min, args.velocity_max, args.steps)
             trajectory_range = (trajectory.position_low, trajectory.position_high)
-        if not args.sim:
-            parse_bus_spec(args.bus)
-        if args.lockstep and not args.sim:
-            raise ValueError("--lockstep needs --sim")
+        check_drive_arguments(args)
         limits = model.limits
         if not (limits.position_min <= trajectory_range[0]
                 and trajectory_range[1] <= limits.position_max):
@@ -106,79 +129,79 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
                              f"leaves the model's limits [{limits.position_min}, "
                              f"{limits.position_max}] rad")
     except (ModelFileError, BusSpecError, ValueError) as exc:
-        return _usage_error(str(exc))
+        return usage_error(PROG, str(exc))
 
     from driver import DriveError
-    from driver.canopen_drive import CanOpenDrive
     from recorder.experiment import run_trajectory
     from recorder.mcap_io import McapRecorder
     from recorder.tracking import TrackingLaw
 
-    sim = None
-    bus = args.bus
-    if args.sim:
-        from sim_bus.embedded import EmbeddedDrive
-        from sim_bus.plant import SensorNoise
-
-        sim = EmbeddedDrive(sim_model, payload, SensorNoise(seed=args.seed), args.node_id,
-                            lockstep=args.lockstep)
+    try:
+        connection = open_drive(args, sim_model, payload)
+    except DriveOpenError as exc:
+        return job_error(PROG, str(exc))
+    drive = connection.drive
     metadata = {
         "payload_mass": payload.mass, "payload_position": f"{payload.x},{payload.y}",
         "experiment": "sinusoid" if args.sinusoid else "exciting_trajectory",
         "trajectory": repr(trajectory), "truth_effects": ";".join(args.truth_effect),
-        "model": model.source, "bus": "sim" if args.sim else args.bus,
+        "model": model.source, "bus": "sim" if args.sim else connection.where,
         "node_id": args.node_id, "period_s": 1e-3,
         "recorded_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
-    try:
-        options = {"lockstep": args.lockstep, "velocity_limit": model.limits.velocity_max,
-                   "drive_gain": model.parameters.drive_gain}
-        drive = (CanOpenDrive(sim.master_network, args.node_id, **options) if sim is not None
-                 else CanOpenDrive.open(bus, args.node_id, **options))
-    except Exception as exc:
-        print(f"recorder: error: cannot open bus {bus!r}: {exc}", file=sys.stderr)
-        return 1
-    writer = McapRecorder(args.output, metadata)
-    state_channel = writer.channel("state", "State")
-    command_channel = writer.channel("command", "Command")
+    try:  # before the drive runs
+        writer = McapRecorder(args.output, metadata)
+    except OSError as exc:
+        connection.close()
+        return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
+    # channels named as the Zenoh keys, so a Foxglove layout serves live data and both recordings
+    state_channel = writer.channel(telemetry.key_expr(telemetry.DEFAULT_PREFIX, "state"), "State")
+    command_channel = writer.channel(telemetry.key_expr(telemetry.DEFAULT_PREFIX, "command"),
+                                     "Command")
     state_class, command_class = (telemetry.message_class("State"),
                                   telemetry.message_class("Command"))
     law = TrackingLaw(model.parameters.with_payload(payload), model.limits.current_max)
     bar = _progress(args.no_progress, trajectory.duration)
 
     def sink(sample, current, reference) -> None:
-        log_time = int(round(sample.t * 1e9))
+        # log_time: the wall clock, once for the cycle's two messages; publish_time: drive time
+        log_time, drive_time = time.time_ns(), int(round(sample.t * 1e9))
         state = cia402.state_from_statusword(sample.statusword)
-        writer.write(state_channel, log_time, state_class(
+        writer.write(state_channel, state_class(
             t=sample.t, position=sample.position, velocity=sample.velocity,
             motor_current=sample.motor_current, joint_torque=sample.joint_torque,
-            statusword=sample.statusword, drive_state=state.value).SerializeToString())
-        writer.write(command_channel, log_time, command_class(
+            statusword=sample.statusword, drive_state=state.value).SerializeToString(),
+            publish_time_ns=drive_time, log_time_ns=log_time)
+        writer.write(command_channel, command_class(
             t=sample.t, current=current, planned_current=current,
             reference_position=reference[0], reference_velocity=reference[1],
             current_limit=model.limits.current_max, position_min=model.limits.position_min,
-            position_max=model.limits.position_max).SerializeToString())
+            position_max=model.limits.position_max).SerializeToString(),
+            publish_time_ns=drive_time, log_time_ns=log_time)
 
     started = time.perf_counter()
-    code, samples = 0, 0
+    code = 0
     try:
         drive.start()
-        samples = run_trajectory(drive, trajectory, law, sink, args.lockstep,
-                                          bar, stop.is_set)
+        run_trajectory(drive, trajectory, law, sink, args.lockstep, bar, stop.is_set)
         if stop.is_set():
             code = 1
-            print(f"recorder: interrupted after {samples} samples", file=sys.stderr)
+            print(f"recorder: interrupted after {writer.messages_on(state_channel)} samples",
+                  file=sys.stderr)
     except DriveError as exc:
-        code = 1
-        print(f"recorder: error: {exc}", file=sys.stderr)
+        code = job_error(PROG, str(exc))
     finally:
-        drive.close()
-        writer.close()
-        if sim is not None:
-            sim.close()
+        connection.close()
+        # the samples that reached the writer, however the run ended
+        samples = writer.messages_on(state_channel)
+        if code != 0 and samples == 0:
+            writer.discard()  # failed before its first sample: leave no file
+        else:
+            writer.close()
     elapsed = time.perf_counter() - started
     bar(None)
+    output = args.output if samples else "no file written"
     print(f"recorder: {samples} samples ({samples / 1000:.1f} s of drive time) in {elapsed:.1f} s "
-          f"(real-time factor {samples / 1000 / elapsed:.2f}) -> {args.output}", flush=True)
+          f"(real-time factor {samples / 1000 / elapsed:.2f}) -> {output}", flush=True)
     return code
 
 
@@ -200,18 +223,21 @@ def _progress(disabled: bool, total: float):
 
 
 def _record_zenoh(args: argparse.Namespace, stop: threading.Event) -> int:
-    from controller.zenoh_session import open_session
     from recorder.mcap_io import McapRecorder
 
     try:
         session = open_session(args)
     except ValueError as exc:
-        return _usage_error(str(exc))
+        return usage_error(PROG, str(exc))
+    try:
+        writer = McapRecorder(args.output, {"source": f"zenoh {args.zenoh}"})
+    except OSError as exc:
+        session.close()
+        return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
     received: queue.Queue = queue.Queue()
     subscriber = session.declare_subscriber(
         args.zenoh, lambda sample: received.put((str(sample.key_expr),
                                                  sample.payload.to_bytes(), time.time_ns())))
-    writer = McapRecorder(args.output, {"source": f"zenoh {args.zenoh}"})
     print(f"recorder: recording {args.zenoh} -> {args.output}", flush=True)
     deadline = time.monotonic() + args.duration if args.duration else None
     skipped = 0
@@ -225,7 +251,8 @@ def _record_zenoh(args: argparse.Namespace, stop: threading.Event) -> int:
             if message is None:
                 skipped += 1
                 continue
-            writer.write(writer.channel(key, message), log_time, data)
+            writer.write(writer.channel(key, message), data, publish_time_ns=log_time,
+                         log_time_ns=log_time)
     finally:
         subscriber.undeclare()
         session.close()
@@ -233,7 +260,8 @@ def _record_zenoh(args: argparse.Namespace, stop: threading.Event) -> int:
             key, data, log_time = received.get()
             message = telemetry.TOPICS.get(key.rsplit("/", 1)[-1])
             if message is not None:
-                writer.write(writer.channel(key, message), log_time, data)
+                writer.write(writer.channel(key, message), data, publish_time_ns=log_time,
+                             log_time_ns=log_time)
         writer.close()
     print(f"recorder: {writer.messages} messages ({skipped} on keys without a schema skipped) "
           f"-> {args.output}", flush=True)
@@ -241,20 +269,45 @@ def _record_zenoh(args: argparse.Namespace, stop: threading.Event) -> int:
 
 
 def _export(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="recorder export",
-                                     description="MCAP recording to the CSV contract")
+    parser = CommandParser(prog="recorder export",
+                           description="MCAP recording to the CSV contract")
     parser.add_argument("recording", metavar="FILE.mcap")
     parser.add_argument("-o", "--output", required=True, metavar="FILE.csv")
+    add_logging_argument(parser)
     args = parser.parse_args(argv)
+    configure_logging(PROG, args.log_level)
     from recorder.csv_io import write_csv
-    from recorder.recording import load_recording
 
     try:
-        recording = load_recording(args.recording)
-    except RecordingError as exc:
-        return _usage_error(str(exc))
-    write_csv(recording, Path(args.output))
+        check_output_file("-o", args.output)
+        recording = read_recording(args.recording)
+    except (RecordingError, ValueError) as exc:
+        return usage_error(PROG, str(exc))
+    try:
+        write_csv(recording, Path(args.output))
+    except OSError as exc:
+        return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
     print(f"recorder: {len(recording)} samples -> {args.output}")
+    return 0
+
+
+def _repair(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog=f"{PROG} repair",
+        description="rewrite a killed, truncated or damaged MCAP recording as a complete one "
+                    "(summary, indexes, statistics) keeping every sound chunk")
+    parser.add_argument("recording", metavar="FILE.mcap")
+    parser.add_argument("-o", "--output", required=True, metavar="REPAIRED.mcap")
+    args = parser.parse_args(argv)
+    from recorder.repair import repair_recording
+
+    try:
+        report = repair_recording(args.recording, args.output)
+    except RecordingError as exc:
+        return usage_error(PROG, str(exc))
+    except OSError as exc:
+        return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
+    print(f"recorder: {report.summary()} -> {args.output}")
     return 0
 
 

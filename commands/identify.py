@@ -2,11 +2,23 @@
 paper's total least squares, written as a model TOML that sim-bus, actuatord and model-gap
 accept."""
 
-import argparse
 import datetime
 import sys
 from pathlib import Path
 
+from commands.options import (
+    CommandParser,
+    add_logging_argument,
+    add_model_argument,
+    add_payload_arguments,
+    check_output_file,
+    check_output_folder,
+    configure_logging,
+    parse_payload,
+    positive_float,
+    read_recording,
+    usage_error,
+)
 from model.identify import (
     PARAMETERS,
     Experiment,
@@ -14,29 +26,27 @@ from model.identify import (
     Identified,
     identify,
 )
-from model.parameters import ActuatorModel, ModelFileError, load_model, parse_payload
-from recorder.model_file import write_model
-from recorder.recording import Recording, RecordingError, load_recording
+from model.model_file import write_model
+from model.parameters import ActuatorModel, ModelFileError, load_model
+from recorder.recording import Recording, RecordingError
+
+PROG = "identify"
 
 
-def _usage_error(message: str) -> int:
-    print(f"identify: error: {message}", file=sys.stderr)
-    return 2
-
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="identify", description=__doc__.splitlines()[0])
+def build_parser() -> CommandParser:
+    parser = CommandParser(prog=PROG, description=__doc__.splitlines()[0])
     parser.add_argument("no_load", metavar="NOLOAD", help="recording without payload")
     parser.add_argument("load", metavar="LOAD", help="recording with the known payload")
-    parser.add_argument("--payload-mass", type=float, metavar="KG",
-                        help="payload of LOAD (default: from LOAD's metadata)")
-    parser.add_argument("--payload-position", metavar="X,Y")
+    add_payload_arguments(parser, mass_default=None,
+                          mass_help="payload of LOAD (kg; default: from LOAD's metadata)")
     parser.add_argument("-o", "--output", required=True, metavar="MODEL.toml")
-    parser.add_argument("--model", help="nominal model: limits, and the defaults shown beside "
-                                        "the identified values (default: packaged)")
-    parser.add_argument("--cutoff", type=float, default=25.0, metavar="HZ",
-                        help="zero-phase low-pass cutoff (default: %(default)s Hz)")
+    add_model_argument(parser, help="nominal model: limits, and the defaults shown beside the "
+                                    "identified values (default: packaged)")
+    parser.add_argument("--cutoff", type=positive_float, default=25.0, metavar="HZ",
+                        help="zero-phase low-pass cutoff, below the recordings' Nyquist "
+                             "frequency (default: %(default)s Hz)")
     parser.add_argument("--plots", metavar="DIR", help="save measured vs predicted torques")
+    add_logging_argument(parser)
     return parser
 
 
@@ -47,10 +57,14 @@ def _experiment(recording: Recording, payload) -> Experiment:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    configure_logging(PROG, args.log_level)
     try:
+        check_output_file("-o", args.output)
+        if args.plots:
+            check_output_folder("--plots", args.plots)
         nominal = load_model(args.model)
-        no_load = load_recording(args.no_load)
-        load = load_recording(args.load)
+        no_load = read_recording(args.no_load)
+        load = read_recording(args.load)
         if args.payload_mass is not None:
             payload = parse_payload(args.payload_mass, args.payload_position)
         else:
@@ -62,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
         result = identify(_experiment(no_load, no_load_payload), _experiment(load, payload),
                           args.cutoff)
     except (ModelFileError, RecordingError, IdentificationError, ValueError) as exc:
-        return _usage_error(str(exc))
+        return usage_error(PROG, str(exc))
     write_identified(Path(args.output), result, nominal, args.no_load, args.load)
     print(table(result, nominal))
     print(f"condition number {result.condition_number:.1f} (paper: 36); torque-fit RMSD motor "

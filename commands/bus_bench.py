@@ -5,7 +5,6 @@ Prints one JSON object: SYNC cycles per second with both in this process on pyth
 `sim-bus` in a second process over `udp_multicast`.
 """
 
-import argparse
 import json
 import random
 import subprocess
@@ -14,6 +13,7 @@ import time
 
 import numpy as np
 
+from commands.options import CommandParser, add_logging_argument, configure_logging, int_range
 from driver.canopen_drive import CanOpenDrive, open_network
 
 
@@ -46,7 +46,7 @@ def _lockstep_in_process(cycles: int) -> float:
 
 def _two_processes(cycles: int) -> dict:
     bus = f"udp_multicast:239.0.0.{random.randint(1, 250)}:{random.randint(20000, 60000)}"
-    proc = subprocess.Popen([sys.executable, "-m", "sim_bus.cli", "--bus", bus],
+    proc = subprocess.Popen([sys.executable, "-m", "commands.sim_bus", "--bus", bus],
                             stdout=subprocess.PIPE, text=True)
     try:
         if "ready" not in proc.stdout.readline():
@@ -82,9 +82,11 @@ def _velocity_limit() -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="bus-bench", description=__doc__.splitlines()[0])
-    parser.add_argument("--cycles", type=int, default=5000)
+    parser = CommandParser(prog="bus-bench", description=__doc__.splitlines()[0])
+    parser.add_argument("--cycles", type=int_range(1, 10_000_000), default=5000)
+    add_logging_argument(parser)
     args = parser.parse_args(argv)
+    configure_logging(parser.prog, args.log_level)
     result = {"in_process_lockstep_cycles_per_s": round(_lockstep_in_process(args.cycles)),
               "udp_multicast_two_processes": _two_processes(args.cycles)}
     print(json.dumps(result))

@@ -1,4 +1,5 @@
-"""Model TOML writing (the reading side, with validation, is model.parameters.load_model)."""
+"""Model TOML writing: the files `identify` and `model-gap` produce. The reading side, with
+validation, is `model.parameters.load_model`."""
 
 from dataclasses import fields
 from pathlib import Path

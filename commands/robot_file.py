@@ -1,0 +1,304 @@
+"""Robot files: which joints a robot has, where each drive sits and what model it follows.
+
+A robot file is TOML that people edit by hand, so every error names the file, the joint and
+the field. It is checked whole before any bus is opened: every model file loads, node ids and
+slave positions are unique per bus, limits only narrow the model's, and every bus carries its
+joints' cyclic traffic within its budget (`protocol.bus_load`), else the file is refused with
+the load figure and the fastest period that would fit.
+
+    [robot]
+    name = "talos_arm_left"
+    period_us = 1000                       # one SYNC per CAN bus (one frame per segment)
+
+    [buses."udp_multicast:239.0.1.1:43210"]
+    bitrate = 1000000                      # bit/s (default: 1 Mbit/s, classic CAN's ceiling)
+
+    [[joints]]
+    name = "arm_left_4_joint"
+    bus = "udp_multicast:239.0.1.1:43210"  # vcan0, socketcan:can1, ethercat:eth1, ...
+    node_id = 5                            # CANopen node id; `slave = N` (0-based) on EtherCAT
+    model = "models/talos_arm_shoulder.toml"   # relative to this file; default: the elbow
+    eds = "drive.eds"                      # optional: the drive's EDS (default: the shipped one)
+    limits = { position_min = -2.0 }       # optional: narrows the model's limits
+    weights = { position = 300 }           # optional: MPC cost weights
+    reference = { kind = "setpoint", position = -1.0 }   # optional (default: a sinusoid
+                                           # over the middle half of the joint's range)
+"""
+
+import math
+import tomllib
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+
+from controller.problem import Weights
+from controller.reference import Reference, ReferenceError, Sinusoid, reference_from_dict
+from model.parameters import ActuatorModel, Limits, ModelFileError, load_model
+from protocol import bus_load
+from protocol import pdo as pdo_layout
+from protocol.bus_spec import BusSpecError, is_ethercat, parse_bus_spec
+
+DEFAULT_BITRATE = bus_load.CAN_CLASSIC_MAX_BITRATE
+DEFAULT_HEARTBEAT_MS = 100  # the drives' and the master's heartbeat (driver default)
+MAX_JOINTS = 64  # TALOS has 32; a file with more is more likely a mistake than a robot
+# default reference: the paper's 0.2 Hz over the middle half of the joint's range
+DEFAULT_REFERENCE_FREQUENCY = 0.2  # Hz
+DEFAULT_REFERENCE_SPAN = 0.25  # amplitude as a share of the position range
+
+
+class RobotFileError(ValueError):
+    """A robot file that cannot be used; the message names the file, joint and field."""
+
+
+@dataclass(frozen=True)
+class JointSpec:
+    name: str
+    bus: str
+    address: int  # CANopen node id (1..127) or EtherCAT slave position (0-based)
+    model: ActuatorModel  # limits already narrowed by the robot file
+    eds: Path | None
+    weights: dict[str, float]
+    reference: Reference
+
+    @property
+    def on_ethercat(self) -> bool:
+        return is_ethercat(self.bus)
+
+
+@dataclass(frozen=True)
+class RobotSpec:
+    name: str
+    period_us: int
+    joints: tuple[JointSpec, ...]
+    bitrates: dict[str, int]  # CAN bus spec -> bit/s
+    source: Path
+
+    def buses(self) -> dict[str, list[JointSpec]]:
+        """Joints grouped by bus, in file order."""
+        out: dict[str, list[JointSpec]] = {}
+        for joint in self.joints:
+            out.setdefault(joint.bus, []).append(joint)
+        return out
+
+    def bus_loads(self) -> list[bus_load.BusLoad]:
+        """Each bus's cyclic load with the PDO layout the master configures."""
+        frames = cyclic_frame_bytes()
+        loads = []
+        for bus, joints in self.buses().items():
+            if is_ethercat(bus):
+                loads.append(bus_load.ethercat_segment_load(bus, [sum(frames)] * len(joints),
+                                                            self.period_us))
+            else:
+                loads.append(bus_load.can_bus_load(bus, [frames] * len(joints),
+                                                   self.bitrates.get(bus, DEFAULT_BITRATE),
+                                                   self.period_us, DEFAULT_HEARTBEAT_MS))
+        return loads
+
+
+def cyclic_frame_bytes() -> list[int]:
+    """Data bytes of each PDO one joint exchanges per cycle (the command and the sample)."""
+    return [layout.struct.size for layout in (*pdo_layout.DEFAULT_RPDOS,
+                                               *pdo_layout.DEFAULT_TPDOS)]
+
+
+def load_robot(path: str | Path) -> RobotSpec:
+    """Read and check a robot file; RobotFileError names what is wrong."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            doc = tomllib.load(fh)
+    except FileNotFoundError:
+        raise RobotFileError(f"{path}: robot file not found") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise RobotFileError(f"{path}: not valid TOML: {exc}") from None
+    except (OSError, RecursionError) as exc:
+        raise RobotFileError(f"{path}: cannot read: {exc}") from None
+    _keys(path, "", doc, {"robot", "buses", "joints"}, {"robot", "joints"})
+    robot = _table(path, "[robot]", doc["robot"])
+    _keys(path, "[robot]", robot, {"name", "period_us"}, {"name"})
+    name = _string(path, "[robot].name", robot["name"])
+    period_us = robot.get("period_us", 1000)
+    if isinstance(period_us, bool) or not isinstance(period_us, int) or not (
+            100 <= period_us <= 100_000):
+        raise RobotFileError(f"{path}: [robot].period_us: expected an integer 100..100000, "
+                             f"got {period_us!r}")
+    bitrates = _bitrates(path, _table(path, "[buses]", doc.get("buses", {})))
+    entries = doc["joints"]
+    if not isinstance(entries, list) or not entries:
+        raise RobotFileError(f"{path}: [[joints]]: expected at least one joint")
+    if len(entries) > MAX_JOINTS:
+        raise RobotFileError(f"{path}: {len(entries)} joints; at most {MAX_JOINTS} accepted")
+    joints: list[JointSpec] = []
+    models: dict[Path | None, ActuatorModel] = {}
+    for number, entry in enumerate(entries, start=1):
+        joints.append(_joint(path, number, _table(path, f"joint {number}", entry), models))
+    _unique(path, joints)
+    for bus in bitrates:
+        if bus not in {j.bus for j in joints}:
+            raise RobotFileError(f"{path}: [buses.\"{bus}\"]: no joint is on this bus")
+    spec = RobotSpec(name, period_us, tuple(joints), bitrates, path)
+    for load in spec.bus_loads():
+        if not load.fits:
+            raise RobotFileError(
+                f"{path}: bus {load.bus}: {load.joints} joints at {period_us} us need "
+                f"{100 * load.load:.0f} % of {load.bitrate / 1e6:g} Mbit/s (worst-case "
+                f"stuffing {100 * load.worst_case_load:.0f} %; budget "
+                f"{100 * load.budget:.0f} %); the fastest period that fits is "
+                f"{load.fastest_period_us} us, or spread the joints over more buses")
+    return spec
+
+
+def _joint(path: Path, number: int, entry: dict,
+           models: dict[Path | None, ActuatorModel]) -> JointSpec:
+    name = _string(path, f"joint {number}.name", entry.get("name"))
+    where = f"joint {name!r}"
+    _keys(path, where, entry, {"name", "bus", "node_id", "slave", "model", "eds", "limits",
+                               "weights", "reference"}, {"name", "bus"})
+    bus = _string(path, f"{where}.bus", entry["bus"])
+    try:
+        parse_bus_spec(bus)
+    except BusSpecError as exc:
+        raise RobotFileError(f"{path}: {where}.bus: {exc}") from None
+    if is_ethercat(bus):
+        if "node_id" in entry or "slave" not in entry:
+            raise RobotFileError(f"{path}: {where}: a joint on EtherCAT needs `slave` (its "
+                                 "0-based position in the segment), not `node_id`")
+        address = _integer(path, f"{where}.slave", entry["slave"], 0, 65534)
+    else:
+        if "slave" in entry or "node_id" not in entry:
+            raise RobotFileError(f"{path}: {where}: a joint on CAN needs `node_id` (1..127), "
+                                 "not `slave`")
+        address = _integer(path, f"{where}.node_id", entry["node_id"], 1, 127)
+    model_path = _relative(path, f"{where}.model", entry.get("model"))
+    if model_path not in models:
+        try:
+            models[model_path] = load_model(model_path)
+        except ModelFileError as exc:
+            raise RobotFileError(f"{path}: {where}.model: {exc}") from None
+    model = models[model_path]
+    eds = _relative(path, f"{where}.eds", entry.get("eds"))
+    if eds is not None and not eds.is_file():
+        raise RobotFileError(f"{path}: {where}.eds: {eds}: no such file")
+    model = replace(model, limits=_limits(path, where, model.limits,
+                                          _table(path, f"{where}.limits",
+                                                 entry.get("limits", {}))))
+    weights = _weights(path, where, _table(path, f"{where}.weights", entry.get("weights", {})))
+    reference = _reference(path, where, entry.get("reference"), model.limits)
+    return JointSpec(name, bus, address, model, eds, weights, reference)
+
+
+def default_reference(limits: Limits) -> Sinusoid:
+    """A sinusoid over the middle half of the joint's range at 0.2 Hz, slowed if that would
+    exceed half the velocity limit."""
+    center = 0.5 * (limits.position_min + limits.position_max)
+    amplitude = DEFAULT_REFERENCE_SPAN * (limits.position_max - limits.position_min)
+    frequency = min(DEFAULT_REFERENCE_FREQUENCY,
+                    0.5 * limits.velocity_max / (2 * math.pi * amplitude))
+    return Sinusoid(center=round(center, 4), amplitude=round(amplitude, 4),
+                    frequency=round(frequency, 4))
+
+
+def _reference(path: Path, where: str, spec: object, limits: Limits) -> Reference:
+    if spec is None:
+        return default_reference(limits)
+    try:
+        return reference_from_dict(spec, limits)
+    except ReferenceError as exc:
+        raise RobotFileError(f"{path}: {where}.reference: {exc}") from None
+
+
+def _limits(path: Path, where: str, model_limits: Limits, table: dict) -> Limits:
+    names = [f.name for f in fields(Limits)]
+    _keys(path, f"{where}.limits", table, set(names), set())
+    values = vars(model_limits).copy()
+    for key, value in table.items():
+        number = _number(path, f"{where}.limits.{key}", value)
+        narrower = (number >= values[key] if key == "position_min" else number <= values[key])
+        if not narrower or (key != "position_min" and key != "position_max" and number <= 0):
+            raise RobotFileError(f"{path}: {where}.limits.{key}: {number} must narrow the "
+                                 f"model's {values[key]} (a robot file cannot widen a limit)")
+        values[key] = number
+    if not values["position_min"] < values["position_max"]:
+        raise RobotFileError(f"{path}: {where}.limits: position_min must be below position_max")
+    return Limits(**values)
+
+
+def _weights(path: Path, where: str, table: dict) -> dict[str, float]:
+    _keys(path, f"{where}.weights", table, set(Weights.__dataclass_fields__), set())
+    out = {}
+    for key, value in table.items():
+        number = _number(path, f"{where}.weights.{key}", value)
+        if number < 0:
+            raise RobotFileError(f"{path}: {where}.weights.{key}: expected >= 0, got {number}")
+        out[key] = number
+    return out
+
+
+def _bitrates(path: Path, table: dict) -> dict[str, int]:
+    out = {}
+    for bus, settings in table.items():
+        where = f"[buses.\"{bus}\"]"
+        settings = _table(path, where, settings)
+        _keys(path, where, settings, {"bitrate"}, set())
+        if is_ethercat(bus):
+            raise RobotFileError(f"{path}: {where}: an EtherCAT segment has no bitrate to set")
+        if "bitrate" in settings:
+            out[bus] = _integer(path, f"{where}.bitrate", settings["bitrate"], 10_000,
+                                bus_load.CAN_CLASSIC_MAX_BITRATE)
+    return out
+
+
+def _unique(path: Path, joints: list[JointSpec]) -> None:
+    names, addresses = set(), set()
+    for joint in joints:
+        if joint.name in names:
+            raise RobotFileError(f"{path}: joint {joint.name!r} is listed twice")
+        names.add(joint.name)
+        key = (joint.bus, joint.address)
+        if key in addresses:
+            kind = "slave position" if joint.on_ethercat else "node id"
+            raise RobotFileError(f"{path}: joint {joint.name!r}: {kind} {joint.address} is "
+                                 f"already used on {joint.bus}")
+        addresses.add(key)
+
+
+def _relative(path: Path, where: str, value: object) -> Path | None:
+    if value is None:
+        return None
+    return path.parent / _string(path, where, value)
+
+
+def _keys(path: Path, where: str, table: dict, allowed: set[str], required: set[str]) -> None:
+    for key in table:
+        if key not in allowed:
+            raise RobotFileError(f"{path}: {where}{'.' if where else ''}{key}: unknown key; "
+                                 f"expected one of {', '.join(sorted(allowed))}")
+    for key in sorted(required - set(table)):
+        raise RobotFileError(f"{path}: {where}{'.' if where else ''}{key}: missing")
+
+
+def _table(path: Path, where: str, value: object) -> dict:
+    if not isinstance(value, dict):
+        raise RobotFileError(f"{path}: {where}: expected a table")
+    return value
+
+
+def _string(path: Path, where: str, value: object) -> str:
+    if not isinstance(value, str) or not value.strip():
+        raise RobotFileError(f"{path}: {where}: expected a non-empty string, got {value!r}")
+    return value
+
+
+def _number(path: Path, where: str, value: object) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise RobotFileError(f"{path}: {where}: expected a number, got {value!r}")
+    number = float(value) if abs(value) < 1e300 else math.inf
+    if not math.isfinite(number):
+        raise RobotFileError(f"{path}: {where}: expected a finite number, got {value!r}")
+    return number
+
+
+def _integer(path: Path, where: str, value: object, low: int, high: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+        raise RobotFileError(f"{path}: {where}: expected an integer {low}..{high}, "
+                             f"got {value!r}")
+    return value
