@@ -17,10 +17,10 @@ from controller.mpc import Mpc
 from controller.problem import OcpSettings
 from controller.reference import Sinusoid, reference_at
 from model import dynamics
+from model.dynamics import SUBSTEPS
 from model.parameters import load_model
 
 PAPER_TICK_US = 200.0  # paper: 100 steps of 1 ms on an i7-8850H laptop
-SUBSTEPS = 20
 
 
 def _closed_loop_ticks(mpc: Mpc, ticks: int, dt: float) -> np.ndarray:

@@ -16,10 +16,10 @@ from commands.options import (
     configure_logging,
     parse_payload,
     positive_float,
-    read_recording,
     usage_error,
 )
 from model.identify import (
+    CUTOFF_HZ,
     PARAMETERS,
     Experiment,
     IdentificationError,
@@ -28,6 +28,8 @@ from model.identify import (
 )
 from model.model_file import write_model
 from model.parameters import ActuatorModel, ModelFileError, load_model
+from model.plots import identification_figures
+from recorder.reader import load_recording
 from recorder.recording import Recording, RecordingError
 
 PROG = "identify"
@@ -42,7 +44,7 @@ def build_parser() -> CommandParser:
     parser.add_argument("-o", "--output", required=True, metavar="MODEL.toml")
     add_model_argument(parser, help="nominal model: limits, and the defaults shown beside the "
                                     "identified values (default: packaged)")
-    parser.add_argument("--cutoff", type=positive_float, default=25.0, metavar="HZ",
+    parser.add_argument("--cutoff", type=positive_float, default=CUTOFF_HZ, metavar="HZ",
                         help="zero-phase low-pass cutoff, below the recordings' Nyquist "
                              "frequency (default: %(default)s Hz)")
     parser.add_argument("--plots", metavar="DIR", help="save measured vs predicted torques")
@@ -63,8 +65,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.plots:
             check_output_folder("--plots", args.plots)
         nominal = load_model(args.model)
-        no_load = read_recording(args.no_load)
-        load = read_recording(args.load)
+        no_load = load_recording(args.no_load)
+        load = load_recording(args.load)
         if args.payload_mass is not None:
             payload = parse_payload(args.payload_mass, args.payload_position)
         else:
@@ -83,8 +85,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{result.rmsd_motor:.3f} N.m, joint {result.rmsd_joint:.3f} N.m (paper: 0.6 N.m); "
           f"{result.rows} rows -> {args.output}")
     if args.plots:
-        for path in save_fit_plots(result, Path(args.plots)):
-            print(f"identify: wrote {path}")
+        for path in identification_figures(result, Path(args.plots)):
+            print(f"{PROG}: wrote {path}")
     return 0
 
 
@@ -105,31 +107,6 @@ def write_identified(path: Path, result: Identified, nominal: ActuatorModel, no_
     write_model(path, result.parameters, nominal,
                 f"identified from {Path(no_load).name} and {Path(load).name}",
                 {name: origin for name in PARAMETERS}, result.std)
-
-
-def save_fit_plots(result: Identified, directory: Path) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    directory.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for index, (name, fit) in enumerate(result.fits.items()):
-        fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
-        for ax, side in zip(axes, ("motor", "joint"), strict=True):
-            ax.plot(fit["t"], fit[f"measured_{side}"], ".", markersize=2, label="measured")
-            ax.plot(fit["t"], fit[f"predicted_{side}"], ".", markersize=2, label="model")
-            ax.set_ylabel(f"{side} torque (N.m)")
-            ax.legend(loc="upper right")
-            ax.grid(alpha=0.3)
-        axes[-1].set_xlabel("time (s)")
-        fig.suptitle(f"identification fit: {Path(name).name}")
-        fig.tight_layout()
-        paths.append(directory / f"fit_{index}_{Path(name).stem}.png")
-        fig.savefig(paths[-1], dpi=100)
-        plt.close(fig)
-    return paths
 
 
 if __name__ == "__main__":

@@ -207,22 +207,6 @@ def _probe(option: str, path: str, folder: Path) -> None:
                          f"{exc.strerror or exc}") from None
 
 
-# --- recordings ------------------------------------------------------------------------------
-
-def read_recording(path: str):
-    """A recording (MCAP or CSV) as the recorder reads it, with what the reader does not catch
-    (a folder, a binary file where text was expected) refused naming the file."""
-    from recorder.recording import RecordingError, load_recording
-
-    if Path(path).exists() and not Path(path).is_file():
-        raise RecordingError(f"{path}: not a file; expected an MCAP or CSV recording")
-    try:
-        return load_recording(path)
-    except UnicodeDecodeError as exc:
-        raise RecordingError(f"{path}: not UTF-8 text at byte {exc.start}; expected an MCAP "
-                             "(.mcap) or CSV recording") from None
-
-
 # --- Zenoh key expressions -------------------------------------------------------------------
 
 def check_key_expr(option: str, text: str, wildcards: bool) -> str:
@@ -444,7 +428,7 @@ def open_bus_network(args: argparse.Namespace, can_log: CanLog | None = None):
     configuration); `can_log` gets every frame. Raises what python-can raises."""
     import canopen
 
-    from driver.canopen_drive import NOTIFIER_CYCLE
+    from driver.canopen_transport import NOTIFIER_CYCLE
 
     bus = can.Bus(ignore_config=True, **bus_config(args))
     if can_log is not None:

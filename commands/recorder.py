@@ -37,7 +37,6 @@ from commands.options import (
     open_session,
     payload_from_args,
     positive_float,
-    read_recording,
     usage_error,
     with_truth_effects,
 )
@@ -45,6 +44,7 @@ from model.parameters import ModelFileError, load_model
 from protocol import cia402, telemetry
 from protocol.bus_spec import BusSpecError
 from recorder.exciting import ExcitingTrajectory, SlowSinusoid
+from recorder.reader import load_recording
 from recorder.recording import RecordingError
 
 PROG = "recorder"
@@ -280,7 +280,7 @@ def _export(argv: list[str]) -> int:
 
     try:
         check_output_file("-o", args.output)
-        recording = read_recording(args.recording)
+        recording = load_recording(args.recording)
     except (RecordingError, ValueError) as exc:
         return usage_error(PROG, str(exc))
     try:

@@ -1,23 +1,59 @@
-"""Forward dynamics of the paper's joint model, with the optional effects of `model.effects`,
-their analytic derivatives and an integrator.
+"""The joint's physics, once: forward dynamics (smooth for the optimiser, set-valued for the
+integrator) and inverse dynamics, with the effects of `model.effects`.
 
-All functions are pure and compiled (numba) so that the simulator and the iLQR hot loop call
-the very same code. Parameters travel as one flat vector (`ActuatorParameters.packed()`):
+    I qdd = drive_gain i - Fv qd - F(q, qd) sign(qd) - off - G(q) - T(q, qd)
+    G(q) = g (MY sin q + MX cos q)                                  gravity (payload included)
+    F(q, qd) = Fs + the effects' dry-friction levels                 dry friction magnitude
+    T(q, qd) = the effects' torques                                  e.g. position ripple
+    joint torque (sensor) = I_j qdd + G(q) + Fvj qd + Fsj sign(qd) + off_j
 
-    qdd = (drive_gain i - Fv qd - F(q, qd) sign(qd) - off - G(q) - R(q)) / I
-    G(q) = g (MY sin q + MX cos q)                                  gravity
-    F(q, qd) = Fs + E exp(-(qd / vs)^2) + mu |G(q)|                 dry friction: Coulomb,
-                                                                    Stribeck, load-dependent
-    R(q) = a sin(w q) + b cos(w q)                                  position ripple
-
-With the effect parameters at zero (the default) this is the paper's model exactly.
+With no effect enabled this is the paper's model exactly. All functions are pure and written
+with numpy ufuncs; the ones registered as jitable are compiled into the simulator and the iLQR
+hot loop and also run vectorised on numpy arrays (the numpy iLQR reference, identification,
+model-gap), so every user runs the same code. Parameters travel as one flat vector
+(`ActuatorParameters.packed()`) whose layout is below: the base model, then one block per
+effect of the registry (`model.effects.PHYSICS`, in its order), then the joint side.
 """
 
+import hashlib
 import math
+from pathlib import Path
 
 import numba
 import numpy as np
 from numba.extending import register_jitable
+
+from model import effects
+from model.effects import PHYSICS
+
+
+def _drop_stale_compiled_code() -> None:
+    """numba's on-disk cache checks only this file's timestamp, not the registry's: compiled
+    code that chained an older registry (other slots, other terms) would still load and
+    silently compute the wrong physics. Drop this module's cache when model/effects.py
+    differs from the one it was compiled with (numba compiles lazily, after this runs)."""
+    folder = Path(__file__).parent / "__pycache__"
+    stamp = folder / "dynamics.effects.sha256"
+    digest = hashlib.sha256(Path(effects.__file__).read_bytes()).hexdigest()
+    try:
+        if stamp.read_text() == digest:
+            return
+    except OSError:
+        pass
+    for path in folder.glob("dynamics.*.nb[ic]"):
+        path.unlink(missing_ok=True)
+    try:
+        folder.mkdir(exist_ok=True)
+        stamp.write_text(digest)
+    except OSError:
+        pass  # a read-only install: numba then caches elsewhere or not at all
+
+
+_drop_stale_compiled_code()
+
+# 50 us integration substeps at the 1 ms drive period: within one encoder count of 1000
+# substeps (tests/test_dynamics.py); every simulation of the joint uses it.
+SUBSTEPS = 20
 
 P_DRIVE_GAIN = 0
 P_INERTIA = 1  # I = I_m + I_j (+ payload)
@@ -26,14 +62,43 @@ P_GRAVITY_MY = 3  # g MY
 P_VISCOUS = 4  # Fv = Fvm + Fvj
 P_DRY = 5  # Fs = Fsm + Fsj
 P_OFFSET = 6  # off = off_m + off_j
-P_STRIBECK_EXTRA = 7  # E: breakaway minus Coulomb friction (N.m)
-P_STRIBECK_VELOCITY = 8  # vs (rad/s)
-P_RIPPLE_SIN = 9  # a (N.m)
-P_RIPPLE_COS = 10  # b (N.m)
-P_RIPPLE_WAVENUMBER = 11  # w = 2 pi x cycles per rad
-P_LOAD_FRICTION = 12  # mu: dry friction per N.m of gravity load
-N_PARAMS = 13
-LOAD_SMOOTHING = 0.05  # N.m: |G| ~ sqrt(G^2 + 0.05^2) keeps the derivative finite at G = 0
+EFFECT_OFFSET: dict[str, int] = {}  # effect name -> first slot of its block
+_slot = P_OFFSET + 1
+for _effect in PHYSICS:
+    EFFECT_OFFSET[_effect.name] = _slot
+    _slot += _effect.slots
+# the joint side of the torque sensor (only the inverse dynamics read them)
+P_LINK_INERTIA = _slot  # I_j (+ payload)
+P_VISCOUS_JOINT = _slot + 1  # Fvj
+P_DRY_JOINT = _slot + 2  # Fsj
+P_OFFSET_JOINT = _slot + 3  # off_j
+N_PARAMS = _slot + 4
+
+
+def _chain(blocks: list) -> object:
+    """One jitable function summing the terms of the given (term, first slot) pairs. Built by
+    closures at import time, so the compiled code calls each effect's term directly (numba
+    inlines them) and no loop over effect objects runs per step."""
+    if not blocks:
+        @register_jitable
+        def nothing(q, qd, p, coulomb, gravity, d_gravity):
+            zero = 0.0 * q + 0.0 * qd
+            return zero, zero, zero, zero, zero, zero
+
+        return nothing
+    (term, k), rest = blocks[0], _chain(blocks[1:])
+
+    @register_jitable
+    def chained(q, qd, p, coulomb, gravity, d_gravity):
+        a = term(q, qd, p, k, coulomb, gravity, d_gravity)
+        b = rest(q, qd, p, coulomb, gravity, d_gravity)
+        return a[0] + b[0], a[1] + b[1], a[2] + b[2], a[3] + b[3], a[4] + b[4], a[5] + b[5]
+
+    return chained
+
+
+# (level, d level/dq, d level/dqd, torque, d torque/dq, d torque/dqd) of every effect
+effect_terms = _chain([(effect.term, EFFECT_OFFSET[effect.name]) for effect in PHYSICS])
 
 
 @register_jitable
@@ -43,60 +108,51 @@ def gravity_torque(q, p: np.ndarray):
 
 
 @register_jitable
-def ripple_torque(q, p: np.ndarray):
-    w = p[P_RIPPLE_WAVENUMBER]
-    return p[P_RIPPLE_SIN] * np.sin(w * q) + p[P_RIPPLE_COS] * np.cos(w * q)
-
-
-@register_jitable
-def dry_friction_level(q, qd, p: np.ndarray):
-    """F(q, qd) >= 0: the dry friction's magnitude (Coulomb, Stribeck and load parts)."""
-    level = p[P_DRY] + 0.0 * qd
-    if p[P_STRIBECK_EXTRA] != 0.0:
-        level = level + p[P_STRIBECK_EXTRA] * np.exp(-(qd / p[P_STRIBECK_VELOCITY]) ** 2)
-    if p[P_LOAD_FRICTION] != 0.0:
-        level = level + p[P_LOAD_FRICTION] * np.abs(gravity_torque(q, p))
-    return level
+def gravity_and_slope(q, p: np.ndarray) -> tuple:
+    sin_q, cos_q = np.sin(q), np.cos(q)
+    return (p[P_GRAVITY_MY] * sin_q + p[P_GRAVITY_MX] * cos_q,
+            p[P_GRAVITY_MY] * cos_q - p[P_GRAVITY_MX] * sin_q)
 
 
 @register_jitable
 def smooth_acceleration(q, qd, current, p: np.ndarray, friction_sharpness: float) -> tuple:
     """qdd with sign(qd) replaced by tanh(beta qd) (the paper's choice for a differentiable
     model), and its partial derivatives (dq, dqd, di): everything iLQR needs per step.
-
-    Written with numpy ufuncs and registered as jitable: one source serves the vectorised
-    numpy reference (arrays over the horizon) and, compiled into it, the scalar hot loop.
-    Effects whose parameters are zero cost nothing.
-    """
+    Effects whose parameters are zero cost one comparison each."""
     th = np.tanh(friction_sharpness * qd)
     inv_inertia = 1.0 / p[P_INERTIA]
-    sin_q, cos_q = np.sin(q), np.cos(q)
-    gravity = p[P_GRAVITY_MY] * sin_q + p[P_GRAVITY_MX] * cos_q
-    d_gravity = p[P_GRAVITY_MY] * cos_q - p[P_GRAVITY_MX] * sin_q
-    level = p[P_DRY] + 0.0 * qd
-    d_level_dqd = 0.0 * qd
-    d_level_dq = 0.0 * q
-    if p[P_STRIBECK_EXTRA] != 0.0:
-        vs = p[P_STRIBECK_VELOCITY]
-        bump = p[P_STRIBECK_EXTRA] * np.exp(-(qd / vs) ** 2)
-        level = level + bump
-        d_level_dqd = d_level_dqd - 2.0 * qd / (vs * vs) * bump
-    if p[P_LOAD_FRICTION] != 0.0:
-        smooth_abs = np.sqrt(gravity * gravity + LOAD_SMOOTHING**2)
-        level = level + p[P_LOAD_FRICTION] * smooth_abs
-        d_level_dq = d_level_dq + p[P_LOAD_FRICTION] * gravity * d_gravity / smooth_abs
-    ripple = 0.0 * q
-    d_ripple = 0.0 * q
-    if p[P_RIPPLE_SIN] != 0.0 or p[P_RIPPLE_COS] != 0.0:
-        w = p[P_RIPPLE_WAVENUMBER]
-        ripple = p[P_RIPPLE_SIN] * np.sin(w * q) + p[P_RIPPLE_COS] * np.cos(w * q)
-        d_ripple = w * (p[P_RIPPLE_SIN] * np.cos(w * q) - p[P_RIPPLE_COS] * np.sin(w * q))
+    gravity, d_gravity = gravity_and_slope(q, p)
+    level, level_q, level_qd, extra, extra_q, extra_qd = effect_terms(
+        q, qd, p, p[P_DRY], gravity, d_gravity)
+    level = level + p[P_DRY]
     torque = (p[P_DRIVE_GAIN] * current - p[P_VISCOUS] * qd - level * th - p[P_OFFSET]
-              - gravity - ripple)
+              - gravity - extra)
     d_friction = (p[P_VISCOUS] + level * friction_sharpness * (1.0 - th * th)
-                  + d_level_dqd * th)
-    return (torque * inv_inertia, -(d_gravity + d_ripple + d_level_dq * th) * inv_inertia,
+                  + level_qd * th + extra_qd)
+    return (torque * inv_inertia, -(d_gravity + extra_q + level_q * th) * inv_inertia,
             -d_friction * inv_inertia, p[P_DRIVE_GAIN] * inv_inertia)
+
+
+@register_jitable
+def inverse_dynamics(q, qd, qdd, direction, p: np.ndarray) -> tuple:
+    """(motor torque, joint torque) that produce the motion (q, qd, qdd): the motor torque is
+    what drive_gain x current must be, the joint torque what the torque sensor sees (the
+    link-side share of inertia and friction; gravity and payload in full). `direction` is the
+    dry friction's: sign(qd) while sliding, the held share of the level when stuck (the
+    integrator's dry / level), or a filtered sign where the signals are filtered. Runs
+    vectorised on numpy arrays (recordings); `sample_inverse_dynamics` is the same function
+    compiled for one sample (every drive cycle)."""
+    gravity, d_gravity = gravity_and_slope(q, p)
+    level, _, _, extra, _, _ = effect_terms(q, qd, p, p[P_DRY], gravity, d_gravity)
+    motor = (p[P_INERTIA] * qdd + gravity + p[P_VISCOUS] * qd + (p[P_DRY] + level) * direction
+             + p[P_OFFSET] + extra)
+    joint = (p[P_LINK_INERTIA] * qdd + gravity + p[P_VISCOUS_JOINT] * qd
+             + p[P_DRY_JOINT] * direction + p[P_OFFSET_JOINT])
+    return motor, joint
+
+
+# the same function compiled for scalars: 1-2 us per call instead of ~25 us of numpy on floats
+sample_inverse_dynamics = numba.njit(cache=True, error_model="numpy")(inverse_dynamics)
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -107,9 +163,10 @@ def step(q: float, qd: float, current: float, p: np.ndarray, dt: float,
     Each substep is semi-implicit: viscous friction by the trapezoidal rule, dry friction as the
     implicit (Moreau) projection that either stops the joint exactly (stiction, when the dry
     friction can absorb the impulse) or removes at most F h. This neither chatters around qd = 0
-    nor injects energy, unlike explicit Euler on sign(qd) or a stiff tanh. Gravity, ripple and
-    the friction level are taken at the mid-step position (position Verlet), the level at the
-    substep's starting speed (at rest: the breakaway level).
+    nor injects energy, unlike explicit Euler on sign(qd) or a stiff tanh. Gravity, the
+    effects' torques and the friction level are taken at the mid-step position (position
+    Verlet), the level at the substep's starting speed (at rest: the breakaway level) and never
+    below zero (a magnitude).
 
     Returns q, qd, the acceleration and the dry-friction torque of the last substep, and the
     friction level it was bounded by (the joint-torque sensor needs them).
@@ -123,9 +180,11 @@ def step(q: float, qd: float, current: float, p: np.ndarray, dt: float,
     level = p[P_DRY]
     for _ in range(substeps):
         q_mid = q + 0.5 * h * qd
-        drive = (p[P_DRIVE_GAIN] * current - p[P_OFFSET] - gravity_torque(q_mid, p)
-                 - ripple_torque(q_mid, p))
-        level = dry_friction_level(q_mid, qd, p)
+        gravity, d_gravity = gravity_and_slope(q_mid, p)
+        extra_level, _, _, extra, _, _ = effect_terms(q_mid, qd, p, p[P_DRY], gravity,
+                                                      d_gravity)
+        level = max(p[P_DRY] + extra_level, 0.0)
+        drive = p[P_DRIVE_GAIN] * current - p[P_OFFSET] - gravity - extra
         free_velocity = (undamping * qd + h * drive) / damping
         max_velocity_change = h * level / damping
         if abs(free_velocity) <= max_velocity_change:

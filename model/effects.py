@@ -1,71 +1,362 @@
-"""The library of effects the paper's model leaves out, each a physical model with its own
-parameters. They live in the dynamics (`model.dynamics`), so the virtual drive, the
-identification and the controller's iLQR all use the same equations.
+"""The effect registry: what the paper's joint model leaves out, one object per effect.
 
-All three act in the transmission (harmonic drive), on the motor side of the torque sensor:
-    stribeck                 dry friction rising to a breakaway value near zero velocity:
-                             F = Fs + breakaway_friction exp(-(qd / velocity)^2)
-    position_ripple          torque periodic in joint angle (harmonic-drive ripple, cogging):
-                             amplitude sin(2 pi spatial_frequency q + phase)
-    load_dependent_friction  dry friction growing with the transmitted (gravity) load:
-                             F = Fs + coefficient |g (MY sin q + MX cos q)|
+Each effect declares everything the rest of the project needs to know about it, so that no
+other module names an effect or repeats its formula:
+  * its TOML keys with units and defaults (the `[effects.NAME]` table of a model file) and
+    what makes a table valid at all;
+  * its torque term, compiled (numba `register_jitable`) into the forward dynamics, the iLQR
+    and the inverse dynamics alike (`model.dynamics` chains the terms of every effect);
+  * its regressor columns (the term at unit coefficients, so they cannot disagree with it) and
+    the grid of its nonlinear "shape" parameter that model-gap scans;
+  * how fitted coefficients map back to its TOML keys;
+  * its plausibility constraints: a fit that needs to break them is not that effect.
+
+All act in the transmission (harmonic drive), on the motor side of the joint torque sensor,
+so the sensor does not see them. A term returns its share of the dry-friction level (the
+magnitude that multiplies sign(qd), bounded by the set-valued friction in the integrator) and
+of the torque the drive must overcome, each with its partial derivatives:
+    (level, d level/dq, d level/dqd, torque, d torque/dq, d torque/dqd)
+from the effect's own block of the packed parameters, p[k:k + slots], and the base model's
+Coulomb level and gravity torque (with its derivative), which some effects scale.
+
+`LIBRARY` is what model files may carry and what model-gap searches. `HIDDEN_ONLY` holds
+physics the virtual drive can be given as a hidden truth (`--truth-effect`) to test what
+model-gap says about an effect outside its library; model-gap never proposes it and model
+files refuse it.
 """
 
 import math
-from dataclasses import dataclass, fields
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
-# TOML section -> {key: (Effects field, unit)}
-EFFECT_KEYS = {
-    "stribeck": {"breakaway_friction": ("stribeck_breakaway", "N.m"),
-                 "velocity": ("stribeck_velocity", "rad/s")},
-    "position_ripple": {"amplitude": ("ripple_amplitude", "N.m"),
-                        "spatial_frequency": ("ripple_frequency", "cycles/rad"),
-                        "phase": ("ripple_phase", "rad")},
-    "load_dependent_friction": {"coefficient": ("load_friction", "N.m per N.m of load")},
-}
-EFFECT_NAMES = tuple(EFFECT_KEYS)
+import numpy as np
+from numba.extending import register_jitable
+
+LOAD_SMOOTHING = 0.05  # N.m: |G| ~ sqrt(G^2 + 0.05^2) keeps the derivative finite at G = 0
+MIN_RIPPLE_PERIODS = 2.0  # over the travelled range: fewer is a slow position trend, no ripple
 
 
 @dataclass(frozen=True)
-class Effects:
-    stribeck_breakaway: float = 0.0
-    stribeck_velocity: float = 0.05
-    ripple_amplitude: float = 0.0
-    ripple_frequency: float = 0.0
-    ripple_phase: float = 0.0
-    load_friction: float = 0.0
+class Key:
+    """One number of an effect's TOML table."""
 
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            if not math.isfinite(getattr(self, f.name)):
-                raise ValueError(f"effect parameter {f.name} must be finite")
-        if self.stribeck_velocity <= 0:
+    name: str
+    unit: str
+    default: float
+    meaning: str
+
+
+@dataclass(frozen=True)
+class FitContext:
+    """What the plausibility constraints of a fitted effect are judged against."""
+
+    coulomb: float  # N.m, the refitted Coulomb level
+    position_range: float  # rad travelled in the data
+
+
+class Effect:
+    """Base of every effect; subclasses fill in the class attributes and the methods."""
+
+    name: str = ""
+    model: str = ""  # the formula, for people
+    keys: tuple[Key, ...] = ()
+    strength: str = ""  # the key whose zero switches the effect off
+    slots: int = 0  # numbers in the packed parameter vector
+    shape: str | None = None  # the key model-gap scans (nonlinear parameter), if any
+    shape_grid: np.ndarray = np.zeros(1)
+    coefficients: int = 1  # linear coefficients of the regressor at a given shape
+
+    @staticmethod
+    def term(q, qd, p, k, coulomb, gravity, d_gravity):
+        raise NotImplementedError
+
+    def validate(self, table: Mapping[str, float]) -> None:
+        """ValueError when the physics is undefined with these numbers (beyond finiteness)."""
+
+    def pack(self, table: Mapping[str, float]) -> tuple[float, ...]:
+        raise NotImplementedError
+
+    def packed_fit(self, shape: float, coefficients: Sequence[float]) -> tuple[float, ...]:
+        """The packed block for a fit: shape and linear coefficients."""
+        raise NotImplementedError
+
+    def table_from_fit(self, shape: float, coefficients: Sequence[float]) -> dict[str, float]:
+        raise NotImplementedError
+
+    def violations(self, table: Mapping[str, float], context: FitContext) -> list[str]:
+        """Why a fitted table is not physically this effect (empty: plausible)."""
+        return []
+
+    @property
+    def units(self) -> dict[str, str]:
+        return {key.name: key.unit for key in self.keys}
+
+    def defaults(self) -> dict[str, float]:
+        return {key.name: key.default for key in self.keys}
+
+    def columns(self, q: np.ndarray, qd: np.ndarray, direction: np.ndarray, coulomb: float,
+                gravity: np.ndarray, d_gravity: np.ndarray, shape: float) -> np.ndarray:
+        """Regressor columns at this shape, one per linear coefficient: the term evaluated at
+        unit coefficients (the dry-friction part times the sliding direction)."""
+        out = []
+        for j in range(self.coefficients):
+            unit = np.zeros(self.coefficients)
+            unit[j] = 1.0
+            block = np.array(self.packed_fit(shape, unit))
+            level, _, _, torque, _, _ = self.term(q, qd, block, 0, coulomb, gravity, d_gravity)
+            out.append(level * direction + torque)
+        return np.column_stack(out)
+
+
+# --- compiled terms (each reads its own block p[k:k + slots]) -------------------------------
+
+@register_jitable
+def _stribeck_term(q, qd, p, k, coulomb, gravity, d_gravity):
+    zero = 0.0 * qd
+    if p[k] == 0.0:
+        return zero, zero, zero, zero, zero, zero
+    vs = p[k + 1]
+    bump = p[k] * np.exp(-(qd / vs) ** 2)
+    return bump, zero, -2.0 * qd / (vs * vs) * bump, zero, zero, zero
+
+
+@register_jitable
+def _position_ripple_term(q, qd, p, k, coulomb, gravity, d_gravity):
+    zero = 0.0 * q
+    if p[k] == 0.0 and p[k + 1] == 0.0:
+        return zero, zero, zero, zero, zero, zero
+    w = p[k + 2]
+    s, c = np.sin(w * q), np.cos(w * q)
+    return zero, zero, zero, p[k] * s + p[k + 1] * c, w * (p[k] * c - p[k + 1] * s), zero
+
+
+@register_jitable
+def _load_friction_term(q, qd, p, k, coulomb, gravity, d_gravity):
+    zero = 0.0 * q
+    if p[k] == 0.0:
+        return zero, zero, zero, zero, zero, zero
+    smooth_abs = np.sqrt(gravity * gravity + LOAD_SMOOTHING**2)
+    return p[k] * smooth_abs, p[k] * gravity * d_gravity / smooth_abs, zero, zero, zero, zero
+
+
+@register_jitable
+def _friction_ripple_term(q, qd, p, k, coulomb, gravity, d_gravity):
+    zero = 0.0 * q
+    if p[k] == 0.0 and p[k + 1] == 0.0:
+        return zero, zero, zero, zero, zero, zero
+    w = p[k + 2]
+    s, c = np.sin(w * q), np.cos(w * q)
+    return p[k] * s + p[k + 1] * c, w * (p[k] * c - p[k + 1] * s), zero, zero, zero, zero
+
+
+@register_jitable
+def _smooth_reversal_term(q, qd, p, k, coulomb, gravity, d_gravity):
+    zero = 0.0 * qd
+    if p[k] == 0.0:
+        return zero, zero, zero, zero, zero, zero
+    th = np.tanh(qd / p[k])
+    # level Fs |tanh(qd / v)| instead of Fs: the effect's share is -Fs (1 - |tanh|)
+    return (-coulomb * (1.0 - np.abs(th)), zero, coulomb * np.sign(qd) * (1.0 - th * th) / p[k],
+            zero, zero, zero)
+
+
+# --- the effects ------------------------------------------------------------------------------
+
+class Stribeck(Effect):
+    name = "stribeck"
+    model = "dry friction rising to a breakaway value near zero speed: Fs + E exp(-(qd/vs)^2)"
+    keys = (Key("breakaway_friction", "N.m", 0.0, "E: breakaway minus Coulomb friction"),
+            Key("velocity", "rad/s", 0.05, "vs: the Stribeck velocity"))
+    strength = "breakaway_friction"
+    slots = 2
+    shape = "velocity"
+    shape_grid = np.geomspace(0.005, 0.5, 30)
+    term = staticmethod(_stribeck_term)
+
+    def validate(self, table):
+        if table["velocity"] <= 0:
             raise ValueError("stribeck velocity must be > 0")
 
-    def enabled(self) -> list[str]:
-        out = []
-        if self.stribeck_breakaway != 0.0:
-            out.append("stribeck")
-        if self.ripple_amplitude != 0.0:
-            out.append("position_ripple")
-        if self.load_friction != 0.0:
-            out.append("load_dependent_friction")
+    def pack(self, table):
+        return table["breakaway_friction"], table["velocity"]
+
+    def packed_fit(self, shape, coefficients):
+        return coefficients[0], shape
+
+    def table_from_fit(self, shape, coefficients):
+        return {"breakaway_friction": float(coefficients[0]), "velocity": float(shape)}
+
+    def violations(self, table, context):
+        if table["breakaway_friction"] <= 0:
+            return [f"breakaway friction {table['breakaway_friction']:.3f} N.m is not above the "
+                    "Coulomb level (friction that falls toward zero speed is not Stribeck "
+                    "friction)"]
+        return []
+
+
+class PositionRipple(Effect):
+    name = "position_ripple"
+    model = "torque periodic in angle (harmonic drive, cogging): A sin(2 pi f q + phi)"
+    keys = (Key("amplitude", "N.m", 0.0, "A"),
+            Key("spatial_frequency", "cycles/rad", 0.0, "f, found from the data"),
+            Key("phase", "rad", 0.0, "phi"))
+    strength = "amplitude"
+    slots = 3
+    shape = "spatial_frequency"
+    shape_grid = np.arange(1.0, 40.0, 0.2)  # refined between neighbours by model-gap
+    coefficients = 2  # a sin(wq) + b cos(wq)
+    term = staticmethod(_position_ripple_term)
+
+    def validate(self, table):
+        if table["amplitude"] < 0 or table["spatial_frequency"] < 0:
+            raise ValueError(f"{self.name} amplitude and spatial_frequency must be >= 0")
+
+    def pack(self, table):
+        amplitude, phase = table["amplitude"], table["phase"]
+        return (amplitude * math.cos(phase), amplitude * math.sin(phase),
+                2.0 * math.pi * table["spatial_frequency"])
+
+    def packed_fit(self, shape, coefficients):
+        return coefficients[0], coefficients[1], 2.0 * math.pi * shape
+
+    def table_from_fit(self, shape, coefficients):
+        a, b = coefficients  # a sin(wq) + b cos(wq) = A sin(wq + phase)
+        return {"amplitude": float(math.hypot(a, b)), "spatial_frequency": float(shape),
+                "phase": float(math.atan2(b, a))}
+
+    def violations(self, table, context):
+        periods = table["spatial_frequency"] * context.position_range
+        if periods < MIN_RIPPLE_PERIODS:
+            return [f"{periods:.1f} periods over the {context.position_range:.2f} rad travelled "
+                    f"(a ripple needs {MIN_RIPPLE_PERIODS:g} or more)"]
+        return []
+
+
+class LoadDependentFriction(Effect):
+    name = "load_dependent_friction"
+    model = "dry friction growing with the transmitted gravity load: Fs + mu |G(q)|"
+    keys = (Key("coefficient", "N.m per N.m of load", 0.0, "mu"),)
+    strength = "coefficient"
+    slots = 1
+    term = staticmethod(_load_friction_term)
+
+    def pack(self, table):
+        return (table["coefficient"],)
+
+    def packed_fit(self, shape, coefficients):
+        return (coefficients[0],)
+
+    def table_from_fit(self, shape, coefficients):
+        return {"coefficient": float(coefficients[0])}
+
+    def violations(self, table, context):
+        mu = table["coefficient"]
+        if not 0 < mu < 1:
+            return [f"load coefficient {mu:.3f} is outside (0, 1): friction must grow with the "
+                    "load and stay below it"]
+        return []
+
+
+class FrictionRipple(PositionRipple):
+    name = "friction_ripple"
+    model = ("dry friction periodic in angle (wave-generator meshing): "
+             "Fs + A sin(2 pi f q + phi)")
+    term = staticmethod(_friction_ripple_term)
+
+    def violations(self, table, context):
+        out = super().violations(table, context)
+        if table["amplitude"] >= context.coulomb:
+            out.append(f"amplitude {table['amplitude']:.3f} N.m is not below the Coulomb level "
+                       f"{context.coulomb:.3f} N.m (dry friction would change sign with angle)")
         return out
 
+
+class SmoothReversal(Effect):
+    """Outside the library on purpose (see the module docstring)."""
+
+    name = "smooth_reversal"
+    model = "dry friction reversing smoothly instead of sticking: Fs tanh(qd / v)"
+    keys = (Key("velocity", "rad/s", 0.0, "v: the speed over which the friction reverses"),)
+    strength = "velocity"
+    slots = 1
+    term = staticmethod(_smooth_reversal_term)
+
+    def validate(self, table):
+        if table["velocity"] < 0:
+            raise ValueError("smooth_reversal velocity must be >= 0")
+
+    def pack(self, table):
+        return (table["velocity"],)
+
+
+LIBRARY: tuple[Effect, ...] = (Stribeck(), PositionRipple(), LoadDependentFriction(),
+                               FrictionRipple())
+HIDDEN_ONLY: tuple[Effect, ...] = (SmoothReversal(),)
+PHYSICS: tuple[Effect, ...] = LIBRARY + HIDDEN_ONLY  # what the dynamics carry, in packed order
+EFFECTS: dict[str, Effect] = {effect.name: effect for effect in PHYSICS}
+LIBRARY_NAMES = tuple(effect.name for effect in LIBRARY)
+# what `--truth-effect` accepts: {effect: {key: (key, unit)}}
+EFFECT_KEYS = {effect.name: {key.name: (key.name, key.unit) for key in effect.keys}
+               for effect in PHYSICS}
+EFFECT_NAMES = tuple(EFFECT_KEYS)
+
+
+class Effects:
+    """The effects a model carries: a full table per enabled effect, in registry order.
+    Immutable and comparable; tables whose strength is zero are dropped (switched off)."""
+
+    __slots__ = ("_tables",)
+
+    def __init__(self, tables: Mapping[str, Mapping[str, float]] | None = None):
+        tables = tables or {}
+        for name in tables:
+            if name not in EFFECTS:
+                raise KeyError(f"unknown effect {name!r}; expected one of "
+                               f"{', '.join(EFFECT_NAMES)}")
+        stored = []
+        for effect in PHYSICS:
+            if effect.name not in tables:
+                continue
+            table = effect.defaults()
+            for key, value in tables[effect.name].items():
+                if key not in table:
+                    raise KeyError(f"{effect.name}.{key}: unknown key; expected "
+                                   f"{', '.join(table)}")
+                value = float(value)
+                if not math.isfinite(value):
+                    raise ValueError(f"effect parameter {effect.name}.{key} must be finite")
+                table[key] = value
+            effect.validate(table)
+            if table[effect.strength] != 0.0:
+                stored.append((effect.name, tuple(table.items())))
+        self._tables = tuple(stored)
+
+    def enabled(self) -> list[str]:
+        return [name for name, _ in self._tables]
+
     def section(self, name: str) -> dict[str, float]:
-        """The TOML table of one effect."""
-        return {key: getattr(self, field) for key, (field, _) in EFFECT_KEYS[name].items()}
+        """The TOML table of one effect (its defaults when it is not enabled)."""
+        for stored, items in self._tables:
+            if stored == name:
+                return dict(items)
+        return EFFECTS[name].defaults()
+
+    def tables(self) -> dict[str, dict[str, float]]:
+        return {name: dict(items) for name, items in self._tables}
+
+    def with_table(self, name: str, table: Mapping[str, float]) -> "Effects":
+        return Effects({**self.tables(), name: table})
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Effects) and self._tables == other._tables
+
+    def __hash__(self) -> int:
+        return hash(self._tables)
+
+    def __repr__(self) -> str:
+        return f"Effects({self.tables()!r})"
 
 
 def effects_from_tables(tables: dict[str, dict[str, float]]) -> Effects:
     """Effects from {section: {key: value}}; KeyError/ValueError name what is wrong."""
-    values = {}
-    for name, table in tables.items():
-        if name not in EFFECT_KEYS:
-            raise KeyError(f"unknown effect {name!r}; expected one of {', '.join(EFFECT_NAMES)}")
-        for key, value in table.items():
-            if key not in EFFECT_KEYS[name]:
-                raise KeyError(f"{name}.{key}: unknown key; expected "
-                               f"{', '.join(EFFECT_KEYS[name])}")
-            values[EFFECT_KEYS[name][key][0]] = float(value)
-    return Effects(**values)
+    return Effects(tables)

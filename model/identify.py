@@ -23,13 +23,15 @@ after filtering keeps the rows nearly independent for the statistics.
 """
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import signal
 
-from model.parameters import GRAVITY, ActuatorParameters, Payload
+from model.dynamics import inverse_dynamics
+from model.parameters import ActuatorParameters, Payload
 
+# the inverse dynamics' parameters, then the two measurement gains (current, torque sensor)
 PARAMETERS = ("motor_inertia", "link_inertia", "first_moment_y", "first_moment_x",
               "viscous_friction_motor", "viscous_friction_joint", "dry_friction_motor",
               "dry_friction_joint", "torque_offset_motor", "torque_offset_joint", "drive_gain",
@@ -42,6 +44,9 @@ EDGE = 0.2  # s dropped at both ends (filter transients)
 MIN_DURATION = 2.0  # s
 MIN_RANGE = 0.5  # rad of motion needed to separate the gravity terms
 MAX_CONDITION = 1e4  # of the column-normalised regressor
+MAX_SCALE_STD = 10.0  # % relative std of the drive gain: above, the payload did not fix the scale
+SAME_POSITION = 1e-3  # rad RMS: two recordings this close in position ...
+SAME_CURRENT = 0.02  # ... and within 2 % in current are one experiment recorded twice
 
 
 class IdentificationError(ValueError):
@@ -116,33 +121,65 @@ def prepare(experiment: Experiment, cutoff_hz: float = CUTOFF_HZ) -> Columns:
                    joint_torque=smooth(np.asarray(experiment.joint_torque, float))[keep])
 
 
-def payload_torque(columns: Columns, payload: Payload) -> np.ndarray:
-    """The payload's known joint torque: inertia m (x^2 + y^2) and gravity of (m x, m y)."""
-    return (payload.mass * (payload.x**2 + payload.y**2) * columns.qdd
-            + GRAVITY * payload.mass * (payload.y * np.sin(columns.q)
-                                        + payload.x * np.cos(columns.q)))
-
-
 def rows(columns: Columns, payload: Payload) -> tuple[np.ndarray, np.ndarray]:
     """Motor and sensor rows [unknown columns (12) | known payload torque] of one experiment,
-    restricted to samples moving faster than MIN_SPEED."""
+    restricted to samples moving faster than MIN_SPEED. The inverse dynamics are linear in the
+    model's parameters, so each column is the model's own torque for a unit value of one
+    parameter (all others zero); the known column is the payload's alone."""
     moving = np.abs(columns.qd) > MIN_SPEED
     c = Columns(*(getattr(columns, f)[moving] for f in Columns.__dataclass_fields__))
-    n = len(c.t)
-    gs, gc, one, zero = GRAVITY * np.sin(c.q), GRAVITY * np.cos(c.q), np.ones(n), np.zeros(n)
-    known = payload_torque(c, payload)
-    motor = np.column_stack([c.qdd, c.qdd, gs, gc, c.qd, c.qd, c.friction_sign,
-                             c.friction_sign, one, one, -c.current, zero, known])
-    sensor = np.column_stack([zero, c.qdd, gs, gc, zero, c.qd, zero, c.friction_sign, zero,
-                              one, zero, -c.joint_torque, known])
+
+    def torques(parameters: ActuatorParameters) -> tuple[np.ndarray, np.ndarray]:
+        return inverse_dynamics(c.q, c.qd, c.qdd, c.friction_sign, parameters.packed())
+
+    nothing = ActuatorParameters(**dict.fromkeys(PARAMETERS, 0.0))
+    unit = [torques(replace(nothing, **{name: 1.0})) for name in PARAMETERS[:-2]]
+    known_motor, known_joint = torques(nothing.with_payload(payload))
+    zero = np.zeros(len(c.t))
+    motor = np.column_stack([m for m, _ in unit] + [-c.current, zero, known_motor])
+    sensor = np.column_stack([j for _, j in unit] + [zero, -c.joint_torque, known_joint])
     return motor, sensor
+
+
+def _describe(payload: Payload) -> str:
+    if payload.mass <= 0:
+        return "no payload"
+    return f"{payload.mass:g} kg at ({payload.x:g}, {payload.y:g}) m"
+
+
+def _refuse_one_experiment(no_load: Experiment, load: Experiment) -> None:
+    """The scale comes from the payload's difference between the experiments: the same payload
+    twice, a payload that adds no torque, or the same data under two payload claims cannot
+    give it."""
+    if no_load.payload == load.payload:
+        raise IdentificationError(
+            f"{no_load.name} and {load.name} carry the same payload ({_describe(load.payload)})"
+            ": one experiment twice cannot fix the scale; record LOAD with another payload")
+    p = load.payload
+    if p.mass * math.hypot(p.x, p.y) == 0:
+        raise IdentificationError(f"{load.name}: the payload ({_describe(p)}) adds no torque "
+                                  "at the joint (it sits on the axis); it cannot fix the scale")
+    a, b = (np.asarray(e.q, float) for e in (no_load, load))
+    i, j = (np.asarray(e.current, float) for e in (no_load, load))
+    n = min(len(a), len(b))
+    if (abs(len(a) - len(b)) <= 0.01 * max(len(a), len(b))
+            and np.sqrt(np.mean((a[:n] - b[:n]) ** 2)) < SAME_POSITION
+            and np.sqrt(np.mean((i[:n] - j[:n]) ** 2))
+            < SAME_CURRENT * np.sqrt(np.mean(i[:n] ** 2))):
+        raise IdentificationError(
+            f"{no_load.name} and {load.name} are the same experiment (positions and currents "
+            f"agree) yet are said to carry {_describe(no_load.payload)} and "
+            f"{_describe(load.payload)}: record LOAD with the payload on the link")
 
 
 def identify(no_load: Experiment, load: Experiment,
              cutoff_hz: float = CUTOFF_HZ) -> Identified:
+    """The paper's total least squares over the two experiments; IdentificationError when
+    they cannot identify the model (why, in one line)."""
     if load.payload.mass <= 0:
         raise IdentificationError(f"{load.name}: the load experiment carries no payload; the "
                                   "scale of the parameters cannot be identified without one")
+    _refuse_one_experiment(no_load, load)
     prepared = [(prepare(e, cutoff_hz), e) for e in (no_load, load)]
     blocks = [rows(columns, e.payload) for columns, e in prepared]
     M = np.vstack([block for pair in blocks for block in pair])
@@ -171,6 +208,16 @@ def identify(no_load: Experiment, load: Experiment,
     parameters = ActuatorParameters(**values)
     relative = {name: 100.0 * s / abs(values[name]) if values[name] != 0 else math.inf
                 for name, s in zip(PARAMETERS, std, strict=True)}
+    unphysical = [f"{name} {values[name]:.4g}" for name in
+                  ("drive_gain", "torque_sensor_gain", "motor_inertia", "link_inertia")
+                  if values[name] <= 0]
+    if unphysical or relative["drive_gain"] > MAX_SCALE_STD:
+        raise IdentificationError(
+            f"the payload difference between {no_load.name} ({_describe(no_load.payload)}) and "
+            f"{load.name} ({_describe(load.payload)}) cannot scale the solution: "
+            + (", ".join(unphysical) + " (must be > 0)" if unphysical else
+               f"drive_gain known only to {relative['drive_gain']:.0f} % "
+               f"(need {MAX_SCALE_STD:g} %)"))
 
     fits = {}
     motor_err, joint_err = [], []

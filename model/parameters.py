@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from model import dynamics
-from model.effects import EFFECT_KEYS, Effects, effects_from_tables
+from model.effects import EFFECTS, LIBRARY_NAMES, Effects, effects_from_tables
 
 GRAVITY = 9.81  # m/s^2, standard gravity as used in the paper's g (MY sin q + MX cos q)
 
@@ -76,19 +76,19 @@ class ActuatorParameters:
         p[dynamics.P_VISCOUS] = self.viscous_friction
         p[dynamics.P_DRY] = self.dry_friction
         p[dynamics.P_OFFSET] = self.torque_offset
-        e = self.effects
-        p[dynamics.P_STRIBECK_EXTRA] = e.stribeck_breakaway
-        p[dynamics.P_STRIBECK_VELOCITY] = e.stribeck_velocity
-        p[dynamics.P_RIPPLE_SIN] = e.ripple_amplitude * math.cos(e.ripple_phase)
-        p[dynamics.P_RIPPLE_COS] = e.ripple_amplitude * math.sin(e.ripple_phase)
-        p[dynamics.P_RIPPLE_WAVENUMBER] = 2.0 * math.pi * e.ripple_frequency
-        p[dynamics.P_LOAD_FRICTION] = e.load_friction
+        for name, table in self.effects.tables().items():
+            block = EFFECTS[name].pack(table)
+            start = dynamics.EFFECT_OFFSET[name]
+            p[start:start + len(block)] = block
+        p[dynamics.P_LINK_INERTIA] = self.link_inertia
+        p[dynamics.P_VISCOUS_JOINT] = self.viscous_friction_joint
+        p[dynamics.P_DRY_JOINT] = self.dry_friction_joint
+        p[dynamics.P_OFFSET_JOINT] = self.torque_offset_joint
         return p
 
     def with_effect(self, name: str, table: dict[str, float]) -> "ActuatorParameters":
         """These parameters with one effect set (others kept)."""
-        merged = {**{n: self.effects.section(n) for n in self.effects.enabled()}, name: table}
-        return replace(self, effects=effects_from_tables(merged))
+        return replace(self, effects=self.effects.with_table(name, table))
 
 
 @dataclass(frozen=True)
@@ -199,9 +199,9 @@ def _effects(path: Path, doc: dict) -> tuple[Effects, dict[str, str]]:
     section = _table(path, doc, "effects", required=False)
     tables, provenance = {}, {}
     for name, table in section.items():
-        if name not in EFFECT_KEYS or not isinstance(table, dict):
+        if name not in LIBRARY_NAMES or not isinstance(table, dict):
             raise ModelFileError(f"{path}: [effects.{name}]: unknown effect; expected one of "
-                                 f"{', '.join(EFFECT_KEYS)}")
+                                 f"{', '.join(LIBRARY_NAMES)}")
         table = dict(table)
         note = table.pop("provenance", None)
         if not isinstance(note, str) or not note.strip():
@@ -209,7 +209,7 @@ def _effects(path: Path, doc: dict) -> tuple[Effects, dict[str, str]]:
                                  "string")
         provenance[f"effects.{name}"] = note
         tables[name] = _numbers(path, {f"effects.{name}": table}, f"effects.{name}",
-                                list(EFFECT_KEYS[name]), required=True)
+                                [key.name for key in EFFECTS[name].keys], required=True)
     try:
         return effects_from_tables(tables), provenance
     except ValueError as exc:

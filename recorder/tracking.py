@@ -3,6 +3,9 @@ the nominal model plus PD, well enough to follow the double S-curves within a fe
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
 
 from model import dynamics
 from model.parameters import ActuatorParameters
@@ -17,14 +20,22 @@ class TrackingLaw:
     parameters: ActuatorParameters  # nominal model, payload included
     current_limit: float
 
+    def __post_init__(self) -> None:
+        self.current(0.0, 0.0, (0.0, 0.0, 0.0))  # load the compiled model before the loop runs
+
+    @cached_property
+    def _packed(self) -> np.ndarray:
+        return self.parameters.packed()
+
     def current(self, position: float, velocity: float, reference: tuple[float, float, float]
                 ) -> float:
-        """Motor current for (q*, qd*, qdd*), clipped to the limit."""
+        """Motor current for (q*, qd*, qdd*), clipped to the limit: the model's motor torque
+        for the PD-corrected acceleration at the measured position and the reference speed."""
         q_ref, qd_ref, qdd_ref = reference
-        p = self.parameters
         w = 2.0 * math.pi * BANDWIDTH_HZ
         acceleration = qdd_ref + w * w * (q_ref - position) + 2 * DAMPING * w * (qd_ref - velocity)
-        torque = (p.inertia * acceleration + dynamics.gravity_torque(position, p.packed())
-                  + p.viscous_friction * qd_ref
-                  + p.dry_friction * math.tanh(qd_ref / FRICTION_SMOOTHING) + p.torque_offset)
-        return max(-self.current_limit, min(self.current_limit, torque / p.drive_gain))
+        torque, _ = dynamics.sample_inverse_dynamics(position, qd_ref, acceleration,
+                                                     math.tanh(qd_ref / FRICTION_SMOOTHING),
+                                                     self._packed)
+        drive_gain = self.parameters.drive_gain
+        return max(-self.current_limit, min(self.current_limit, float(torque) / drive_gain))

@@ -9,11 +9,9 @@ import numpy as np
 from model import dynamics
 from model.parameters import ActuatorParameters, Payload
 
-PHYSICS_SUBSTEPS = 20  # 50 us: within 1 encoder count of 1000 substeps (tests/test_dynamics.py)
 # assumed: above the motor's rated torque (30 N.m, 0x6076) as holding brakes are sized, and
 # above the 25 N.m the paper's heaviest payload (30 kg at 5 cm) hangs on the joint
 BRAKE_HOLDING_TORQUE = 40.0  # N.m
-NOISE_BATCH = 4096  # sensor-noise draws per numpy call
 
 
 @dataclass(frozen=True)
@@ -47,8 +45,6 @@ class Plant:
         self.base_parameters = parameters
         self.noise = noise
         self._rng = np.random.default_rng(noise.seed)
-        self._draws: list[float] = []
-        self._next_draw = 0
         self.set_payload(payload)
         self.position = (dynamics.rest_position(self._packed) if initial_position is None
                          else initial_position)
@@ -58,9 +54,6 @@ class Plant:
         self._dry = 0.0
         self._dry_level = parameters.dry_friction
         self._current = 0.0
-        # load the compiled physics now, not inside the first SYNC: on a busy host that takes
-        # seconds, far longer than a master waits for its first sample (the result is unused)
-        dynamics.step(self.position, 0.0, 0.0, self._packed, 1e-3, PHYSICS_SUBSTEPS)
 
     def set_payload(self, payload: Payload) -> None:
         self.payload = payload
@@ -71,43 +64,33 @@ class Plant:
 
     def warm_up(self) -> None:
         """Compile (or load) the integrator now, on a throwaway state: the first SYNC must be
-        answered within one period, not after a 0.3-0.5 s compilation."""
-        dynamics.step(self.position, 0.0, 0.0, self._packed, 1e-3, PHYSICS_SUBSTEPS)
+        answered within one period, not after a 0.3-0.5 s compilation (seconds on a busy
+        host, far longer than a master waits for its first sample). The results are unused."""
+        dynamics.step(self.position, 0.0, 0.0, self._packed, 1e-3, dynamics.SUBSTEPS)
+        self.joint_torque()
 
     def advance(self, current: float, dt: float, braked: bool = False) -> None:
         (self.position, self.velocity, self._acceleration, self._dry,
          self._dry_level) = dynamics.step(self.position, self.velocity, current,
                                           self._packed_braked if braked else self._packed,
-                                          dt, PHYSICS_SUBSTEPS)
+                                          dt, dynamics.SUBSTEPS)
         self._current = current
         self.time += dt
 
     def joint_torque(self) -> float:
-        """What the link side transmits: link inertia, gravity of link and payload, and the
-        joint's share of the friction. Sliding, the joint side carries its own Coulomb part
-        (Fsj); stuck, its share of the holding friction. The optional effects (Stribeck,
-        ripple, load-dependent friction) sit in the transmission, on the motor side of the
-        sensor, so the sensor does not see them directly."""
-        p = self.parameters
-        share = p.dry_friction_joint / self._dry_level if self._dry_level > 0 else 0.0
-        gravity = float(dynamics.gravity_torque(self.position, self._packed))
-        return (p.link_inertia * self._acceleration + gravity
-                + p.viscous_friction_joint * self.velocity + share * self._dry
-                + p.torque_offset_joint)
-
-    def _standard_normal(self) -> float:
-        """The generator's next N(0, 1) draw, taken in batches (one numpy call per draw cost
-        more than the rest of a measurement); the sequence is the one scalar draws give."""
-        if self._next_draw == len(self._draws):
-            self._draws = self._rng.standard_normal(NOISE_BATCH).tolist()
-            self._next_draw = 0
-        self._next_draw += 1
-        return self._draws[self._next_draw - 1]
+        """What the link side transmits (the inverse dynamics' joint side) in the last substep:
+        sliding, the joint carries its own Coulomb part (Fsj); stuck, its share of the holding
+        friction (the direction is the share of the level in use). The effects sit in the
+        transmission, on the motor side of the sensor, so the sensor does not see them."""
+        direction = self._dry / self._dry_level if self._dry_level > 0 else 0.0
+        _, joint = dynamics.sample_inverse_dynamics(self.position, self.velocity,
+                                                    self._acceleration, direction, self._packed)
+        return float(joint)
 
     def measure(self) -> Measurement:
-        current = self._current + self.noise.current * self._standard_normal()
+        current = self._current + self._rng.normal(0.0, self.noise.current)
         reading = (self.joint_torque() / self.parameters.torque_sensor_gain
-                   + self.noise.joint_torque * self._standard_normal())
+                   + self._rng.normal(0.0, self.noise.joint_torque))
         return Measurement(
             position=self.position,
             velocity=self.velocity,

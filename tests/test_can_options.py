@@ -8,12 +8,13 @@ import sys
 
 import can
 import pytest
-from sim_bus.drive import VirtualDrive
 
 from commands import actuatord, sim_bus
 from commands.options import bus_config, check_drive_arguments, open_drive
 from model.parameters import Payload, load_model
 from protocol import pdo
+from sim_bus.canopen_node import CanOpenNode
+from sim_bus.device import Cia402Device
 from tests.conftest import sim_bus_process
 
 NODE = 2
@@ -83,9 +84,9 @@ def test_can_log_over_a_python_can_bus_holds_every_frame(no_can_config, tmp_path
 
     network = canopen.Network(sim_network)
     network.connect()
-    sim = VirtualDrive(network, NODE, load_model())
+    sim = CanOpenNode(network, NODE, Cia402Device(load_model(), Payload(), node_id=NODE))
     sim.boot()
-    connection = open_drive(args, load_model(), Payload(), response_timeout=5.0)
+    connection = open_drive(args, load_model(), load_model(), Payload(), response_timeout=5.0)
     try:
         connection.drive.start()
         for _ in range(50):

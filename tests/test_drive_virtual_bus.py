@@ -8,11 +8,11 @@ import pytest
 
 from driver import CommandRangeError, DriveFault, DriveLost, DriveTimeout
 from model import dynamics
+from model.dynamics import SUBSTEPS
 from model.parameters import Payload
 from protocol import cia301, cia402, objects
 from protocol import pdo as pdo_layout
 from protocol.cia402 import State
-from sim_bus.plant import PHYSICS_SUBSTEPS
 from tests.conftest import virtual_pair
 
 HALF_COUNT = 0.5 / objects.INCREMENTS_PER_RAD  # encoder quantisation bound (rad)
@@ -43,7 +43,7 @@ def test_boot_enable_and_motion_match_the_model(pair):
     # the RPDO carries whole milliamps
     applied = np.round(np.concatenate(([0.0], currents[:-1])) * 1000) / 1000
     expected = dynamics.simulate(q0, 0.0, applied, sim.device.plant.parameters.packed(), 1e-3,
-                                 PHYSICS_SUBSTEPS)
+                                 SUBSTEPS)
     measured = np.array([s.position for s in samples])
     # the physics is the model's own integrator: only the 19-bit quantisation separates them
     assert np.max(np.abs(measured - expected[:, 0])) <= HALF_COUNT + 1e-12

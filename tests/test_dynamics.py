@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from model import dynamics
+from model.dynamics import SUBSTEPS
 from model.parameters import GRAVITY, load_model
 from protocol.objects import INCREMENTS_PER_RAD
-from sim_bus.plant import PHYSICS_SUBSTEPS
 
 P = load_model().parameters.packed()
 DT = 1e-3
@@ -44,7 +44,7 @@ def test_free_swing_never_gains_energy_and_comes_to_rest():
 
 def test_twenty_substeps_agree_with_a_thousand_within_one_encoder_count():
     currents = -1.5 + 0.8 * np.sin(np.arange(3000) * DT * 2 * math.pi)
-    coarse = dynamics.simulate(-0.1, 0.0, currents, P, DT, PHYSICS_SUBSTEPS)
+    coarse = dynamics.simulate(-0.1, 0.0, currents, P, DT, SUBSTEPS)
     fine = dynamics.simulate(-0.1, 0.0, currents, P, DT, 1000)
     assert np.max(np.abs(coarse[:, 0] - fine[:, 0])) < 1.0 / INCREMENTS_PER_RAD
 
@@ -52,10 +52,11 @@ def test_twenty_substeps_agree_with_a_thousand_within_one_encoder_count():
 WITH_EFFECTS = load_model().parameters.with_effect(
     "stribeck", {"breakaway_friction": 1.0, "velocity": 0.05}).with_effect(
     "position_ripple", {"amplitude": 0.5, "spatial_frequency": 3.0, "phase": 0.4}).with_effect(
-    "load_dependent_friction", {"coefficient": 0.05}).packed()
+    "load_dependent_friction", {"coefficient": 0.05}).with_effect(
+    "friction_ripple", {"amplitude": 0.3, "spatial_frequency": 5.0, "phase": 1.1}).packed()
 
 
-@pytest.mark.parametrize("p", [P, WITH_EFFECTS], ids=["paper", "all effects"])
+@pytest.mark.parametrize("p", [P, WITH_EFFECTS], ids=["paper", "all library effects"])
 def test_smooth_model_derivatives_match_finite_differences(p):
     beta, eps = 1000.0, 1e-7
     for q, qd, i in [(-1.0, 0.3, 1.2), (-2.0, -0.001, -3.0), (-0.3, 0.0, 0.5)]:
@@ -69,10 +70,10 @@ def test_stribeck_breakaway_holds_what_coulomb_friction_alone_would_not():
     q0 = -1.0
     hold = (dynamics.gravity_torque(q0, P) + P[dynamics.P_OFFSET]) / P[dynamics.P_DRIVE_GAIN]
     push = hold + 1.5 * P[dynamics.P_DRY] / P[dynamics.P_DRIVE_GAIN]  # 1.5 x Coulomb
-    plain = dynamics.simulate(q0, 0.0, np.full(200, push), P, DT, 20)
+    plain = dynamics.simulate(q0, 0.0, np.full(200, push), P, DT, SUBSTEPS)
     only_stribeck = load_model().parameters.with_effect(
         "stribeck", {"breakaway_friction": 1.0, "velocity": 0.05}).packed()
-    stribeck = dynamics.simulate(q0, 0.0, np.full(200, push), only_stribeck, DT, 20)
+    stribeck = dynamics.simulate(q0, 0.0, np.full(200, push), only_stribeck, DT, SUBSTEPS)
     assert plain[-1, 0] != q0  # Coulomb alone lets go
     assert stribeck[-1, 0] == q0  # the breakaway level (2.5 N.m) holds
 

@@ -155,6 +155,32 @@ def test_bad_recordings_exit_2_with_one_line(tmp_path, recordings, case, needle)
     assert not (tmp_path / "out.toml").exists()
 
 
+@pytest.mark.parametrize("case,needle", [
+    ("same_file", "carry the same payload"),
+    ("same_data", "are the same experiment"),
+    ("payload_misplaced", "cannot scale the solution"),
+    ("payload_on_axis", "adds no torque at the joint"),
+])
+def test_one_experiment_twice_or_a_payload_that_cannot_scale_is_refused(recordings, tmp_path,
+                                                                         case, needle):
+    no_load, load = map(str, recordings)
+    args = {"same_file": [load, load],
+            "same_data": [no_load, no_load, "--payload-mass", "5", "--payload-position",
+                          "0,0.1"],
+            # the payload hangs at (0, 0.1) m: claimed at (0, -0.1) m its torque has the
+            # wrong sign and the solution comes out with negative gains and inertias
+            "payload_misplaced": [no_load, load, "--payload-mass", "5", "--payload-position",
+                                  "0,-0.1"],
+            "payload_on_axis": [no_load, load, "--payload-mass", "5", "--payload-position",
+                                "0,0"]}[case]
+    out = tmp_path / "out.toml"
+    proc = identify(*args, "-o", str(out))
+    assert proc.returncode == 2, proc.stdout
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and needle in lines[0], proc.stderr
+    assert not out.exists()
+
+
 def truncate(path: Path, tmp_path: Path) -> Path:
     data = path.read_bytes()
     out = tmp_path / "truncated.mcap"

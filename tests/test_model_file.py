@@ -62,7 +62,7 @@ provenance = "test"
     assert model.provenance["effects.stribeck"] == "test"
     from model import dynamics
 
-    assert model.parameters.packed()[dynamics.P_STRIBECK_EXTRA] == 1.2
+    assert model.parameters.packed()[dynamics.EFFECT_OFFSET["stribeck"]] == 1.2
     bad = write(tmp_path, DEFAULT + "\n[effects.backlash]\nwidth = 1\nprovenance = 'x'\n")
     with pytest.raises(ModelFileError, match=r"\[effects.backlash\]: unknown effect"):
         load_model(bad)

@@ -82,22 +82,20 @@ def test_hidden_effect_is_named_and_the_gap_shrinks(scenarios, effect, tmp_path)
     assert len(list(tmp_path.glob("*.png"))) == 3
     # the improved model reaches the controller's dynamics
     mpc = Mpc(model)
-    index = {"stribeck": dynamics.P_STRIBECK_EXTRA, "position_ripple": dynamics.P_RIPPLE_SIN,
-             "load_dependent_friction": dynamics.P_LOAD_FRICTION}[effect]
-    assert mpc.solver.p[index] != 0.0
+    assert mpc.solver.p[dynamics.EFFECT_OFFSET[effect]] != 0.0
 
 
 def test_hidden_effect_parameters_come_back(scenarios, tmp_path):
     improved = tmp_path / "stribeck.toml"
     model_gap(scenarios["stribeck"], "-o", str(improved))
-    effects = load_model(improved).parameters.effects
-    assert effects.stribeck_breakaway == pytest.approx(1.5, rel=0.2)
-    assert effects.stribeck_velocity == pytest.approx(0.05, rel=0.3)
+    effects = load_model(improved).parameters.effects.section("stribeck")
+    assert effects["breakaway_friction"] == pytest.approx(1.5, rel=0.2)
+    assert effects["velocity"] == pytest.approx(0.05, rel=0.3)
     improved = tmp_path / "ripple.toml"
     model_gap(scenarios["position_ripple"], "-o", str(improved))
-    effects = load_model(improved).parameters.effects
-    assert effects.ripple_frequency == pytest.approx(8.0, abs=0.1)
-    assert effects.ripple_amplitude == pytest.approx(0.6, rel=0.1)
+    effects = load_model(improved).parameters.effects.section("position_ripple")
+    assert effects["spatial_frequency"] == pytest.approx(8.0, abs=0.1)
+    assert effects["amplitude"] == pytest.approx(0.6, rel=0.1)
 
 
 def test_clean_data_gives_none_and_leaves_the_model_alone(scenarios, tmp_path):

@@ -9,10 +9,10 @@ import numpy as np
 
 from driver.canopen_drive import CanOpenDrive
 from model import dynamics
+from model.dynamics import SUBSTEPS
 from model.parameters import load_model
 from protocol import eds_path, objects
 from protocol.cia402 import State, state_from_statusword
-from sim_bus.plant import PHYSICS_SUBSTEPS
 from tests.conftest import sim_bus_process, udp_bus_spec
 from tests.test_drive_virtual_bus import HALF_COUNT, current_profile
 
@@ -34,7 +34,7 @@ def test_master_drives_sim_bus_process_and_motion_matches_the_model():
     applied = np.round(currents * 1000) / 1000
     params = load_model().parameters.packed()
     expected = dynamics.simulate(first.position, first.velocity, applied, params, 1e-3,
-                                 PHYSICS_SUBSTEPS)
+                                 SUBSTEPS)
     measured = np.array([s.position for s in samples])
     # the first sample is itself quantised, so allow one count on top of this run's rounding
     assert np.max(np.abs(measured - expected[:, 0])) <= 3 * HALF_COUNT

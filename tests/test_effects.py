@@ -1,0 +1,117 @@
+"""The effect registry: one object per effect, and every user gets the same physics from it."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.optimize import brentq
+
+from model import dynamics
+from model.effects import EFFECTS, HIDDEN_ONLY, LIBRARY, FitContext, with_truth_effects
+from model.identify import Columns, rows
+from model.parameters import ModelFileError, Payload, default_model_path, load_model
+
+BASE = load_model().parameters
+RNG = np.random.default_rng(0)
+Q = RNG.uniform(-2.2, -0.1, 200)
+QD = RNG.uniform(-2.0, 2.0, 200)
+QDD = RNG.uniform(-5.0, 5.0, 200)
+FITS = {"stribeck": (0.04, [1.3]), "position_ripple": (6.5, [0.3, -0.2]),
+        "load_dependent_friction": (0.0, [0.08]), "friction_ripple": (9.0, [0.2, 0.25])}
+
+
+@pytest.mark.parametrize("effect", LIBRARY, ids=lambda e: e.name)
+def test_fitted_coefficients_map_back_to_keys_that_give_the_same_torque(effect):
+    """Regressor columns at a shape, times coefficients, are what the dynamics compute from
+    the TOML table those coefficients map back to."""
+    shape, coefficients = FITS[effect.name]
+    table = effect.table_from_fit(shape, coefficients)
+    assert set(table) == {key.name for key in effect.keys}
+    p_without = BASE.packed()
+    p_with = BASE.with_effect(effect.name, table).packed()
+    direction = np.sign(QD)
+    gravity, slope = dynamics.gravity_and_slope(Q, p_without)
+    columns = effect.columns(Q, QD, direction, BASE.dry_friction, gravity, slope, shape)
+    motor_with, joint_with = dynamics.inverse_dynamics(Q, QD, QDD, direction, p_with)
+    motor_without, joint_without = dynamics.inverse_dynamics(Q, QD, QDD, direction, p_without)
+    np.testing.assert_allclose(motor_with - motor_without, columns @ coefficients, atol=1e-12)
+    np.testing.assert_array_equal(joint_with, joint_without)  # the sensor does not see it
+
+
+def test_the_compiled_inverse_dynamics_is_the_same_function():
+    p = with_truth_effects(load_model(), [
+        "stribeck:breakaway_friction=1.2,velocity=0.05",
+        "friction_ripple:amplitude=0.3,spatial_frequency=4,phase=1"]).parameters.packed()
+    vectorised = dynamics.inverse_dynamics(Q, QD, QDD, np.sign(QD), p)
+    for k in range(0, 200, 37):
+        one = dynamics.sample_inverse_dynamics(Q[k], QD[k], QDD[k], np.sign(QD[k]), p)
+        assert one == pytest.approx((vectorised[0][k], vectorised[1][k]), abs=1e-12)
+
+
+def test_identification_rows_vanish_on_the_inverse_dynamics_own_torques():
+    """The regressor is the inverse dynamics at unit parameters: torques made by the inverse
+    dynamics itself (payload included) satisfy every row exactly."""
+    payload = Payload(5.0, 0.02, 0.1)
+    p = BASE.with_payload(payload).packed()
+    motor, joint = dynamics.inverse_dynamics(Q, QD, QDD, np.sign(QD), p)
+    columns = Columns(t=np.arange(200) * 0.01, q=Q, qd=QD, qdd=QDD, friction_sign=np.sign(QD),
+                      current=motor / BASE.drive_gain,
+                      joint_torque=joint / BASE.torque_sensor_gain)
+    chi = [getattr(BASE, name) for name in
+           ("motor_inertia", "link_inertia", "first_moment_y", "first_moment_x",
+            "viscous_friction_motor", "viscous_friction_joint", "dry_friction_motor",
+            "dry_friction_joint", "torque_offset_motor", "torque_offset_joint", "drive_gain",
+            "torque_sensor_gain")]
+    for block in rows(columns, payload):
+        np.testing.assert_allclose(block @ np.append(chi, 1.0), 0.0, atol=1e-9)
+
+
+CONTEXT = FitContext(coulomb=1.5, position_range=2.0)
+
+
+@pytest.mark.parametrize("name,table,broken", [
+    ("stribeck", {"breakaway_friction": 1.0, "velocity": 0.05}, False),
+    ("stribeck", {"breakaway_friction": -1.3, "velocity": 0.013}, True),
+    ("load_dependent_friction", {"coefficient": 0.1}, False),
+    ("load_dependent_friction", {"coefficient": -0.02}, True),
+    ("position_ripple", {"amplitude": 0.5, "spatial_frequency": 6.0, "phase": 0.0}, False),
+    ("position_ripple", {"amplitude": 0.5, "spatial_frequency": 0.6, "phase": 0.0}, True),
+    ("friction_ripple", {"amplitude": 0.5, "spatial_frequency": 6.0, "phase": 0.0}, False),
+    ("friction_ripple", {"amplitude": 1.7, "spatial_frequency": 6.0, "phase": 0.0}, True),
+])
+def test_a_fit_that_breaks_its_effects_constraints_is_not_that_effect(name, table, broken):
+    reasons = EFFECTS[name].violations(table, CONTEXT)
+    assert bool(reasons) == broken, reasons
+
+
+def test_model_files_carry_library_effects_only(tmp_path):
+    text = default_model_path().read_text()
+    good = tmp_path / "good.toml"
+    good.write_text(text + "\n[effects.friction_ripple]\namplitude = 0.3\n"
+                    "spatial_frequency = 5.0\nphase = 0.2\nprovenance = 'test'\n")
+    assert load_model(good).parameters.effects.enabled() == ["friction_ripple"]
+    hidden = HIDDEN_ONLY[0].name
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text + f"\n[effects.{hidden}]\nvelocity = 0.01\nprovenance = 'test'\n")
+    with pytest.raises(ModelFileError, match=rf"\[effects.{hidden}\]: unknown effect"):
+        load_model(bad)
+    # ... while the virtual drive can carry it as a hidden truth
+    model = with_truth_effects(load_model(), [f"{hidden}:velocity=0.01"])
+    assert model.parameters.effects.enabled() == [hidden]
+
+
+def test_smooth_reversal_lets_go_where_coulomb_friction_sticks():
+    q0 = -1.0
+    p = BASE.packed()
+    hold = (dynamics.gravity_torque(q0, p) + p[dynamics.P_OFFSET]) / p[dynamics.P_DRIVE_GAIN]
+    push = hold + 0.5 * p[dynamics.P_DRY] / p[dynamics.P_DRIVE_GAIN]  # half the Coulomb level
+    soft = with_truth_effects(load_model(), ["smooth_reversal:velocity=0.01"]
+                              ).parameters.packed()
+    stuck = dynamics.simulate(q0, 0.0, np.full(500, push), p, 1e-3, dynamics.SUBSTEPS)
+    creeping = dynamics.simulate(q0, 0.0, np.full(500, push), soft, 1e-3, dynamics.SUBSTEPS)
+    assert stuck[-1, 0] == q0
+    # it creeps at the speed where Fs tanh(qd / v) + Fv qd balances the push (0.5 Fs), reached
+    # within 50 ms (the gravity it creeps against changes little by then)
+    speed = brentq(lambda v: p[dynamics.P_DRY] * (math.tanh(v / 0.01) - 0.5)
+                   + p[dynamics.P_VISCOUS] * v, 0.0, 0.1)
+    assert creeping[50, 1] == pytest.approx(speed, rel=0.01)
