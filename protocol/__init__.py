@@ -10,3 +10,8 @@ from pathlib import Path
 def eds_path() -> Path:
     """The EDS file shipped in the package (also the file a generic CANopen master loads)."""
     return Path(str(files("protocol") / "elbow_drive.eds"))
+
+
+def esi_path() -> Path:
+    """The ESI file shipped in the package: the same drive as the EDS, over EtherCAT (CoE)."""
+    return Path(str(files("protocol") / "elbow_drive.xml"))

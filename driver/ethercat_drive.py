@@ -1,0 +1,52 @@
+"""CiA 402 drives on an EtherCAT line: the transport-neutral CiA 402 layer over one
+`EthercatTransport` per slave, all sharing the line's master (one frame per cycle for every
+joint). What the commands build for `--bus ethercat:IFACE`."""
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from driver.cia402_drive import Cia402Drive
+from driver.ethercat_transport import open_ethercat_transports
+from protocol.esi import EsiDevice
+
+
+@dataclass(frozen=True)
+class JointOnLine:
+    """One joint's drive on the line: its slave position (0-based, in line order), its
+    velocity limit (rad/s, for the sample guard) and its model's drive gain (N.m/A, to command
+    current through target torque 0x6071)."""
+
+    position: int
+    velocity_limit: float
+    drive_gain: float
+
+
+def open_ethercat_drives(interface: str, joints: Sequence[JointOnLine], *,
+                         period: float = 1e-3, lockstep: bool = False,
+                         esi: str | Path | EsiDevice | None = None,
+                         eds: str | Path | None = None, response_timeout: float | None = None,
+                         watchdog: float | None = None) -> list[Cia402Drive]:
+    """The joints' drives on the line at `interface`, not started. Start every one before the
+    first `sync` of any: the line goes to OP when the last is mapped, and the first `sync` of
+    a cycle sends that cycle's frame for all of them (call each drive's `sync` once a cycle,
+    then command each). `lockstep`: the slaves' watchdog is off and a cycle may take any wall
+    time; `watchdog` (s) sets it in real time (default the ESC's 100 ms)."""
+    transports = open_ethercat_transports(
+        interface, [j.position for j in joints], lockstep=lockstep, esi=esi, eds=eds,
+        response_timeout=response_timeout, watchdog=watchdog)
+    drives = []
+    try:
+        for joint, transport in zip(joints, transports, strict=True):
+            drives.append(Cia402Drive(transport, velocity_limit=joint.velocity_limit,
+                                      period=period, drive_gain=joint.drive_gain))
+    except Exception:
+        for transport in transports:
+            transport.close()
+        raise
+    return drives
+
+
+def open_ethercat_drive(interface: str, joint: JointOnLine, **kwargs) -> Cia402Drive:
+    """One joint alone on its line (see `open_ethercat_drives`)."""
+    return open_ethercat_drives(interface, [joint], **kwargs)[0]

@@ -1,0 +1,268 @@
+"""One EtherCAT line seen from the master (pysoem, i.e. SOEM): bring-up of every slave on it,
+identity checked against the ESI, the EtherCAT state machine with refusals reported by AL
+status code name, and the cyclic frame that carries every slave's process data at once.
+
+A line has one master by construction (the master's port is the line's only way in), so the
+slaves on it are shared by the transports of every joint: `driver.ethercat_transport` gives
+each joint its slave, and the first `exchange` of a cycle sends the one frame of that cycle.
+
+Working counter: the frame comes back with every slave's contribution (+2 for the outputs it
+took, +1 for the inputs it gave); anything less means a slave is gone or left OP. The master
+stops the line at once (sticky failure) and names the slaves that are not in OP, with their
+state and AL status code, as read right after the failed frame.
+"""
+
+import logging
+import time
+from collections.abc import Callable
+
+import pysoem
+
+from driver.interface import DriveError, DriveLost, ProfileError
+from protocol import ethercat as ec
+from protocol.esi import EsiDevice
+
+log = logging.getLogger(__name__)
+
+STATE_TIMEOUT_US = 2_000_000  # SOEM's EC_TIMEOUTSTATE: what a state change may take
+OP_FRAMES = 200  # frames sent after the OP request before giving up (OP comes with outputs)
+LOCKSTEP_RESPONSE_TIMEOUT = 1.0  # s: in lock-step a late frame is not a failure, only none is
+REALTIME_RESPONSE_TIMEOUT = 0.1  # s: the slaves' default process data watchdog
+KEEP_ALIVE = 0.02  # s: a fifth of the ESC's default watchdog
+SCAN_RETRY = 0.1  # s between two scans of a line that did not answer right
+
+
+class EthercatMaster:
+    """The slaves on `interface`, described by `esi` (every slave must be that device).
+
+    `lockstep`: the slaves' process data watchdog (a wall-clock timer in each ESC) is switched
+    off (0x0420 = 0), because a lock-step host may pause for any wall time between two cycles;
+    the master's own check, the working counter of every frame, counts cycles. In real time the
+    watchdog stays on (the ESC's 100 ms, or `watchdog` s), so the slaves stop their drives when
+    this master dies.
+    """
+
+    def __init__(self, interface: str, esi: EsiDevice, *, lockstep: bool = False,
+                 response_timeout: float | None = None, watchdog: float | None = None):
+        self.interface = interface
+        self.esi = esi
+        self.lockstep = lockstep
+        if response_timeout is None:
+            response_timeout = LOCKSTEP_RESPONSE_TIMEOUT if lockstep else (
+                REALTIME_RESPONSE_TIMEOUT)
+        self.response_timeout_us = int(response_timeout * 1e6)
+        self.watchdog = watchdog
+        self.master: pysoem.Master | None = None
+        self.slaves: list = []
+        self.frames = 0  # cyclic frames sent since the line went operational
+        self.failure: DriveError | None = None
+        self.operational = False
+        self.mapped = False  # the process image exists (config_map done)
+        self._released: set[int] = set()  # positions taken out of the cycle on purpose
+        self._expected_wkc = 0
+        self._last_frame = 0.0  # time.monotonic() of the last process data frame
+        # position -> (ready for OP, stage its outputs)
+        self._claimed: dict[int, tuple[Callable[[], bool], Callable[[], None]]] = {}
+
+    # --- bring-up ----------------------------------------------------------------------------
+
+    def claim(self, position: int, ready: Callable[[], bool],
+              stage: Callable[[], None]) -> None:
+        """A transport takes the slave at `position`: `ready()` says when its process data is
+        mapped (the line goes to OP once every claimed slave is ready), `stage()` puts its
+        outputs into the process image (called once the image exists, before the first
+        frame, so a drive enabled before OP stays enabled)."""
+        if position in self._claimed:
+            raise ValueError(f"slave {position} on {self.interface} is already in use")
+        self._claimed[position] = (ready, stage)
+
+    def unclaim(self, position: int) -> None:
+        """A transport is done with its slave; the last one closes the line."""
+        self._claimed.pop(position, None)
+        if not self._claimed:
+            self.close_line()
+
+    def scan(self, timeout: float) -> None:
+        """INIT -> PRE-OP for the whole line (SOEM's config_init: addresses, SII, mailbox),
+        each slave's identity checked against the ESI. Again after a failure: a fresh start.
+        A line that does not answer, or answers with an identity that is not the ESI's, is
+        scanned again until `timeout` s have passed (SOEM gives each register access a few
+        ms: a busy slave host can miss one), then refused."""
+        deadline = time.monotonic() + timeout
+        while True:
+            problem = self._scan_once()
+            if problem is None:
+                break
+            if time.monotonic() > deadline:
+                raise problem
+            time.sleep(SCAN_RETRY)
+        self._require_state(pysoem.PREOP_STATE, "PRE_OP")
+        self.failure = None
+        self._released.clear()
+        self.frames = 0
+
+    def _scan_once(self) -> DriveError | None:
+        self.close_line()
+        master = pysoem.Master()
+        try:
+            master.open(self.interface)
+        except ConnectionError as exc:
+            raise DriveLost(f"EtherCAT {self.interface}: cannot open the interface ({exc}; "
+                            "needs root or CAP_NET_RAW)") from None
+        self.master = master
+        if master.config_init() <= 0:
+            return DriveLost(f"EtherCAT {self.interface}: no slave answers (line unplugged or "
+                             "powered off?)")
+        self.slaves = list(master.slaves)
+        for position, slave in enumerate(self.slaves):
+            identity = (slave.man, slave.id, slave.rev)
+            if identity != self.esi.identity:
+                return ProfileError(
+                    f"EtherCAT {self.interface} slave {position} ({slave.name!r}): SII identity "
+                    f"vendor 0x{identity[0]:08X} product 0x{identity[1]:08X} revision "
+                    f"0x{identity[2]:08X}, the ESI describes vendor 0x{self.esi.vendor_id:08X} "
+                    f"product 0x{self.esi.product_code:08X} revision 0x{self.esi.revision:08X} "
+                    f"({self.esi.name})")
+        return None
+
+    def slave(self, position: int):
+        if not 0 <= position < len(self.slaves):
+            raise DriveLost(f"EtherCAT {self.interface}: no slave at position {position} "
+                            f"({len(self.slaves)} found, positions count from 0)")
+        return self.slaves[position]
+
+    def all_ready(self) -> bool:
+        return all(ready() for ready, _ in self._claimed.values())
+
+    def go_operational(self) -> None:
+        """PRE-OP -> SAFE-OP -> OP for the whole line: the process data image (SOEM's
+        config_map from each slave's CoE assignment), then the OP request and frames until
+        every slave is operational (a slave enters OP with its first valid outputs)."""
+        if self.operational:
+            return
+        master = self.master
+        if not self.mapped:
+            if self.lockstep or self.watchdog is not None:
+                milliseconds = 0.0 if self.lockstep else self.watchdog * 1e3
+                for slave in self.slaves:
+                    slave.set_watchdog("processdata", milliseconds)
+            try:
+                master.config_map()
+            except pysoem.ConfigMapError as exc:
+                raise DriveError(f"EtherCAT {self.interface}: reading the PDO assignment "
+                                 f"failed: {_errors(exc.error_list)}") from None
+            self.mapped = True
+        for _, stage in self._claimed.values():
+            stage()
+        self._require_state(pysoem.SAFEOP_STATE, "SAFE_OP")
+        self._expected_wkc = master.expected_wkc
+        master.state = pysoem.OP_STATE
+        master.write_state()
+        for _ in range(OP_FRAMES):
+            master.send_processdata()
+            master.receive_processdata(self.response_timeout_us)
+            if master.state_check(pysoem.OP_STATE, 1000) == pysoem.OP_STATE:
+                self.operational = True
+                self._last_frame = time.monotonic()
+                return
+        self._require_state(pysoem.OP_STATE, "OP")
+
+    def request_state(self, state: int) -> None:
+        """Ask every slave for `state` and wait for it (DriveError naming the refusals)."""
+        self.master.state = state
+        self.master.write_state()
+        self._require_state(state, ec.al_state_name(state))
+
+    def _require_state(self, state: int, name: str) -> None:
+        """Wait for every slave to reach `state`; DriveError naming each that did not, with
+        its state and AL status code by name."""
+        master = self.master
+        if master.state_check(state, STATE_TIMEOUT_US) == state:
+            return
+        master.read_state()
+        stuck = [self._describe(position, slave) for position, slave in enumerate(self.slaves)
+                 if slave.state & ec.AL_STATE_MASK != state]
+        raise DriveError(f"EtherCAT {self.interface}: {name} refused: " + "; ".join(stuck))
+
+    def _describe(self, position: int, slave) -> str:
+        text = f"slave {position} in {ec.al_state_name(slave.state)}"
+        if slave.state & ec.AL_ERROR or slave.al_status:
+            text += f", AL status code {ec.al_status_name(slave.al_status)}"
+        return text
+
+    # --- the cycle ---------------------------------------------------------------------------
+
+    def cycle(self) -> None:
+        """Send the one frame of this cycle and check its working counter."""
+        self.frames += 1
+        self._frame()
+
+    def keep_alive(self) -> None:
+        """Real time, while OP: a frame when none went out for KEEP_ALIVE s, so an acyclic
+        sequence between cycles (enabling the drive by CoE) does not starve the slaves'
+        watchdog. Lock-step needs none (the watchdog is off) and gets none (a frame is a
+        cycle of the drive's time there)."""
+        if (self.lockstep or not self.operational or self.failure is not None
+                or time.monotonic() - self._last_frame < KEEP_ALIVE):
+            return
+        self._frame()
+
+    def _frame(self) -> None:
+        if self.failure is not None:
+            raise self.failure
+        master = self.master
+        master.send_processdata()
+        wkc = master.receive_processdata(self.response_timeout_us)
+        self._last_frame = time.monotonic()
+        if wkc != self._expected_wkc:
+            self.failure = DriveLost(self._diagnose(wkc))
+            log.error("%s", self.failure)
+            raise self.failure
+
+    def _diagnose(self, wkc: int) -> str:
+        if wkc < 0:
+            return (f"EtherCAT {self.interface}: no frame came back within "
+                    f"{self.response_timeout_us / 1e3:.0f} ms (cycle {self.frames}): the line "
+                    "is broken or its slaves are off")
+        text = (f"EtherCAT {self.interface}: working counter {wkc}, expected "
+                f"{self._expected_wkc} (cycle {self.frames})")
+        try:
+            self.master.read_state()
+        except pysoem.WkcError:
+            return text
+        lost = [self._describe(position, slave) for position, slave in enumerate(self.slaves)
+                if position not in self._released
+                and slave.state & ec.AL_STATE_MASK != pysoem.OP_STATE]
+        return text + (": " + "; ".join(lost) if lost else "")
+
+    def release(self, position: int) -> None:
+        """Take one slave out of the cycle (to PRE-OP) without failing the others: the
+        expected working counter drops by its share."""
+        if position in self._released or not 0 <= position < len(self.slaves):
+            return
+        slave = self.slaves[position]
+        if self.operational:
+            share = (2 if slave.output else 0) + (1 if slave.input else 0)
+            self._expected_wkc -= share
+        self._released.add(position)
+        slave.state = pysoem.PREOP_STATE
+        slave.write_state()
+
+    def close_line(self) -> None:
+        """Every slave back to INIT and the interface closed. Best effort."""
+        if self.master is None:
+            return
+        try:
+            self.master.state = pysoem.INIT_STATE
+            self.master.write_state()
+        except pysoem.WkcError:
+            pass
+        finally:
+            self.master.close()
+            self.master = None
+            self.slaves = []
+            self.operational = self.mapped = False
+
+
+def _errors(error_list: list) -> str:
+    return "; ".join(f"slave {getattr(e, 'slave_pos', '?') - 1}: {e}" for e in error_list)

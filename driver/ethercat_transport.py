@@ -1,0 +1,247 @@
+"""The EtherCAT transport (pysoem): `driver.transport.Transport` for the CiA 402 drive in one
+slave of an EtherCAT line (`driver.ethercat_master`).
+
+Acyclic access is CoE SDO through the slave's mailbox; cyclic data is the slave's part of the
+line's process image: RxPDO 0x1600 assigned to SM2 (0x1C12), TxPDO 0x1A00 to SM3 (0x1C13),
+written by CoE in PRE-OP from the objects the CiA 402 layer asks for (over EtherCAT: those the
+ESI's PDOs carry, i.e. cyclic synchronous torque). CoE emergencies are fetched from the
+mailbox when the statusword shows a fault, and handed to `on_emergency` before the sample
+that shows it.
+"""
+
+import struct
+from collections.abc import Sequence
+from pathlib import Path
+
+import pysoem
+
+from driver.ethercat_master import EthercatMaster
+from driver.interface import DriveError, DriveLost, ProfileError
+from driver.transport import Transport
+from protocol import eds_path as shipped_eds_path
+from protocol import esi_path as shipped_esi_path
+from protocol import ethercat as ec
+from protocol import objects
+from protocol.dictionary import has, load_dictionary, variable
+from protocol.esi import EsiDevice, ethercat_dictionary, load_esi
+from protocol.pdo import MappedObject, PdoLayout
+
+STATUSWORD_FAULT = 0x0008  # CiA 402 statusword bit 3
+EMERGENCY_POLLS = 8  # cycles to look for the emergency behind a fault bit before giving up
+MAILBOX_ATTEMPTS = 3
+_U8 = struct.Struct("<B")
+_U16 = struct.Struct("<H")
+_U32 = struct.Struct("<I")
+
+
+class EthercatTransport(Transport):
+    """Slave `position` (0-based, in line order) of `line`; its dictionary is the drive's EDS
+    seen through the line's ESI (`protocol.esi.ethercat_dictionary`)."""
+
+    def __init__(self, line: EthercatMaster, position: int, *,
+                 eds: str | Path | None = None):
+        if position < 0:
+            raise ValueError(f"slave position {position}: positions count from 0")
+        self.line = line
+        self.position = position
+        self.name = f"slave {position}"
+        self.dictionary = ethercat_dictionary(
+            load_dictionary(eds if eds is not None else shipped_eds_path()), line.esi)
+        self._outputs: tuple[MappedObject, ...] = ()
+        self._inputs: tuple[MappedObject, ...] = ()
+        self._out_codec: PdoLayout | None = None
+        self._in_codec: PdoLayout | None = None
+        self._staged: list[int] = []
+        self._seen = 0  # the line's frame whose inputs this transport returned last
+        self._statusword_at: int | None = None  # input position of 0x6041
+        self._emergency_polls = 0
+        self._mapped = False
+        self._closed = False
+        line.claim(position, lambda: self._mapped, self._stage)
+
+    @property
+    def slave(self):
+        return self.line.slave(self.position)
+
+    # --- acyclic -----------------------------------------------------------------------------
+
+    def boot(self, timeout: float) -> None:
+        """The line from INIT to PRE-OP (once for all its slaves; again after a failure).
+        There is no other master to find: a line has one master port."""
+        if self.line.master is None or self.line.failure is not None:
+            self.line.scan(timeout)
+        self.slave.add_emergency_callback(self._on_emergency)
+
+    def read(self, index: int, subindex: int = 0) -> int:
+        var = self._variable(index, subindex)
+        try:
+            data = self._mailbox(self.slave.sdo_read, index, subindex)
+        except pysoem.SdoError as exc:
+            raise DriveError(f"{self.name}: CoE read 0x{index:04X}:{subindex:02X} aborted: "
+                             f"0x{exc.abort_code:08X} {exc.desc}") from None
+        return var.decode_raw(data)
+
+    def write(self, index: int, subindex: int, value: int) -> None:
+        var = self._variable(index, subindex)
+        try:
+            self._mailbox(self.slave.sdo_write, index, subindex, var.encode_raw(value))
+        except pysoem.SdoError as exc:
+            raise DriveError(f"{self.name}: CoE write 0x{index:04X}:{subindex:02X} = {value} "
+                             f"aborted: 0x{exc.abort_code:08X} {exc.desc}") from None
+        for k, obj in enumerate(self._outputs):
+            if (obj.index, obj.subindex) == (index, subindex):
+                self._staged[k] = value  # the next frame carries it too
+                self._stage()
+
+    def _mailbox(self, access, index: int, subindex: int, *data: bytes):
+        """One CoE SDO access, tried again when the mailbox exchange itself got no answer (a
+        register access SOEM gave up on after its few ms): an SDO abort is the drive's
+        answer and is not retried."""
+        for attempt in range(MAILBOX_ATTEMPTS):
+            self.line.keep_alive()
+            try:
+                return access(index, subindex, *data)
+            except (pysoem.WkcError, pysoem.MailboxError, pysoem.PacketError) as exc:
+                if attempt == MAILBOX_ATTEMPTS - 1:
+                    raise DriveError(f"{self.name}: CoE access 0x{index:04X}:{subindex:02X} "
+                                     f"failed {MAILBOX_ATTEMPTS} times: {exc!r}") from None
+
+    def _variable(self, index: int, subindex: int):
+        var = variable(self.dictionary, index, subindex)
+        if var is None:
+            raise DriveError(f"{self.name}: 0x{index:04X}:{subindex:02X} is not in the "
+                             "drive's dictionary")
+        return var
+
+    # --- process data ------------------------------------------------------------------------
+
+    def map_process_data(self, outputs: Sequence[MappedObject],
+                         inputs: Sequence[MappedObject]) -> None:
+        esi = self.line.esi
+        for objs, kind, pdos in ((outputs, "output", esi.rxpdos), (inputs, "input", esi.txpdos)):
+            missing = [str(o) for o in objs if not _mappable(self.dictionary, o)]
+            if missing:
+                raise ProfileError(f"{self.name}: the ESI's PDOs cannot carry {kind}s "
+                                   f"{', '.join(missing)}")
+            if objs and not pdos:
+                raise ProfileError(f"{self.name}: the ESI has no {kind} PDO")
+        self._write_pdo(ec.RXPDO_ASSIGN, esi.rxpdos[0].index if outputs else 0, outputs)
+        self._write_pdo(ec.TXPDO_ASSIGN, esi.txpdos[0].index if inputs else 0, inputs)
+        self._outputs, self._inputs = tuple(outputs), tuple(inputs)
+        self._out_codec = PdoLayout(0, self._outputs)
+        self._in_codec = PdoLayout(0, self._inputs)
+        self._staged = [0] * len(self._outputs)
+        self._statusword_at = next((k for k, o in enumerate(self._inputs)
+                                    if o.index == objects.STATUSWORD), None)
+        self._mapped = True
+
+    def _write_pdo(self, assign: int, pdo: int, mapped: Sequence[MappedObject]) -> None:
+        """Assignment off, mapping rewritten, assignment back on (ETG.1000.6 order), then
+        read back: a slave that kept something else is refused."""
+        self._sdo_write(assign, 0, _U8.pack(0))
+        if not pdo:
+            return
+        self._sdo_write(pdo, 0, _U8.pack(0))
+        for k, obj in enumerate(mapped, start=1):
+            self._sdo_write(pdo, k, _U32.pack(obj.mapping_entry))
+        self._sdo_write(pdo, 0, _U8.pack(len(mapped)))
+        self._sdo_write(assign, 1, _U16.pack(pdo))
+        self._sdo_write(assign, 0, _U8.pack(1))
+        entries = [self.read(pdo, k) for k in range(1, self.read(pdo, 0) + 1)]
+        (assigned,) = _U16.unpack(self._mailbox(self.slave.sdo_read, assign, 1))
+        if entries != [o.mapping_entry for o in mapped] or assigned != pdo:
+            raise ProfileError(f"{self.name}: PDO 0x{pdo:04X} reads back as "
+                               f"{[f'0x{e:08X}' for e in entries]} after the mapping was "
+                               "written")
+
+    def _sdo_write(self, index: int, subindex: int, data: bytes) -> None:
+        try:
+            self._mailbox(self.slave.sdo_write, index, subindex, data)
+        except pysoem.SdoError as exc:
+            raise ProfileError(f"{self.name}: PDO configuration 0x{index:04X}:{subindex:02X} "
+                               f"refused: 0x{exc.abort_code:08X} {exc.desc}") from None
+
+    def start(self, period: float) -> None:
+        """The drive's cycle period (0x1006, the physics step of an SM-synchronous drive),
+        then the line to OP once every slave in use has its process data mapped (the last
+        transport to start takes the line there; the first exchange at the latest)."""
+        if has(self.dictionary, objects.CYCLE_PERIOD_US):
+            self.write(objects.CYCLE_PERIOD_US, 0, int(round(period * 1e6)))
+        if self.line.all_ready():
+            self.line.go_operational()
+
+    def send(self, outputs: Sequence[int]) -> None:
+        self._staged[:] = outputs
+        self._stage()
+
+    def _stage(self) -> None:
+        if self.line.mapped and self._mapped:
+            self.slave.output = self._out_codec.struct.pack(*self._staged)
+
+    def exchange(self) -> tuple[int, ...]:
+        line = self.line
+        if not line.operational:
+            if not line.all_ready():
+                raise DriveError(f"{self.name}: the line is not operational: a slave in use "
+                                 "has no process data mapped yet")
+            line.go_operational()
+        if self._seen == line.frames:
+            line.cycle()  # this cycle's frame, for every slave on the line
+        elif line.failure is not None:
+            raise line.failure
+        self._seen = line.frames
+        values = self._in_codec.struct.unpack(self.slave.input)
+        at = self._statusword_at
+        if at is not None and values[at] & STATUSWORD_FAULT:
+            if self._emergency_polls < EMERGENCY_POLLS:
+                self._emergency_polls += 1
+                self._poll_mailbox()
+        else:
+            self._emergency_polls = 0
+        return values
+
+    def _poll_mailbox(self) -> None:
+        try:
+            self.slave.mbx_receive()
+        except (pysoem.WkcError, pysoem.MailboxError, pysoem.PacketError) as exc:
+            self.line.failure = self.line.failure or DriveLost(
+                f"{self.name}: mailbox unreadable: {exc!r}")
+
+    def _on_emergency(self, emergency) -> None:
+        self._emergency_polls = EMERGENCY_POLLS  # found it
+        self.on_emergency(emergency.error_code, emergency.error_reg)
+
+    @property
+    def failure(self) -> DriveError | None:
+        return self.line.failure
+
+    def stop(self) -> None:
+        try:
+            self.line.release(self.position)
+        except (pysoem.WkcError, OSError):
+            pass
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self.line.unclaim(self.position)
+
+
+def _mappable(dictionary, obj: MappedObject) -> bool:
+    var = variable(dictionary, obj.index, obj.subindex)
+    return var is not None and var.pdo_mappable
+
+
+def open_ethercat_transports(interface: str, positions: Sequence[int], *,
+                             lockstep: bool = False, esi: str | Path | EsiDevice | None = None,
+                             eds: str | Path | None = None,
+                             response_timeout: float | None = None,
+                             watchdog: float | None = None) -> list[EthercatTransport]:
+    """One transport per slave position on the line at `interface`, sharing its master (one
+    frame per cycle for all of them). `esi` defaults to the shipped elbow drive ESI."""
+    if not isinstance(esi, EsiDevice):
+        esi = load_esi(esi if esi is not None else shipped_esi_path())
+    line = EthercatMaster(interface, esi, lockstep=lockstep, response_timeout=response_timeout,
+                          watchdog=watchdog)
+    return [EthercatTransport(line, position, eds=eds) for position in positions]

@@ -1,0 +1,254 @@
+"""EtherCAT Slave Information (ESI, ETG.2000) read into plain data: identity, mailbox and
+sync manager layout, FMMU use, the PDOs and the CoE details. Only what the virtual slave's SII
+image and the master's checks need; the object dictionary itself stays in the EDS."""
+
+import copy
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+
+from canopen.objectdictionary import ObjectDictionary, ODVariable
+
+from protocol import ethercat as ec
+
+# ESI <DataType> names of the base types and their CoE data type codes (ETG.1000.6)
+DATA_TYPES = {"BOOL": 0x0001, "SINT": 0x0002, "INT": 0x0003, "DINT": 0x0004, "USINT": 0x0005,
+              "UINT": 0x0006, "UDINT": 0x0007, "REAL": 0x0008, "LREAL": 0x0011,
+              "LINT": 0x0015, "ULINT": 0x001B}
+SM_TYPES = {"MBoxOut": ec.SM_TYPE_MAILBOX_OUT, "MBoxIn": ec.SM_TYPE_MAILBOX_IN,
+            "Outputs": ec.SM_TYPE_OUTPUTS, "Inputs": ec.SM_TYPE_INPUTS}
+FMMU_USES = {"Outputs": ec.SII_FMMU_OUTPUTS, "Inputs": ec.SII_FMMU_INPUTS}
+
+
+class EsiError(ValueError):
+    """An ESI file this code cannot use; the message names the element."""
+
+
+@dataclass(frozen=True)
+class PdoEntry:
+    index: int
+    subindex: int
+    bits: int
+    name: str
+    data_type: int  # CoE data type code, 0 for a gap (index 0)
+
+    @property
+    def mapping_entry(self) -> int:
+        """The 32-bit value of a 0x16xx/0x1Axx mapping sub-index."""
+        return (self.index << 16) | (self.subindex << 8) | self.bits
+
+
+@dataclass(frozen=True)
+class Pdo:
+    index: int
+    name: str
+    sync_manager: int
+    entries: tuple[PdoEntry, ...]
+    fixed: bool
+    mandatory: bool
+
+    @property
+    def bits(self) -> int:
+        return sum(e.bits for e in self.entries)
+
+
+@dataclass(frozen=True)
+class SyncManager:
+    kind: str  # MBoxOut, MBoxIn, Outputs, Inputs
+    start: int
+    default_size: int
+    min_size: int
+    max_size: int
+    control: int
+    enable: bool
+
+    @property
+    def sm_type(self) -> int:
+        return SM_TYPES[self.kind]
+
+
+@dataclass(frozen=True)
+class EsiDevice:
+    vendor_id: int
+    vendor_name: str
+    product_code: int
+    revision: int
+    type_name: str  # order code
+    name: str
+    group: str
+    profile: int
+    fmmus: tuple[str, ...]
+    sync_managers: tuple[SyncManager, ...]
+    rxpdos: tuple[Pdo, ...]
+    txpdos: tuple[Pdo, ...]
+    coe_details: int  # ec.COE_DETAILS_* bits
+    eeprom_bytes: int
+    config_data: bytes  # SII words 0.. (PDI control, configuration, alias)
+
+    @property
+    def identity(self) -> tuple[int, int, int]:
+        return self.vendor_id, self.product_code, self.revision
+
+    def sync_manager(self, kind: str) -> SyncManager:
+        for sm in self.sync_managers:
+            if sm.kind == kind:
+                return sm
+        raise EsiError(f"ESI device {self.type_name!r} has no <Sm>{kind}</Sm>")
+
+    def sm_number(self, kind: str) -> int:
+        return self.sync_managers.index(self.sync_manager(kind))
+
+    @property
+    def pdo_objects(self) -> frozenset[tuple[int, int]]:
+        """(index, subindex) of every object the ESI's PDOs carry: what may be mapped into
+        process data over EtherCAT."""
+        return frozenset((e.index, e.subindex) for p in self.rxpdos + self.txpdos
+                         for e in p.entries if e.index)
+
+    def pdo_bytes(self, sync_manager: int) -> int:
+        """Size of the default process data of one sync manager (its PDOs' entries)."""
+        pdos = self.rxpdos + self.txpdos
+        return sum(p.bits for p in pdos if p.sync_manager == sync_manager) // 8
+
+
+def ethercat_dictionary(dictionary: ObjectDictionary, device: EsiDevice) -> ObjectDictionary:
+    """The drive's dictionary (its EDS) as seen through its ESI: the same objects, mappable
+    into process data only where the ESI's PDOs carry them. The CiA 402 layer picks its cyclic
+    objects from this, so over EtherCAT it uses the ESI's (cyclic synchronous torque) layout
+    and the slave accepts exactly that."""
+    seen = copy.deepcopy(dictionary)
+    allowed = device.pdo_objects
+    for obj in seen.values():
+        for var in obj.values() if not isinstance(obj, ODVariable) else (obj,):
+            var.pdo_mappable = var.pdo_mappable and (var.index, var.subindex) in allowed
+    return seen
+
+
+def load_esi(path: str | Path) -> EsiDevice:
+    """The first device of an ESI file. EsiError names the file and what is wrong."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise EsiError(f"{path}: cannot read ESI: {exc}") from None
+    try:
+        return parse_esi(text)
+    except EsiError as exc:
+        raise EsiError(f"{path}: {exc}") from None
+
+
+def parse_esi(text: str) -> EsiDevice:
+    try:
+        root = ET.fromstring(text)
+    except ET.ParseError as exc:
+        raise EsiError(f"not XML: {exc}") from None
+    if root.tag != "EtherCATInfo":
+        raise EsiError(f"root element is <{root.tag}>, expected <EtherCATInfo>")
+    vendor = _required(root, "Vendor")
+    device = _required(root, "Descriptions/Devices/Device")
+    type_element = _required(device, "Type")
+    mailbox = device.find("Mailbox/CoE")
+    coe_details = 0
+    if mailbox is not None:
+        coe_details = ec.COE_DETAILS_SDO
+        for attribute, bit in (("SdoInfo", ec.COE_DETAILS_SDO_INFO),
+                               ("PdoAssign", ec.COE_DETAILS_PDO_ASSIGN),
+                               ("PdoConfig", ec.COE_DETAILS_PDO_CONFIG),
+                               ("CompleteAccess", ec.COE_DETAILS_COMPLETE_ACCESS)):
+            if _boolean(mailbox.get(attribute, "0")):
+                coe_details |= bit
+    eeprom = device.find("Eeprom")
+    return EsiDevice(
+        vendor_id=_number(_text(vendor, "Id"), "Vendor/Id"),
+        vendor_name=_text(vendor, "Name"),
+        product_code=_number(type_element.get("ProductCode"), "Type@ProductCode"),
+        revision=_number(type_element.get("RevisionNo"), "Type@RevisionNo"),
+        type_name=(type_element.text or "").strip(),
+        name=_text(device, "Name"),
+        group=_text(device, "GroupType"),
+        profile=_number(device.findtext("Profile/ProfileNo", "0"), "Profile/ProfileNo"),
+        fmmus=tuple(_fmmu(e) for e in device.findall("Fmmu")),
+        sync_managers=tuple(_sync_manager(e) for e in device.findall("Sm")),
+        rxpdos=tuple(_pdo(e) for e in device.findall("RxPdo")),
+        txpdos=tuple(_pdo(e) for e in device.findall("TxPdo")),
+        coe_details=coe_details,
+        eeprom_bytes=_number(eeprom.findtext("ByteSize", "2048") if eeprom is not None
+                             else "2048", "Eeprom/ByteSize"),
+        config_data=bytes.fromhex(eeprom.findtext("ConfigData", "") if eeprom is not None
+                                  else ""),
+    )
+
+
+def _required(element: ET.Element, path: str) -> ET.Element:
+    found = element.find(path)
+    if found is None:
+        raise EsiError(f"missing <{path}>")
+    return found
+
+
+def _text(element: ET.Element, path: str) -> str:
+    return (_required(element, path).text or "").strip()
+
+
+def _number(text: str | None, where: str) -> int:
+    """ESI numbers: decimal or '#x' hexadecimal."""
+    if text is None:
+        raise EsiError(f"missing {where}")
+    text = text.strip()
+    try:
+        return int(text[2:], 16) if text[:2].lower() == "#x" else int(text)
+    except ValueError:
+        raise EsiError(f"{where}: {text!r} is not a number (decimal or #x hex)") from None
+
+
+def _boolean(text: str) -> bool:
+    return text.strip().lower() in ("1", "true")
+
+
+def _fmmu(element: ET.Element) -> str:
+    use = (element.text or "").strip()
+    if use not in FMMU_USES:
+        raise EsiError(f"<Fmmu>{use}</Fmmu>: expected one of {', '.join(FMMU_USES)}")
+    return use
+
+
+def _sync_manager(element: ET.Element) -> SyncManager:
+    kind = (element.text or "").strip()
+    if kind not in SM_TYPES:
+        raise EsiError(f"<Sm>{kind}</Sm>: expected one of {', '.join(SM_TYPES)}")
+    size = _number(element.get("DefaultSize", "0"), f"Sm {kind} DefaultSize")
+    return SyncManager(
+        kind=kind,
+        start=_number(element.get("StartAddress"), f"Sm {kind} StartAddress"),
+        default_size=size,
+        min_size=_number(element.get("MinSize", str(size)), f"Sm {kind} MinSize"),
+        max_size=_number(element.get("MaxSize", str(size)), f"Sm {kind} MaxSize"),
+        control=_number(element.get("ControlByte"), f"Sm {kind} ControlByte"),
+        enable=_boolean(element.get("Enable", "0")),
+    )
+
+
+def _pdo(element: ET.Element) -> Pdo:
+    index = _number(element.findtext("Index"), f"<{element.tag}> Index")
+    where = f"<{element.tag}> 0x{index:04X}"
+    entries = []
+    for entry in element.findall("Entry"):
+        entry_index = _number(entry.findtext("Index"), f"{where} Entry Index")
+        type_name = (entry.findtext("DataType") or "").strip()
+        if entry_index and type_name not in DATA_TYPES:
+            raise EsiError(f"{where}: data type {type_name!r} is not one of "
+                           f"{', '.join(DATA_TYPES)}")
+        entries.append(PdoEntry(
+            index=entry_index,
+            subindex=_number(entry.findtext("SubIndex", "0"), f"{where} Entry SubIndex"),
+            bits=_number(entry.findtext("BitLen"), f"{where} Entry BitLen"),
+            name=(entry.findtext("Name") or "").strip(),
+            data_type=DATA_TYPES.get(type_name, 0),
+        ))
+    return Pdo(
+        index=index,
+        name=(element.findtext("Name") or "").strip(),
+        sync_manager=_number(element.get("Sm"), f"{where} Sm"),
+        entries=tuple(entries),
+        fixed=_boolean(element.get("Fixed", "0")),
+        mandatory=_boolean(element.get("Mandatory", "0")),
+    )

@@ -1,0 +1,330 @@
+"""The slave's firmware behind the ESC: the EtherCAT state machine with its checks and
+refusals, the mailbox (CoE) and the process data, around one transport-neutral CiA 402 device.
+
+States (ETG.1000.6): INIT; PRE-OP once the mailbox sync managers match the SII (CoE works,
+PDO assignment and mapping can change); SAFE-OP once SM2/SM3 match the assigned PDOs (inputs
+valid, outputs ignored); OP at the first output buffer after the request (outputs applied).
+A refused request leaves the state, raises the error indicator and names the AL status
+code; the master acknowledges it with bit 4 of AL control.
+
+SM-synchronous cycle: every completed output buffer (a frame writing SM2) runs one device
+cycle, exactly as a SYNC does on CAN: outputs latched (in OP), physics advanced one period,
+inputs sampled into SM3, all before the frame leaves this slave.
+"""
+
+import logging
+import operator
+from collections import deque
+
+from protocol import ethercat as ec
+from protocol.dictionary import mappable_object
+from protocol.esi import EsiDevice
+from protocol.pdo import PdoLayout
+from sim_bus.device import Cia402Device, DeviceAccessError
+from sim_bus.ethercat.esc import Esc
+from sim_bus.ethercat.mailbox import CoeMailbox
+from sim_bus.ethercat.objects import CoeObjects
+from sim_bus.faults import TPDO_DELAY, Fault
+
+log = logging.getLogger(__name__)
+
+_VALID_REQUESTS = frozenset(s.value for s in ec.AlState if s is not ec.AlState.NONE)
+
+
+class SlaveFirmware:
+    """One slave's application; `attach` it to its ESC before the first frame."""
+
+    def __init__(self, device: Cia402Device, esi: EsiDevice):
+        self.device = device
+        self.esi = esi
+        self.objects = CoeObjects(device, esi)
+        self.mailbox_out = esi.sm_number("MBoxOut")
+        self.mailbox_in = esi.sm_number("MBoxIn")
+        self.outputs_sm = esi.sm_number("Outputs")
+        self.inputs_sm = esi.sm_number("Inputs")
+        size = min(esi.sync_manager("MBoxOut").default_size,
+                   esi.sync_manager("MBoxIn").default_size)
+        self.mailbox = CoeMailbox(self.objects, size)
+        self.esc: Esc | None = None
+        self._outbox: deque[bytes] = deque()
+        self._deferred: list[bytes] | None = None
+        self._last_sent: bytes | None = None
+        self._op_requested = False
+        self._outputs_seen = False
+        self._out_keys: tuple[tuple[int, int], ...] = ()
+        self._in_keys: tuple[tuple[int, int], ...] = ()
+        self._unpack_outputs = self._pack_inputs = None
+        self._out_start = self._in_start = 0
+        self._input_values = None  # the device's value table -> the inputs, in PDO order
+        self.cycles = 0
+        self.refused_outputs = 0  # output values the device refused (out of its range)
+        self.delay_next_frame = 0.0  # s, fault injection: hold the frame this long
+        self.repeat_next_frame = False  # fault injection: send the frame twice
+        device.add_emergency_handler(self._emergency)
+        device.add_fault_handler(self._communication_fault)
+
+    def attach(self, esc: Esc) -> None:
+        self.esc = esc
+        self._enter_init()
+
+    @property
+    def state(self) -> int:
+        return self.esc.al_status & ec.AL_STATE_MASK if self.esc is not None else 0
+
+    # --- AL control ------------------------------------------------------------------------
+
+    def al_control(self, esc: Esc, control: int) -> None:
+        requested = control & ec.AL_STATE_MASK
+        status = esc.al_status
+        current = status & ec.AL_STATE_MASK
+        error = status & ec.AL_ERROR
+        code = _u16(esc, ec.REG_AL_STATUS_CODE)
+        if error:
+            if control & ec.AL_ERROR:
+                error, code = 0, ec.AL_NO_ERROR
+            elif requested > current and requested != ec.AlState.BOOT:
+                return  # an unacknowledged error blocks every way up
+        if requested not in _VALID_REQUESTS:
+            esc.set_al_status(current | ec.AL_ERROR, ec.AL_UNKNOWN_STATE)
+            return
+        if requested == ec.AlState.BOOT:
+            esc.set_al_status(current | ec.AL_ERROR, ec.AL_BOOTSTRAP_NOT_SUPPORTED)
+            return
+        if requested == current:
+            if current == ec.AlState.SAFE_OP:
+                self._op_requested = False
+            esc.set_al_status(current | error, code)
+            return
+        refusal = self._transition(current, requested)
+        if refusal:
+            esc.set_al_status(current | ec.AL_ERROR, refusal)
+            return
+        if requested == ec.AlState.OP and not self._outputs_seen:
+            self._op_requested = True  # OP at the first output buffer (valid outputs)
+            esc.set_al_status(current | error, code)
+            return
+        esc.set_al_status(requested | error, code)
+
+    def _transition(self, current: int, requested: int) -> int:
+        """Leave `current` for `requested`; the AL status code of a refusal, or 0."""
+        if current == ec.AlState.OP:
+            self._leave_op(f"master requested {ec.al_state_name(requested)}")
+        if requested == ec.AlState.INIT:
+            self._enter_init()
+            return 0
+        if requested == ec.AlState.PRE_OP:
+            if current == ec.AlState.INIT:
+                return self._start_mailbox()
+            self._stop_process_data()
+            self.objects.pdo_config_allowed = True
+            return 0
+        if requested == ec.AlState.SAFE_OP:
+            if current == ec.AlState.PRE_OP:
+                return self._start_process_data()
+            if current == ec.AlState.OP:
+                self._op_requested = False
+                return 0
+            return ec.AL_INVALID_STATE_CHANGE
+        # OP
+        if current != ec.AlState.SAFE_OP:
+            return ec.AL_INVALID_STATE_CHANGE
+        return 0
+
+    def _enter_init(self) -> None:
+        self._stop_process_data()
+        self.objects.pdo_config_allowed = False
+        self._outbox.clear()
+        self._last_sent = None
+        esc = self.esc
+        esc.clear_mailbox(self.mailbox_out)
+        esc.clear_mailbox(self.mailbox_in)
+
+    def _start_mailbox(self) -> int:
+        """INIT -> PRE-OP: the mailbox sync managers must be the SII's."""
+        for number, kind in ((self.mailbox_out, "MBoxOut"), (self.mailbox_in, "MBoxIn")):
+            expected = self.esi.sync_manager(kind)
+            start, length, control, activate = self.esc.sync_manager(number)
+            if (start != expected.start or not expected.min_size <= length
+                    <= expected.max_size or control != expected.control
+                    or not activate & ec.SM_ACTIVATE_ENABLE):
+                log.warning("SM%d %s: start 0x%04X length %d control 0x%02X activate 0x%02X "
+                            "does not match the SII", number, kind, start, length, control,
+                            activate)
+                return ec.AL_INVALID_MAILBOX_CONFIGURATION
+        self.mailbox.size = min(self.esc.sync_manager(self.mailbox_out)[1],
+                                self.esc.sync_manager(self.mailbox_in)[1])
+        self.mailbox.reset()
+        self.esc.clear_mailbox(self.mailbox_in)
+        self.objects.pdo_config_allowed = True
+        return 0
+
+    def _start_process_data(self) -> int:
+        """PRE-OP -> SAFE-OP: SM2/SM3 must carry exactly the assigned PDOs."""
+        try:
+            outputs = [mappable_object(self.device.dictionary, e)
+                       for e in self.objects.assigned_entries(ec.RXPDO_ASSIGN)]
+            inputs = [mappable_object(self.device.dictionary, e)
+                      for e in self.objects.assigned_entries(ec.TXPDO_ASSIGN)]
+        except ValueError as exc:
+            log.warning("process data mapping: %s", exc)
+            return ec.AL_INVALID_OUTPUT_CONFIGURATION
+        out_codec = PdoLayout(0, tuple(outputs))
+        in_codec = PdoLayout(0, tuple(inputs))
+        for number, codec, direction, code in (
+                (self.outputs_sm, out_codec, ec.SM_DIRECTION_WRITE,
+                 ec.AL_INVALID_OUTPUT_CONFIGURATION),
+                (self.inputs_sm, in_codec, ec.SM_DIRECTION_READ,
+                 ec.AL_INVALID_INPUT_CONFIGURATION)):
+            start, length, control, activate = self.esc.sync_manager(number)
+            enabled = bool(activate & ec.SM_ACTIVATE_ENABLE)
+            if not codec.objects and not enabled:
+                continue
+            if (length != codec.size or not enabled
+                    or control & ec.SM_CONTROL_MODE_MASK != ec.SM_MODE_BUFFERED
+                    or control & ec.SM_CONTROL_DIRECTION_MASK != direction
+                    or start < ec.PROCESS_RAM_START or self._overlaps_mailbox(start, length)):
+                log.warning("SM%d: start 0x%04X length %d control 0x%02X activate 0x%02X, "
+                            "expected %d bytes for the assigned PDOs", number, start, length,
+                            control, activate, codec.size)
+                return code
+        # the cycle's codecs and buffer addresses (an enabled sync manager cannot move)
+        self._unpack_outputs = out_codec.struct.unpack_from
+        self._pack_inputs = in_codec.struct.pack_into
+        self._out_start = self.esc.sync_manager(self.outputs_sm)[0]
+        self._in_start = self.esc.sync_manager(self.inputs_sm)[0]
+        self._out_keys = tuple((o.index, o.subindex) for o in outputs)
+        self._in_keys = tuple((o.index, o.subindex) for o in inputs)
+        if self._in_keys:
+            getter = operator.itemgetter(*self._in_keys)
+            self._input_values = getter if len(self._in_keys) > 1 else (
+                lambda table: (getter(table),))
+        self._outputs_seen = self._op_requested = False
+        self.objects.pdo_config_allowed = False
+        self._write_inputs()
+        self.esc.set_sync_manager_active(self.outputs_sm, True)
+        self.esc.set_sync_manager_active(self.inputs_sm, True)
+        return 0
+
+    def _overlaps_mailbox(self, start: int, length: int) -> bool:
+        for number in (self.mailbox_out, self.mailbox_in):
+            other, other_length, _, _ = self.esc.sync_manager(number)
+            if start < other + other_length and other < start + length:
+                return True
+        return False
+
+    def _stop_process_data(self) -> None:
+        esc = self.esc
+        esc.set_sync_manager_active(self.outputs_sm, False)
+        esc.set_sync_manager_active(self.inputs_sm, False)
+        esc.stop_watchdog()
+        self._op_requested = self._outputs_seen = False
+
+    def _leave_op(self, reason: str) -> None:
+        """Outputs stop being applied; a drive left powered reacts as to a lost master
+        (abort connection option 0x6007)."""
+        if self.device.power_stage_on:
+            self.device.master_lost(f"EtherCAT {reason}", ec.EMCY_ESM_TRANSITION)
+
+    # --- process data ----------------------------------------------------------------------
+
+    def outputs_received(self, esc: Esc) -> None:
+        self._outputs_seen = True
+        memory = esc.memory
+        if self._op_requested:
+            self._op_requested = False
+            memory[ec.REG_AL_STATUS] = ec.AlState.OP | memory[ec.REG_AL_STATUS] & ec.AL_ERROR
+        device = self.device
+        if memory[ec.REG_AL_STATUS] & ec.AL_STATE_MASK == ec.AlState.OP and self._out_keys:
+            try:
+                device.write_outputs(self._out_keys, self._unpack_outputs(memory,
+                                                                          self._out_start))
+            except DeviceAccessError as exc:
+                self.refused_outputs += 1
+                log.debug("outputs refused: %s", exc)
+        device.cycle()
+        self.cycles += 1
+        if self._in_keys:
+            self._pack_inputs(memory, self._in_start, *self._input_values(device.values))
+
+    def _write_inputs(self) -> None:
+        if self._in_keys:
+            self._pack_inputs(self.esc.memory, self._in_start,
+                              *self._input_values(self.device.values))
+
+    def watchdog_expired(self, esc: Esc) -> None:
+        """No outputs within the watchdog time: the master is gone. OP drops to SAFE-OP with
+        the error indicator (AL status code 0x001B) and the drive reacts to the lost master."""
+        state = esc.al_status & ec.AL_STATE_MASK
+        if state == ec.AlState.OP or self._op_requested:
+            self._op_requested = False
+            esc.set_al_status(ec.AlState.SAFE_OP | ec.AL_ERROR, ec.AL_SM_WATCHDOG)
+            self.device.master_lost("EtherCAT sync manager watchdog expired",
+                                    ec.EMCY_ESM_TRANSITION)
+
+    # --- mailbox ---------------------------------------------------------------------------
+
+    def mailbox_received(self, esc: Esc, message: bytes) -> None:
+        if esc.al_status & ec.AL_STATE_MASK == ec.AlState.INIT:
+            return  # the mailbox runs from PRE-OP on
+        self._deferred = []  # an emergency the request itself causes follows its answer
+        try:
+            self._outbox.extend(self.mailbox.handle(message))
+        finally:
+            deferred, self._deferred = self._deferred, None
+            self._outbox.extend(deferred)
+        self.frame_passed(esc)
+
+    def mailbox_read(self, esc: Esc) -> None:
+        self.frame_passed(esc)
+
+    def mailbox_repeat(self, esc: Esc) -> None:
+        if self._last_sent is not None:
+            esc.clear_mailbox(self.mailbox_in)
+            esc.post_mailbox(self.mailbox_in, self._last_sent)
+
+    def frame_passed(self, esc: Esc) -> None:
+        """Post the next queued message once the mailbox-in buffer is free."""
+        if self._outbox and esc.mailbox_in_empty(self.mailbox_in):
+            message = self._outbox[0]
+            if esc.post_mailbox(self.mailbox_in, message):
+                self._outbox.popleft()
+                self._last_sent = message
+
+    def _emergency(self, code: int, register: int) -> None:
+        """The device's emergency, as a CoE emergency (from PRE-OP on; lost in INIT, as on
+        a real slave). Posted at the next frame: this may run in another thread."""
+        if self.esc is not None and self.state != ec.AlState.INIT:
+            message = self.mailbox.emergency(code, register)
+            (self._deferred if self._deferred is not None else self._outbox).append(message)
+
+    # --- faults of the communication (the device acts out its own) ---------------------------
+
+    def _communication_fault(self, fault: Fault) -> None:
+        esc = self.esc
+        if fault is Fault.SILENT:
+            esc.present = False
+        elif fault is Fault.REBOOT:
+            self.reboot()
+        elif fault is Fault.TPDO_LATE:
+            self.delay_next_frame = TPDO_DELAY
+        elif fault is Fault.TPDO_TWICE:
+            self.repeat_next_frame = True
+        else:
+            log.warning("fault %s has no EtherCAT equivalent here", fault.name.lower())
+
+    def reboot(self) -> None:
+        """Power glitch: ESC registers back to reset values (INIT, no station address), the
+        device back to power-on values, its physics untouched."""
+        self.esc.power_on()
+        self.device.reset_application()
+        self.objects.reset()
+        self._enter_init()
+
+    def hold(self) -> float:
+        """Fault injection: how long the segment holds the current frame (0 normally)."""
+        delay, self.delay_next_frame = self.delay_next_frame, 0.0
+        return delay
+
+
+def _u16(esc: Esc, address: int) -> int:
+    return esc.memory[address] | esc.memory[address + 1] << 8

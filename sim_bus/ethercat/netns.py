@@ -1,0 +1,182 @@
+"""A private virtual cable for a virtual EtherCAT line: a network namespace of its own with a
+veth pair in it, the slaves in a separate process on one end, the master on the other.
+
+The machine's own interfaces are never touched and the namespace is deleted on close. The
+master runs in the caller's thread, moved into the namespace with setns(2) for the time of a
+`with line.entered():` block (sockets made there stay in the namespace). The slaves run in a
+spawned process that can be killed like a real line loses power. Needs root (or
+CAP_SYS_ADMIN and CAP_NET_RAW); `LinkUnavailable` says what is missing.
+"""
+
+import contextlib
+import ctypes
+import multiprocessing
+import os
+import secrets
+import shutil
+import signal
+import subprocess
+import threading
+from collections.abc import Iterator
+
+from model.parameters import ActuatorModel, Payload
+from sim_bus.device import Cia402Device
+from sim_bus.plant import SensorNoise
+
+MASTER_PORT, LINE_PORT = "ecm0", "ecs0"
+CLONE_NEWNET = 0x40000000
+START_TIMEOUT = 60.0  # s for the slave process to import, build its drives and open the port
+SLAVE_PRIORITY = 10  # SCHED_RR priority of the slave process (1..99; it blocks on its socket)
+_setns_lock = threading.Lock()
+
+
+class LinkUnavailable(RuntimeError):
+    """This kernel or these privileges cannot make the virtual cable (the reason is the
+    message): no `ip`, no network namespaces, no veth, no raw packet sockets."""
+
+
+class VirtualLink:
+    """Namespace `ecat-<random>` with the veth pair MASTER_PORT <-> LINE_PORT, both up."""
+
+    def __init__(self):
+        if shutil.which("ip") is None:
+            raise LinkUnavailable("no `ip` command (iproute2) to make a network namespace")
+        self.name = f"ecat-{secrets.token_hex(4)}"
+        self.master_port, self.line_port = MASTER_PORT, LINE_PORT
+        made = _ip("netns", "add", self.name)
+        if made.returncode:
+            raise LinkUnavailable(f"cannot make a network namespace: {made.stderr.strip()}")
+        try:
+            veth = _ip("-n", self.name, "link", "add", MASTER_PORT, "type", "veth", "peer",
+                       "name", LINE_PORT)
+            if veth.returncode:
+                raise LinkUnavailable(f"cannot make a veth pair: {veth.stderr.strip()}")
+            for port in (MASTER_PORT, LINE_PORT):
+                _ip("-n", self.name, "link", "set", port, "up")
+            with self.entered():
+                import socket
+                try:
+                    socket.socket(socket.AF_PACKET, socket.SOCK_RAW).close()
+                except OSError as exc:
+                    raise LinkUnavailable(f"no raw packet sockets: {exc}") from None
+        except BaseException:
+            self.close()
+            raise
+
+    @contextlib.contextmanager
+    def entered(self) -> Iterator[None]:
+        """This thread inside the namespace for the block."""
+        libc = ctypes.CDLL(None, use_errno=True)
+        with _setns_lock, open("/proc/thread-self/ns/net") as home, \
+                open(f"/run/netns/{self.name}") as target:
+            if libc.setns(target.fileno(), CLONE_NEWNET):
+                raise LinkUnavailable(f"setns: {os.strerror(ctypes.get_errno())}")
+            try:
+                yield
+            finally:
+                if libc.setns(home.fileno(), CLONE_NEWNET):
+                    raise OSError(ctypes.get_errno(), "setns back to the caller's namespace")
+
+    def close(self) -> None:
+        _ip("netns", "del", self.name)
+
+    def __enter__(self) -> "VirtualLink":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _ip(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["ip", *args], capture_output=True, text=True, timeout=10)
+
+
+class SlaveProcess:
+    """`count` virtual drives as a line of slaves on the link's line port, in their own
+    process. `report()` stops them and returns each one's end state; `kill()` is a power cut."""
+
+    def __init__(self, link: VirtualLink, count: int, model: ActuatorModel,
+                 payload: Payload = Payload(), noise: SensorNoise = SensorNoise()):
+        context = multiprocessing.get_context("spawn")
+        self._pipe, child = context.Pipe()
+        self.process = context.Process(
+            target=_serve_line, args=(link.name, link.line_port, count, model, payload, noise,
+                                      child), daemon=True, name="ethercat-line")
+        self.process.start()
+        child.close()
+        if not self._pipe.poll(START_TIMEOUT):
+            self.process.kill()
+            raise RuntimeError(f"the slave process did not start within {START_TIMEOUT} s")
+        try:
+            message = self._pipe.recv()
+        except EOFError:
+            self.process.join(5)
+            raise RuntimeError("the slave process died at start (exit code "
+                               f"{self.process.exitcode})") from None
+        if message != "ready":
+            self.process.join(5)
+            raise RuntimeError(f"the slave process failed: {message}")
+
+    def kill(self) -> None:
+        self.process.kill()
+        self.process.join(10)
+
+    def report(self) -> list[dict]:
+        os.kill(self.process.pid, signal.SIGTERM)
+        if not self._pipe.poll(20):
+            raise RuntimeError("no report from the slave process")
+        report = self._pipe.recv()
+        self.process.join(10)
+        return report
+
+    def close(self) -> None:
+        if self.process.is_alive():
+            self.process.kill()
+        self.process.join(10)
+        self._pipe.close()
+
+    def __enter__(self) -> "SlaveProcess":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _serve_line(namespace: str, port: str, count: int, model: ActuatorModel, payload: Payload,
+                noise: SensorNoise, pipe) -> None:
+    """The slave process: into the namespace, the drives on the port until SIGTERM, then the
+    end state of every slave down the pipe."""
+    from protocol import ethercat as ec
+    from sim_bus.ethercat.segment import serve
+
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        # an ESC answers within microseconds and SOEM allows a register access 2 ms: on a
+        # busy host the slaves' process needs the scheduler's preference to keep that
+        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(SLAVE_PRIORITY))
+    except (OSError, AttributeError):
+        pass  # not permitted here: the line still works, with SOEM retrying more often
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        with open(f"/run/netns/{namespace}") as target:
+            if libc.setns(target.fileno(), CLONE_NEWNET):
+                raise OSError(ctypes.get_errno(), "setns")
+        devices = [Cia402Device(model, payload, SensorNoise(noise.current, noise.joint_torque,
+                                                            None if noise.seed is None
+                                                            else noise.seed + k))
+                   for k in range(count)]
+        segment = serve(port, devices, stop, on_ready=lambda _: pipe.send("ready"))
+    except Exception as exc:  # the parent raises it with the reason
+        pipe.send(f"{type(exc).__name__}: {exc}")
+        return
+    pipe.send([{
+        "al_status": esc.al_status,
+        "al_status_code": esc.memory[ec.REG_AL_STATUS_CODE]
+        | esc.memory[ec.REG_AL_STATUS_CODE + 1] << 8,
+        "state": firmware.device.state.name,
+        "brake_engaged": firmware.device.brake_engaged,
+        "master_loss": firmware.device.master_loss,
+        "cycles": firmware.cycles,
+        "position": firmware.device.plant.position,
+    } for esc, firmware in zip(segment.escs, segment.firmwares, strict=True)])

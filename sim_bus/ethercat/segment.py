@@ -1,0 +1,146 @@
+"""Virtual EtherCAT slaves in a line on one Ethernet interface, each its own CiA 402 drive.
+
+A frame from the master (EtherType 0x88A4) passes every slave in order, as it does through
+the ports of real slave controllers, and goes back out of the same interface with the
+addresses, data and working counters the slaves left in it. Anything an ESC would not process
+(other EtherTypes, broken lengths) is dropped and counted in the first slave's invalid frame
+counter (0x0300) instead of being answered, as a frame with a broken checksum would be.
+"""
+
+import logging
+import socket
+import threading
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from protocol import esi_path as shipped_esi_path
+from protocol import ethercat as ec
+from protocol.esi import EsiDevice, load_esi
+from protocol.sii import build_sii
+from sim_bus.device import Cia402Device
+from sim_bus.ethercat.esc import Esc
+from sim_bus.ethercat.firmware import SlaveFirmware
+
+log = logging.getLogger(__name__)
+
+POLL = 0.01  # s: how often the loop looks at the stop event and the watchdogs when idle
+FRAME_BUFFER = 2048  # a maximum Ethernet frame fits
+
+
+class Segment:
+    """The slaves of one line, in the order a frame passes them (position 0 first)."""
+
+    def __init__(self, devices: Sequence[Cia402Device], esi: EsiDevice | None = None):
+        self.esi = esi if esi is not None else load_esi(shipped_esi_path())
+        self.firmwares = [SlaveFirmware(device, self.esi) for device in devices]
+        self.escs = []
+        for position, firmware in enumerate(self.firmwares):
+            esc = Esc(build_sii(self.esi, serial=position + 1), firmware)
+            esc.set_link(last=position == len(self.firmwares) - 1)
+            firmware.attach(esc)
+            self.escs.append(esc)
+        self.lock = threading.Lock()  # one frame at a time; Python callers take it too
+        self.frames = 0
+        self.dropped = 0
+
+    def process(self, frame: bytearray, length: int, now: float) -> bool:
+        """Pass one received frame through the slaves, in place; False: no answer."""
+        with self.lock:
+            answered = pass_frame(self.escs, frame, length, now)
+        if answered:
+            self.frames += 1
+        else:
+            self.dropped += 1
+        return answered
+
+    def check_watchdogs(self, now: float) -> None:
+        with self.lock:
+            for esc in self.escs:
+                esc.check_watchdog(now)
+
+    def injected_timing(self) -> tuple[float, bool]:
+        """Fault injection on the answer to the frame just processed: (hold it this many
+        seconds, send it twice)."""
+        delay, twice = 0.0, False
+        for firmware in self.firmwares:
+            delay = max(delay, firmware.hold())
+            twice = twice or firmware.repeat_next_frame
+            firmware.repeat_next_frame = False
+        return delay, twice
+
+
+def pass_frame(escs: Sequence[Esc], frame: bytearray, length: int, now: float) -> bool:
+    """One frame through a line of slave controllers, in place; False when it is not a frame
+    they process (counted by the first one's invalid frame counter)."""
+    spans = ec.datagram_spans(frame, length)
+    if spans is None:
+        if escs and escs[0].present:
+            memory = escs[0].memory
+            memory[ec.REG_RX_ERROR_COUNTER] = min(0xFF, memory[ec.REG_RX_ERROR_COUNTER] + 1)
+        return False
+    view = memoryview(frame)
+    for esc in escs:
+        esc.now = now
+        esc.process(frame, view, spans)
+    frame[ec.SOURCE_MAC_OFFSET] |= ec.SOURCE_MAC_PROCESSED_BIT
+    return True
+
+
+def open_socket(interface: str) -> socket.socket:
+    """A raw socket receiving the interface's EtherCAT frames (the kernel filters the
+    EtherType, so the loop never wakes for other traffic). OSError if it cannot."""
+    sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ec.ETHERTYPE))
+    try:
+        sock.bind((interface, ec.ETHERTYPE))
+    except OSError:
+        sock.close()
+        raise
+    return sock
+
+
+def run(sock: socket.socket, segment: Segment, stop: threading.Event) -> None:
+    """Answer frames until `stop` is set. A frame the slaves cannot handle is logged and
+    dropped; the loop itself never ends on a frame."""
+    sock.settimeout(POLL)
+    buffer = bytearray(FRAME_BUFFER)
+    view = memoryview(buffer)
+    clock = time.monotonic
+    while not stop.is_set():
+        try:
+            length = sock.recv_into(buffer)
+        except TimeoutError:
+            segment.check_watchdogs(clock())
+            continue
+        now = clock()
+        try:
+            answer = segment.process(buffer, length, now)
+        except Exception:  # a slave's bug must not take the whole line down
+            log.exception("frame of %d bytes dropped", length)
+            continue
+        if answer:
+            delay, twice = segment.injected_timing()
+            if delay:
+                time.sleep(delay)
+            sock.send(view[:length])
+            if twice:
+                sock.send(view[:length])
+        segment.check_watchdogs(now)
+
+
+def serve(interface: str, devices: Sequence[Cia402Device], stop: threading.Event,
+          esi_path: str | Path | None = None,
+          on_ready: Callable[[Segment], None] | None = None) -> Segment:
+    """Run `devices` as a line of EtherCAT slaves on `interface` until `stop` is set (the
+    library entry of `sim-bus --bus ethercat:IFACE`); `on_ready(segment)` once the interface
+    is open. Raises OSError when the interface cannot be opened and EsiError for a bad ESI
+    file; returns the segment for inspection."""
+    segment = Segment(devices, load_esi(esi_path) if esi_path is not None else None)
+    sock = open_socket(interface)
+    if on_ready is not None:
+        on_ready(segment)
+    try:
+        run(sock, segment, stop)
+    finally:
+        sock.close()
+    return segment

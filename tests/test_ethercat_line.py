@@ -1,0 +1,255 @@
+"""Virtual EtherCAT slaves and the pysoem master on a veth pair in a private network
+namespace: bring-up as SOEM does it, CST process data, lock-step cycles, and the faults
+(slave killed, state refused, master lost, emergencies, malformed frames)."""
+
+import dataclasses
+import socket
+import struct
+import time
+
+import pysoem
+import pytest
+
+from driver.ethercat_drive import JointOnLine, open_ethercat_drives
+from driver.ethercat_transport import open_ethercat_transports
+from driver.interface import DriveError, DriveFault, DriveLost, ProfileError
+from model.parameters import load_model
+from protocol import esi_path, objects
+from protocol import ethercat as ec
+from protocol.dictionary import mapped_object, variable
+from protocol.esi import load_esi
+from sim_bus.ethercat.netns import LinkUnavailable, SlaveProcess, VirtualLink
+
+ESI = load_esi(esi_path())
+MODEL = load_model()
+CONTROLWORD_ENABLE = 0x0F
+
+
+def joint(position: int) -> JointOnLine:
+    return JointOnLine(position, MODEL.limits.velocity_max, MODEL.parameters.drive_gain)
+
+
+@pytest.fixture
+def link():
+    try:
+        virtual = VirtualLink()
+    except LinkUnavailable as exc:
+        pytest.skip(str(exc))
+    with virtual:
+        yield virtual
+
+
+def slaves(link, count):
+    return SlaveProcess(link, count, MODEL)
+
+
+def cst_profile(dictionary):
+    obj = lambda index: mapped_object(variable(dictionary, index))  # noqa: E731
+    return ((obj(objects.CONTROLWORD), obj(objects.TARGET_TORQUE)),
+            (obj(objects.STATUSWORD), obj(objects.POSITION_ACTUAL), obj(objects.VELOCITY_ACTUAL),
+             obj(objects.CURRENT_ACTUAL), obj(objects.JOINT_TORQUE_SENSOR)))
+
+
+def bring_up(transports):
+    for transport in transports:
+        transport.boot(5.0)
+        transport.write(objects.MODES_OF_OPERATION, 0, objects.MODE_CYCLIC_SYNC_TORQUE)
+        transport.map_process_data(*cst_profile(transport.dictionary))
+        transport.start(1e-3)
+
+
+def enable(transport):
+    for controlword in (0x06, 0x07, CONTROLWORD_ENABLE):
+        transport.write(objects.CONTROLWORD, 0, controlword)
+
+
+def close(transports):
+    for transport in transports:
+        transport.stop()
+        transport.close()
+
+
+def test_soem_finds_the_slaves_reads_their_sii_and_maps_the_cst_layout(link):
+    with slaves(link, 2), link.entered():
+        master = pysoem.Master()
+        master.open(link.master_port)
+        try:
+            assert master.config_init() == 2
+            for slave in master.slaves:
+                assert (slave.man, slave.id, slave.rev) == ESI.identity
+                assert slave.name == ESI.name
+            assert master.state_check(pysoem.PREOP_STATE, 2_000_000) == pysoem.PREOP_STATE
+            assert master.config_map() == 2 * (4 + 18)
+            assert master.state_check(pysoem.SAFEOP_STATE, 2_000_000) == pysoem.SAFEOP_STATE
+            slave = master.slaves[1]
+            assert (len(slave.output), len(slave.input)) == (4, 18)
+            assert struct.unpack("<H", slave.sdo_read(0x1C12, 1))[0] == 0x1600
+            assert [struct.unpack("<I", slave.sdo_read(0x1A00, k))[0] for k in range(1, 7)] == [
+                e.mapping_entry for e in ESI.txpdos[0].entries]
+            master.state = pysoem.OP_STATE
+            master.write_state()
+            for _ in range(5):
+                master.send_processdata()
+                assert master.receive_processdata(100_000) == master.expected_wkc == 6
+            assert master.state_check(pysoem.OP_STATE, 2_000_000) == pysoem.OP_STATE
+        finally:
+            master.state = pysoem.INIT_STATE
+            master.write_state()
+            master.close()
+
+
+def test_lockstep_drives_move_each_joint_the_commanded_way_one_frame_per_cycle(link):
+    with slaves(link, 2) as line, link.entered():
+        drives = open_ethercat_drives(link.master_port, [joint(0), joint(1)], lockstep=True)
+        try:
+            for drive in drives:
+                drive.start()
+            assert drives[0].profile.mode == objects.MODE_CYCLIC_SYNC_TORQUE  # CST over ESI
+            frames = drives[0].transport.line.frames
+            start = [drive.sync().position for drive in drives]
+            for _ in range(200):
+                drives[0].command_current(0.5)
+                drives[1].command_current(-0.5)
+                samples = [drive.sync() for drive in drives]
+            assert drives[0].transport.line.frames == frames + 201  # both joints, one frame
+        finally:
+            for drive in drives:
+                drive.close()
+        report = line.report()
+    assert samples[0].position > start[0] + 0.005  # rad
+    assert samples[1].position < start[1] - 0.005
+    assert samples[0].motor_current == pytest.approx(0.5, abs=0.05)
+    assert report[0]["cycles"] == report[1]["cycles"]
+    assert [r["state"] for r in report] == ["SWITCH_ON_DISABLED"] * 2  # closed cleanly
+    assert not any(r["master_loss"] for r in report)
+
+
+def test_identity_other_than_the_esi_is_refused(link):
+    other = dataclasses.replace(ESI, product_code=0x999)
+    with slaves(link, 1), link.entered():
+        [transport] = open_ethercat_transports(link.master_port, [0], esi=other)
+        try:
+            with pytest.raises(ProfileError, match=r"slave 0 .*product 0x00000402.* the ESI "
+                                                   r"describes .*product 0x00000999"):
+                transport.boot(0.3)
+        finally:
+            close([transport])
+
+
+def test_killed_slave_process_is_lost_within_one_cycle(link):
+    with slaves(link, 1) as line, link.entered():
+        [transport] = open_ethercat_transports(link.master_port, [0], lockstep=True,
+                                               response_timeout=0.2)
+        try:
+            bring_up([transport])
+            for _ in range(10):
+                transport.exchange()
+            line.kill()
+            with pytest.raises(DriveLost, match="no frame came back"):
+                transport.exchange()
+            assert transport.line.frames == 11  # the first frame after the kill
+            assert isinstance(transport.failure, DriveLost)
+        finally:
+            close([transport])
+
+
+def test_bootstrap_request_is_refused_by_name(link):
+    with slaves(link, 1), link.entered():
+        master = pysoem.Master()
+        master.open(link.master_port)
+        try:
+            master.config_init()
+            slave = master.slaves[0]
+            slave.state = pysoem.BOOT_STATE
+            slave.write_state()
+            assert slave.state_check(pysoem.BOOT_STATE, 200_000) & 0x0F == pysoem.PREOP_STATE
+            master.read_state()
+            assert slave.state == pysoem.PREOP_STATE | ec.AL_ERROR
+            assert ec.al_status_name(slave.al_status) == "bootstrap not supported (0x0013)"
+        finally:
+            master.close()
+
+
+def test_safe_op_refused_for_a_wrong_output_size_names_the_code(link):
+    with slaves(link, 1), link.entered():
+        [transport] = open_ethercat_transports(link.master_port, [0], lockstep=True)
+        try:
+            bring_up([transport])
+            line = transport.line
+            line.request_state(pysoem.PREOP_STATE)
+            # SM2 re-programmed for 6 bytes while the RxPDO assigned carries 4
+            sm2 = ec.REG_SM0 + 2 * ec.SM_SIZE
+            transport.slave._fpwr(sm2 + ec.SM_OFFSET_ACTIVATE, b"\x00")
+            transport.slave._fpwr(sm2 + 2, struct.pack("<H", 6))
+            transport.slave._fpwr(sm2 + ec.SM_OFFSET_ACTIVATE, b"\x01")
+            with pytest.raises(DriveError, match=r"SAFE_OP refused: slave 0 in PRE_OP \+ ERROR"
+                                                 r", AL status code invalid output "
+                                                 r"configuration \(0x001D\)"):
+                line.request_state(pysoem.SAFEOP_STATE)
+        finally:
+            close([transport])
+
+
+def test_master_loss_trips_the_watchdog_and_the_drive_stops_on_its_brake(link):
+    with slaves(link, 1) as line, link.entered():
+        [drive] = open_ethercat_drives(link.master_port, [joint(0)], lockstep=False)
+        drive.start()
+        for _ in range(50):
+            drive.sync()
+            drive.command_current(0.2)
+        # the master dies: no close, no more frames
+        time.sleep(0.5)
+        drive.transport.line.master.close()
+        [slave] = line.report()
+    assert slave["al_status"] == ec.AlState.SAFE_OP | ec.AL_ERROR
+    assert slave["al_status_code"] == ec.AL_SM_WATCHDOG
+    assert "watchdog" in slave["master_loss"]
+    assert slave["state"] in ("QUICK_STOP_ACTIVE", "SWITCH_ON_DISABLED")
+    assert slave["brake_engaged"]
+
+
+def test_drive_fault_arrives_as_a_coe_emergency_with_its_code(link):
+    with slaves(link, 1), link.entered():
+        [drive] = open_ethercat_drives(link.master_port, [joint(0)], lockstep=True)
+        try:
+            drive.start()
+            drive.sync()
+            drive.transport.write(objects.FAULT_INJECTION, 0, 7)  # over-current trip
+            sample = drive.sync()  # shows the fault; the emergency came with it
+            assert sample.statusword & 0x0008
+            assert isinstance(drive.fault, DriveFault) and drive.fault.error_code == 0x2310
+            with pytest.raises(DriveFault, match=r"EMCY 0x2310"):
+                drive.command_current(0.0)
+        finally:
+            drive.close()
+    assert drive.last_emergency.register == 0x02
+
+
+def test_malformed_frames_do_not_stop_the_line(link):
+    with slaves(link, 2) as line, link.entered():
+        raw = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ec.ETHERTYPE))
+        raw.bind((link.master_port, ec.ETHERTYPE))
+        raw.settimeout(2.0)
+        good = ec.encode_frame([(ec.Command.BRD, 1, 0, bytes(2))])
+        bad = [
+            good[:12] + b"\x08\x00" + good[14:],  # IPv4
+            good[:15],  # cut in the EtherCAT header
+            good[:14] + struct.pack("<H", 0x1000 | 0x7FF) + good[16:],  # length past the end
+            good[:14] + struct.pack("<H", 0x4000 | 12) + good[16:],  # frame type 4
+            good[:16] + b"\x3f" + good[17:],  # unknown command
+            good[:14] + b"\xff" * 46,
+        ]
+        try:
+            for frame in bad:
+                raw.send(frame)
+            raw.send(good)
+            answers = []
+            deadline = time.monotonic() + 2.0
+            while time.monotonic() < deadline and len(answers) < 2:
+                answers.append(raw.recv(1600))
+        finally:
+            raw.close()
+        report = line.report()
+    wkcs = [ec.datagram_result(a, ec.datagram_spans(a)[0])[1] for a in answers]
+    assert wkcs == [0, 2]  # the unknown command untouched, then the good frame by both
+    assert len(report) == 2
