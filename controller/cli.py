@@ -123,17 +123,6 @@ def main(argv: list[str] | None = None) -> int:
     from controller.telemetry import TelemetryPublisher
 
     publisher = TelemetryPublisher(session, args.prefix)
-    mpc = Mpc(model, settings, payload, reference)
-    loop = ControlLoop(None, mpc, LoopOptions(period=period, lockstep=args.lockstep,
-                                              duration=args.duration,
-                                              keep_history=bool(args.plot)),
-                       publisher.publish, lambda: publisher.dropped)
-    requests = RequestHandler(loop, mpc, model, payload, publisher.publish_audit)
-    publisher.serve_json(telemetry.PARAMETERS, requests.parameters)
-    publisher.serve_json(telemetry.REFERENCE, requests.set_reference)
-    publisher.serve_json(telemetry.WEIGHTS, requests.set_weights)
-    signal.signal(signal.SIGINT, lambda *_: loop.stop())
-    signal.signal(signal.SIGTERM, lambda *_: loop.stop())
     try:
         # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host
         timing = {"period": period, "response_timeout": 1.0 if args.lockstep else 0.1}
@@ -141,8 +130,20 @@ def main(argv: list[str] | None = None) -> int:
                  else CanOpenDrive.open(bus, args.node_id, **timing))
     except Exception as exc:
         print(f"actuatord: error: cannot open bus {bus!r}: {exc}", file=sys.stderr)
+        publisher.close()
+        session.close()
         return 1
-    loop.drive = drive
+    mpc = Mpc(model, settings, payload, reference)
+    loop = ControlLoop(drive, mpc, LoopOptions(period=period, lockstep=args.lockstep,
+                                               duration=args.duration,
+                                               keep_history=bool(args.plot)),
+                       [publisher.publish], lambda: publisher.dropped)
+    requests = RequestHandler(loop, mpc, model, payload, publisher.publish_audit)
+    publisher.serve_json(telemetry.PARAMETERS, requests.parameters)
+    publisher.serve_json(telemetry.REFERENCE, requests.set_reference)
+    publisher.serve_json(telemetry.WEIGHTS, requests.set_weights)
+    signal.signal(signal.SIGINT, lambda *_: loop.stop())
+    signal.signal(signal.SIGTERM, lambda *_: loop.stop())
     try:
         drive.start()
         print(f"actuatord: node {args.node_id} on {'--sim' if args.sim else bus} enabled; "

@@ -17,10 +17,12 @@ from pathlib import Path
 
 from model.effects import with_truth_effects
 from model.parameters import ModelFileError, load_model, parse_payload
-from protocol import cia402, telemetry
+from protocol import telemetry
 from protocol.bus_spec import BusSpecError, parse_bus_spec
 from recorder.exciting import ExcitingTrajectory, SlowSinusoid
 from recorder.recording import RecordingError
+
+RECORDED_TOPICS = ("state", "command", "fault")  # what an experiment's recording keeps
 
 
 def _usage_error(message: str) -> int:
@@ -135,35 +137,21 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         print(f"recorder: error: cannot open bus {bus!r}: {exc}", file=sys.stderr)
         return 1
     writer = McapRecorder(args.output, metadata)
-    state_channel = writer.channel("state", "State")
-    command_channel = writer.channel("command", "Command")
-    state_class, command_class = (telemetry.message_class("State"),
-                                  telemetry.message_class("Command"))
     law = TrackingLaw(model.parameters.with_payload(payload), model.limits.current_max)
     bar = _progress(args.no_progress, trajectory.duration)
-
-    def sink(sample, current, reference) -> None:
-        log_time = int(round(sample.t * 1e9))
-        state = cia402.state_from_statusword(sample.statusword)
-        writer.write(state_channel, log_time, state_class(
-            t=sample.t, position=sample.position, velocity=sample.velocity,
-            motor_current=sample.motor_current, joint_torque=sample.joint_torque,
-            statusword=sample.statusword, drive_state=state.value).SerializeToString())
-        writer.write(command_channel, log_time, command_class(
-            t=sample.t, current=current, planned_current=current,
-            reference_position=reference[0], reference_velocity=reference[1],
-            current_limit=model.limits.current_max, position_min=model.limits.position_min,
-            position_max=model.limits.position_max).SerializeToString())
-
     started = time.perf_counter()
     code, samples = 0, 0
     try:
         drive.start()
-        samples = run_trajectory(drive, trajectory, law, sink, args.lockstep,
-                                          bar, stop.is_set)
+        report = run_trajectory(drive, trajectory, law, model.limits,
+                                [writer.subscriber(RECORDED_TOPICS)], args.lockstep, bar, stop)
+        samples = report.cycles
         if stop.is_set():
             code = 1
             print(f"recorder: interrupted after {samples} samples", file=sys.stderr)
+        elif report.exit_code != 0:
+            code = report.exit_code
+            print(f"recorder: error: {report.reason}", file=sys.stderr)
     except DriveError as exc:
         code = 1
         print(f"recorder: error: {exc}", file=sys.stderr)

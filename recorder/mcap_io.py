@@ -7,6 +7,7 @@ lost); after SIGKILL the file has no summary, and `read_mcap` still reads every 
 """
 
 import struct
+from collections.abc import Collection
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,7 @@ from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
+from controller.messages import Subscriber, topic_of
 from protocol import telemetry
 from recorder.recording import Recording, RecordingError
 
@@ -56,6 +58,19 @@ class McapRecorder:
         self.messages += 1
         if self._file.tell() != before:  # a chunk was closed: get it to the file now
             self._file.flush()
+
+    def subscriber(self, topics: Collection[str]) -> Subscriber:
+        """A control-loop subscriber that writes the messages on `topics` (e.g. 'state'), each
+        on its topic's channel, logged at its drive time."""
+        channels = {topic: self.channel(topic, telemetry.TOPICS[topic]) for topic in topics}
+
+        def write(message) -> None:
+            channel = channels.get(topic_of(message))
+            if channel is not None:
+                log_time = int(round(message.t * 1e9))
+                self.write(channel, log_time, message.SerializeToString())
+
+        return write
 
     def close(self) -> None:
         self._writer.finish()
