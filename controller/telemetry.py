@@ -2,9 +2,9 @@
 never waits on the network, nor serialises), and the queryables for parameters and the
 reference."""
 
+import collections
 import json
 import logging
-import queue
 import threading
 from collections.abc import Callable
 
@@ -17,6 +17,10 @@ log = logging.getLogger(__name__)
 
 EXPRESS_TOPICS = ("state", "command")  # latency matters more than batching for these
 QUEUE_DEPTH = 4096
+# s between the publisher thread's passes over the queue. The loop only appends to a deque:
+# no lock, no wake-up of another thread per message (in lock-step each wake-up handed the
+# interpreter lock back and forth three times a cycle); telemetry waits at most this long.
+DRAIN_PERIOD = 1e-3
 
 
 class TelemetryPublisher:
@@ -28,8 +32,8 @@ class TelemetryPublisher:
         self.session = session
         self.prefix = prefix
         self.dropped = 0
-        # SimpleQueue: put is a C call with no condition variable, cheap enough for the loop
-        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._queue: collections.deque = collections.deque()
+        self._closing = threading.Event()
         self._publishers = {
             topic: session.declare_publisher(
                 schema.key_expr(prefix, topic), encoding=zenoh.Encoding.APPLICATION_PROTOBUF,
@@ -43,8 +47,8 @@ class TelemetryPublisher:
         self._thread.start()
 
     def publish(self, message) -> None:
-        if self._queue.qsize() < QUEUE_DEPTH:
-            self._queue.put(message)
+        if len(self._queue) < QUEUE_DEPTH:
+            self._queue.append(message)
         else:
             self.dropped += 1
 
@@ -68,18 +72,22 @@ class TelemetryPublisher:
             self.session.declare_queryable(schema.key_expr(self.prefix, name), on_query))
 
     def _run(self) -> None:
-        while True:
-            message = self._queue.get()
-            if message is None:
-                return
+        while not self._closing.wait(DRAIN_PERIOD):
+            self._drain()
+        self._drain()
+
+    def _drain(self) -> None:
+        queue = self._queue
+        while queue:
+            message = queue.popleft()
             try:
                 self._publishers[topic_of(message)].put(message.SerializeToString())
-            except Exception:
-                log.exception("publishing %s failed", type(message).__name__)
+            except Exception as exc:  # one bad message must not stop the telemetry
+                log.error("publishing %s failed: %s", type(message).__name__, exc)
 
     def close(self) -> None:
         """Flush what is queued, then undeclare everything."""
-        self._queue.put(None)
+        self._closing.set()
         self._thread.join(5)
         for entity in [*self._publishers.values(), *self._queryables, self._audit]:
             entity.undeclare()
