@@ -14,7 +14,8 @@ import threading
 
 import canopen
 
-from model.parameters import load_model, parse_payload
+from commands.options import parse_payload
+from model.parameters import load_model
 from protocol.bus_spec import parse_bus_spec
 from sim_bus.canopen_node import CanOpenNode
 from sim_bus.device import Cia402Device
