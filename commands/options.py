@@ -129,7 +129,8 @@ def add_logging_argument(parser: argparse.ArgumentParser) -> None:
 
 class _Once(logging.Filter):
     """Passes each warning or error text once: a fault that a library logs and the command then
-    reports is read once, and a warning repeated every cycle does not flood the terminal."""
+    reports (as is, or behind its own words: "drive failed: <the fault>") is read once, and a
+    warning repeated every cycle does not flood the terminal."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -141,7 +142,7 @@ class _Once(logging.Filter):
             return True
         text = record.getMessage()
         with self._lock:
-            if text in self._seen:
+            if text in self._seen or any(text.endswith(": " + seen) for seen in self._seen):
                 return False
             self._seen.add(text)
         return True

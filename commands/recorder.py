@@ -170,8 +170,7 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
             print(f"{PROG}: interrupted after {writer.messages_on(state_channel)} samples",
                   file=sys.stderr)
         elif report.exit_code != 0:
-            code = report.exit_code
-            print(f"{PROG}: error: {report.reason}", file=sys.stderr)
+            code = job_error(PROG, report.reason)
     except DriveError as exc:
         code = job_error(PROG, str(exc))
     finally:

@@ -49,7 +49,11 @@ class RequestHandler:
 
     def parameters(self, _: bytes | None) -> dict:
         mpc = self.mpc
-        return {"parameters": dataclasses.asdict(mpc.parameters),
+        p = mpc.parameters
+        parameters = {f.name: getattr(p, f.name) for f in dataclasses.fields(p)
+                      if f.name != "effects"}
+        parameters["effects"] = {name: p.effects.section(name) for name in p.effects.enabled()}
+        return {"parameters": parameters,
                 "limits": vars(self.model.limits), "provenance": self.model.provenance,
                 "payload": vars(self.payload),
                 "settings": {"horizon": mpc.settings.horizon, "dt": mpc.settings.dt,
