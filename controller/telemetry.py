@@ -1,5 +1,6 @@
 """Zenoh side of actuatord: publishers fed from a queue by their own thread (the control loop
-never waits on the network), and the queryables for parameters and the reference."""
+never waits on the network, nor serialises), and the queryables for parameters and the
+reference."""
 
 import json
 import logging
@@ -9,6 +10,7 @@ from collections.abc import Callable
 
 import zenoh
 
+from controller.messages import topic_of
 from protocol import telemetry as schema
 
 log = logging.getLogger(__name__)
@@ -18,14 +20,16 @@ QUEUE_DEPTH = 4096
 
 
 class TelemetryPublisher:
-    """Publishes telemetry messages given as dicts; serialisation happens in the publisher
-    thread. When the queue is full, messages are dropped and counted, never waited for."""
+    """Publishes the loop's telemetry messages (a subscriber of the loop); serialisation happens
+    in the publisher thread. When the queue is full, messages are dropped and counted, never
+    waited for."""
 
     def __init__(self, session: zenoh.Session, prefix: str = schema.DEFAULT_PREFIX):
         self.session = session
         self.prefix = prefix
         self.dropped = 0
-        self._queue: queue.Queue = queue.Queue(QUEUE_DEPTH)
+        # SimpleQueue: put is a C call with no condition variable, cheap enough for the loop
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._publishers = {
             topic: session.declare_publisher(
                 schema.key_expr(prefix, topic), encoding=zenoh.Encoding.APPLICATION_PROTOBUF,
@@ -41,10 +45,10 @@ class TelemetryPublisher:
         self._thread = threading.Thread(target=self._run, name="telemetry", daemon=True)
         self._thread.start()
 
-    def publish(self, topic: str, fields: dict) -> None:
-        try:
-            self._queue.put_nowait((topic, fields))
-        except queue.Full:
+    def publish(self, message) -> None:
+        if self._queue.qsize() < QUEUE_DEPTH:
+            self._queue.put(message)
+        else:
             self.dropped += 1
 
     def publish_audit(self, line: dict) -> None:
@@ -67,16 +71,14 @@ class TelemetryPublisher:
             self.session.declare_queryable(schema.key_expr(self.prefix, name), on_query))
 
     def _run(self) -> None:
-        classes = {topic: schema.message_class(name) for topic, name in schema.TOPICS.items()}
         while True:
-            item = self._queue.get()
-            if item is None:
+            message = self._queue.get()
+            if message is None:
                 return
-            topic, fields = item
             try:
-                self._publishers[topic].put(classes[topic](**fields).SerializeToString())
+                self._publishers[topic_of(message)].put(message.SerializeToString())
             except Exception:
-                log.exception("publishing %s failed", topic)
+                log.exception("publishing %s failed", type(message).__name__)
 
     def close(self) -> None:
         """Flush what is queued, then undeclare everything."""

@@ -84,7 +84,7 @@ def test_hidden_effect_is_named_and_the_gap_shrinks(scenarios, effect, tmp_path)
     mpc = Mpc(model)
     index = {"stribeck": dynamics.P_STRIBECK_EXTRA, "position_ripple": dynamics.P_RIPPLE_SIN,
              "load_dependent_friction": dynamics.P_LOAD_FRICTION}[effect]
-    assert mpc.solver.p[index] != 0.0
+    assert mpc.dynamics_parameters[index] != 0.0
 
 
 def test_hidden_effect_parameters_come_back(scenarios, tmp_path):
