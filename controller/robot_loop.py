@@ -67,7 +67,10 @@ class _JointPolicy:
 class RobotLoop:
     def __init__(self, joints: Joints, batch: BatchMpc, options: LoopOptions,
                  subscribers: Sequence[Subscriber] = (),
-                 dropped: Callable[[], int] = lambda: 0, stop: threading.Event | None = None):
+                 dropped: Callable[[], int] = lambda: 0, stop: threading.Event | None = None,
+                 settle: float = 0.0):
+        """`settle` (s of drive time): tracking errors count from then on (the approach from
+        where a joint rests to its reference is not tracking)."""
         if len(batch) != len(joints.names):
             raise ValueError(f"{len(joints.names)} joints, {len(batch)} problems")
         self._joints = joints
@@ -83,6 +86,7 @@ class RobotLoop:
         # per joint: sum of squared tracking errors and their count (for tracking_rms)
         self._squared_error = np.zeros(len(batch))
         self._tracked = 0
+        self._settle = settle
         self.latest: list[Sample] | None = None
 
     def stop(self) -> None:
@@ -93,7 +97,7 @@ class RobotLoop:
             subscriber(message)
 
     def tracking_rms(self) -> list[float]:
-        """rad, each joint's RMS of position minus reference over the run."""
+        """rad, each joint's RMS of position minus reference over the run (after `settle`)."""
         if not self._tracked:
             return [math.nan] * len(self.names)
         return [float(v) for v in np.sqrt(self._squared_error / self._tracked)]
@@ -164,10 +168,11 @@ class RobotLoop:
                     report.fallbacks += 1
                     self._fault(t, "controller", f"joint {name}: {command.fault}",
                                 f"commanded {command.current:.3f} A (safe command)")
-            for j, (sample, command) in enumerate(zip(samples, commands, strict=True)):
-                error = sample.position - command.decision.reference_position
-                self._squared_error[j] += error * error
-            self._tracked += 1
+            if t >= self._settle:
+                for j, (sample, command) in enumerate(zip(samples, commands, strict=True)):
+                    error = sample.position - command.decision.reference_position
+                    self._squared_error[j] += error * error
+                self._tracked += 1
             if t >= next_stats:
                 next_stats += options.stats_every
                 self.publish(self._stats(t))

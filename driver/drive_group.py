@@ -43,6 +43,9 @@ class Segment:
         self.name = name
         self.joints = list(joints)
 
+    def started(self) -> None:
+        """Every drive of the group is up; cycles begin."""
+
     def trigger(self) -> None:
         """Start this segment's cycle (nothing to do where the first `sync` sends the frame)."""
 
@@ -67,6 +70,10 @@ class CanOpenBus(Segment):
                  joints: Sequence[tuple[str, Cia402Drive]]):
         super().__init__(name, joints)
         self.network = network
+
+    def started(self) -> None:
+        for _, drive in self.joints:
+            drive.transport.health.restart_count()
 
     def trigger(self) -> None:
         sync_data = b""
@@ -128,6 +135,8 @@ class DriveGroup:
                 drive.start()
             except DriveError as exc:
                 raise JointFailure(name, exc) from exc
+        for segment in self.segments:
+            segment.started()
 
     def sync(self) -> list[Sample]:
         """One cycle: trigger every segment, then every joint's sample, in joint order."""
