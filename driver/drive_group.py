@@ -17,7 +17,7 @@ import canopen
 
 from driver.cia402_drive import Cia402Drive
 from driver.interface import CommandRangeError, DriveError, Sample
-from protocol import cia301, cia402
+from protocol import cia301
 
 log = logging.getLogger(__name__)
 
@@ -184,9 +184,3 @@ class DriveGroup:
         for segment in self.segments:
             segment.close()
 
-
-def stopped(state: str) -> bool:
-    """Whether a state read back by `quick_stop_all` applies no torque."""
-    return state in (cia402.State.QUICK_STOP_ACTIVE.value, cia402.State.SWITCH_ON_DISABLED.value,
-                     cia402.State.FAULT.value, cia402.State.READY_TO_SWITCH_ON.value,
-                     cia402.State.SWITCHED_ON.value)
