@@ -85,25 +85,36 @@ class EmbeddedBus:
                   node_id: int, *, eds_path: str | Path | None = None,
                   initial_position: float | None = None,
                   commissioned: bool = False) -> Cia402Device:
-        """Power on a drive at `node_id`. `commissioned`: its window and currents follow the
-        model's limits (`sim_bus.commissioning`) instead of the EDS's elbow values, and the
-        joint starts inside its limits (at rest if gravity lets it hang there, else at the
-        middle of its range)."""
-        if commissioned and initial_position is None:
-            initial_position = _start_position(model, payload)
-        device = Cia402Device(model, payload, noise, eds_path=eds_path,
-                              initial_position=initial_position, node_id=node_id)
-        if commissioned:
-            device.store(drive_settings(model.limits, device.increments_per_rad))
-        node = CanOpenNode(self.network, node_id, device, lockstep=self.lockstep)
-        node.boot()
+        """Power on a drive at `node_id` on this bus (see `power_on`)."""
+        node = power_on(self.network, model, payload, noise, node_id, lockstep=self.lockstep,
+                        eds_path=eds_path, initial_position=initial_position,
+                        commissioned=commissioned)
         self.nodes.append(node)
-        return device
+        return node.device
 
     def close(self) -> None:
         for node in self.nodes:
             node.close()
         self.network.disconnect()
+
+
+def power_on(network: canopen.Network, model: ActuatorModel, payload: Payload,
+             noise: SensorNoise, node_id: int, *, lockstep: bool = False,
+             eds_path: str | Path | None = None, initial_position: float | None = None,
+             commissioned: bool = False) -> CanOpenNode:
+    """A virtual drive at `node_id` on `network` (embedded or a python-can bus), booted.
+    `commissioned`: its window and currents follow the model's limits
+    (`sim_bus.commissioning`) instead of the EDS's elbow values, and the joint starts inside
+    its limits (at rest if gravity lets it hang there, else at the middle of its range)."""
+    if commissioned and initial_position is None:
+        initial_position = _start_position(model, payload)
+    device = Cia402Device(model, payload, noise, eds_path=eds_path,
+                          initial_position=initial_position, node_id=node_id)
+    if commissioned:
+        device.store(drive_settings(model.limits, device.increments_per_rad))
+    node = CanOpenNode(network, node_id, device, lockstep=lockstep)
+    node.boot()
+    return node
 
 
 def _start_position(model: ActuatorModel, payload: Payload) -> float:

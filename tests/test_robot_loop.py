@@ -176,3 +176,47 @@ def test_robot_options_are_checked_in_one_line():
     assert bad_fault.stderr.count("\n") == 1
     with_model = _actuatord("--robot", str(ARM), "--model", "x.toml")
     assert with_model.returncode == 2 and "--model" in with_model.stderr
+
+
+def test_sim_bus_serves_every_drive_of_a_robot_file_on_its_bus(tmp_path):
+    """`sim-bus --robot`: each joint's drive on its bus at its node id, commissioned for its
+    joint (rated current = the joint's current_max), answering a master's SDO."""
+    import canopen
+
+    from driver.canopen_transport import open_network
+    from protocol import eds_path, objects
+
+    port = free_port()
+    buses = [f"udp_multicast:239.0.7.1:{port}", f"udp_multicast:239.0.7.2:{port}"]
+    models = ROBOTS / "models"
+    text = '[robot]\nname = "two_buses"\nperiod_us = 1000\n'
+    for k, (bus, node_id, model) in enumerate([
+            (buses[0], 1, "talos_wrist.toml"), (buses[0], 2, "talos_arm_shoulder.toml"),
+            (buses[1], 1, "talos_wrist_pitch.toml")]):
+        text += (f'\n[[joints]]\nname = "j{k}"\nbus = "{bus}"\nnode_id = {node_id}\n'
+                 f'model = "{models / model}"\n')
+    robot_file = tmp_path / "robot.toml"
+    robot_file.write_text(text)
+    proc = subprocess.Popen([sys.executable, "-m", "commands.sim_bus", "--robot",
+                             str(robot_file)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    networks = []
+    try:
+        assert "3 drives of two_buses" in proc.stdout.readline()
+        rated = {}
+        for bus, node_ids in ((buses[0], (1, 2)), (buses[1], (1,))):
+            network = open_network(bus)
+            networks.append(network)
+            for node_id in node_ids:
+                node = canopen.RemoteNode(node_id, str(eds_path()))
+                network.add_node(node)
+                node.sdo.RESPONSE_TIMEOUT = 5.0
+                rated[(bus, node_id)] = node.sdo[objects.RATED_CURRENT].raw
+    finally:
+        for network in networks:
+            network.disconnect()
+        proc.terminate()
+        out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert rated == {(buses[0], 1): 3000, (buses[0], 2): 6000, (buses[1], 1): 3000}
+    assert "stopped" in out
