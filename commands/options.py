@@ -37,11 +37,11 @@ from protocol.bus_spec import BusSpecError, is_ethercat, parse_bus_spec
 from sim_bus.faults import Fault
 
 if TYPE_CHECKING:  # imported when a drive is opened: the dashboard needs neither
-    from commands.robot_file import RobotSpec
+    from commands.robot_file import JointSpec, RobotSpec
     from driver.canopen_drive import CanOpenDrive
     from driver.drive_group import DriveGroup
     from sim_bus.device import Cia402Device
-    from sim_bus.embedded import EmbeddedBus, EmbeddedDrive
+    from sim_bus.embedded import EmbeddedBus
 
 
 class CommandParser(argparse.ArgumentParser):
@@ -480,7 +480,7 @@ class Connection:
     (`--can-log`, else None), closed together in that order."""
 
     drive: "CanOpenDrive"
-    sim: "EmbeddedDrive | None"
+    sim: "EmbeddedBus | None"
     can_log: CanLog | None
     where: str  # the bus, as the user reads it
 
@@ -640,6 +640,40 @@ def open_robot(robot: "RobotSpec", *, sim: bool, lockstep: bool, seed: int, peri
         for link in embedded:
             link.close()
         raise DriveOpenError(f"cannot open the drives of {robot.source}: {exc}") from exc
+
+
+def open_joint(robot: "RobotSpec", joint: "JointSpec", sim_model: ActuatorModel,
+               payload: Payload, *, sim: bool, lockstep: bool, seed: int,
+               **timing) -> Connection:
+    """One joint of a robot file alone, the others not started (their drives stay as they
+    powered up: switch on disabled, brake engaged): its drive on its bus at its node id, or
+    with `sim` a virtual drive commissioned for it, its physics `sim_model`. Raises
+    DriveOpenError (exit 1)."""
+    from driver.canopen_drive import CanOpenDrive
+
+    timing = {"lockstep": lockstep, "velocity_limit": joint.model.limits.velocity_max,
+              "drive_gain": joint.model.parameters.drive_gain, "eds": joint.eds, **timing}
+    if joint.on_ethercat:
+        raise DriveOpenError(f"{robot.source}: joint {joint.name} is on {joint.bus}: EtherCAT "
+                             "joints are driven by driver.ethercat_drive, not in this build")
+    if not sim:
+        try:
+            return Connection(CanOpenDrive.open(joint.bus, joint.address, **timing), None, None,
+                              joint.bus)
+        except Exception as exc:
+            raise DriveOpenError(f"cannot use bus {joint.bus}: {exc}") from exc
+    from sim_bus.embedded import EmbeddedBus
+    from sim_bus.plant import SensorNoise
+
+    link = EmbeddedBus(lockstep=lockstep)
+    try:
+        link.add_drive(sim_model, payload, SensorNoise(seed=seed), joint.address,
+                       eds_path=joint.eds, commissioned=True)
+        return Connection(CanOpenDrive(link.master_network, joint.address, **timing), link,
+                          None, "--sim")
+    except Exception as exc:
+        link.close()
+        raise DriveOpenError(f"cannot open the embedded drive of {joint.name}: {exc}") from exc
 
 
 # --- the model, the payload and hidden effects -----------------------------------------------

@@ -220,3 +220,27 @@ def test_sim_bus_serves_every_drive_of_a_robot_file_on_its_bus(tmp_path):
     assert proc.returncode == 0, err
     assert rated == {(buses[0], 1): 3000, (buses[0], 2): 6000, (buses[1], 1): 3000}
     assert "stopped" in out
+
+
+def test_recorder_records_one_joint_of_a_robot_file_over_its_own_range(tmp_path):
+    """`recorder --robot --joint`: the wrist's drive (commissioned for its 3 A and its
+    +-1.37 rad) runs the exciting trajectory fitted to its range, not the elbow's."""
+    from recorder.reader import load_recording
+
+    output = tmp_path / "wrist.mcap"
+    result = subprocess.run(
+        [sys.executable, "-m", "commands.recorder", "--exciting-trajectory", "--robot", str(ARM),
+         "--joint", "arm_left_6_joint", "--sim", "--lockstep", "--steps", "1", "--no-progress",
+         "-o", str(output)], capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr
+    recording = load_recording(output)
+    assert recording.metadata["joint"] == "arm_left_6_joint"
+    # the elbow's defaults (-2.2..-0.15 rad) would leave the wrist's -1.37..1.37 rad
+    assert min(recording.q) < -1.0 and max(recording.q) > 1.0
+    assert max(abs(c) for c in recording.current) <= 3.0
+    refused = subprocess.run(
+        [sys.executable, "-m", "commands.recorder", "--exciting-trajectory", "--robot", str(ARM),
+         "--joint", "no_such_joint", "--sim", "-o", str(tmp_path / "x.mcap")],
+        capture_output=True, text=True, timeout=300)
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1
+    assert "--joint no_such_joint" in refused.stderr
