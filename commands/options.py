@@ -33,12 +33,15 @@ import zenoh
 
 from model.effects import EFFECT_KEYS, EFFECT_NAMES
 from model.parameters import GRAVITY, ActuatorModel, Payload
-from protocol.bus_spec import BusSpecError, parse_bus_spec
+from protocol.bus_spec import BusSpecError, is_ethercat, parse_bus_spec
 from sim_bus.faults import Fault
 
 if TYPE_CHECKING:  # imported when a drive is opened: the dashboard needs neither
+    from commands.robot_file import JointSpec, RobotSpec
     from driver.canopen_drive import CanOpenDrive
-    from sim_bus.embedded import EmbeddedDrive
+    from driver.drive_group import DriveGroup
+    from sim_bus.device import Cia402Device
+    from sim_bus.embedded import EmbeddedBus
 
 
 class CommandParser(argparse.ArgumentParser):
@@ -478,7 +481,7 @@ class Connection:
     (`--can-log`, else None), closed together in that order."""
 
     drive: "CanOpenDrive"
-    sim: "EmbeddedDrive | None"
+    sim: "EmbeddedBus | None"
     can_log: CanLog | None
     where: str  # the bus, as the user reads it
 
@@ -549,6 +552,129 @@ def open_drive(args: argparse.Namespace, model: ActuatorModel, sim_model: Actuat
         if can_log is not None:
             can_log.stop()
         raise DriveOpenError(f"cannot open the embedded drive: {exc}") from exc
+
+
+# --- a robot: every joint's drive, on its bus or embedded ---------------------------------------
+
+def parse_joint_fault(text: str, joints: Iterable[str]) -> tuple[str, Fault, float]:
+    """`--inject-fault JOINT:NAME@SECONDS` with --robot: 'arm_left_4_joint:overcurrent_trip@2'
+    -> (joint, fault, s of drive time); ValueError names the option and what was expected."""
+    joint, sep, fault_text = text.rpartition(":")
+    names = list(joints)
+    if not sep or joint not in names:
+        raise ValueError(f"--inject-fault {text}: with --robot expected JOINT:NAME@SECONDS, "
+                         f"JOINT one of {', '.join(names)}")
+    fault, seconds = parse_fault(fault_text)
+    return joint, fault, seconds
+
+
+@dataclass
+class RobotConnection:
+    """The joints' drive group and, with --sim, the embedded buses behind it; closed
+    together (drives first, so every one is disabled while its bus still carries it)."""
+
+    group: "DriveGroup"
+    sim: list["EmbeddedBus"]
+    devices: dict[str, "Cia402Device"]  # joint -> its virtual drive (--sim only)
+
+    def close(self) -> None:
+        try:
+            self.group.close()
+        finally:
+            for bus in self.sim:
+                bus.close()
+
+
+def open_robot(robot: "RobotSpec", *, sim: bool, lockstep: bool, seed: int, period: float,
+               response_timeout: float,
+               faults: Iterable[tuple[str, Fault, float]] = ()) -> RobotConnection:
+    """Every joint's drive, grouped by bus (one SYNC per bus a cycle, `driver.drive_group`).
+    With `sim`, each CAN bus is an in-process network carrying one virtual drive per joint,
+    commissioned for the joint's model (`sim_bus.commissioning`), its physics the joint's
+    model, its noise seeded `seed` + the joint's index. Raises DriveOpenError (exit 1)."""
+    from driver.canopen_transport import CanOpenTransport, open_network
+    from driver.cia402_drive import Cia402Drive
+    from driver.drive_group import CanOpenBus, DriveGroup
+
+    ethercat = [bus for bus in robot.buses() if is_ethercat(bus)]
+    if ethercat:
+        # the seam: driver.drive_group.Segment over open_ethercat_drives (branch ethercat)
+        raise DriveOpenError(f"{robot.source}: bus {ethercat[0]}: EtherCAT joints are driven "
+                             "by driver.ethercat_drive, not in this build")
+    faults = list(faults)
+    segments, embedded, devices = [], [], {}
+    try:
+        for bus, joints in robot.buses().items():
+            if sim:
+                from sim_bus.embedded import EmbeddedBus
+                from sim_bus.plant import SensorNoise
+
+                link = EmbeddedBus(lockstep=lockstep)
+                embedded.append(link)
+                for joint in joints:
+                    index = robot.joints.index(joint)
+                    devices[joint.name] = device = link.add_drive(
+                        joint.model, Payload(), SensorNoise(seed=seed + index), joint.address,
+                        eds_path=joint.eds, commissioned=True)
+                    for name, fault, seconds in faults:
+                        if name == joint.name:
+                            device.schedule(fault, seconds)
+                network = link.master_network
+            else:
+                network = open_network(bus, robot.bitrates.get(bus))
+            segments.append(CanOpenBus(bus, network, []))
+            for joint in joints:
+                transport = CanOpenTransport(network, joint.address, eds=joint.eds,
+                                             lockstep=lockstep,
+                                             response_timeout=response_timeout,
+                                             owns_network=False)
+                segments[-1].joints.append((joint.name, Cia402Drive(
+                    transport, velocity_limit=joint.model.limits.velocity_max, period=period,
+                    drive_gain=joint.model.parameters.drive_gain)))
+        return RobotConnection(DriveGroup([j.name for j in robot.joints], segments), embedded,
+                               devices)
+    except Exception as exc:
+        for segment in segments:
+            for _, drive in segment.joints:
+                drive.transport.close()
+            segment.close()
+        for link in embedded:
+            link.close()
+        raise DriveOpenError(f"cannot open the drives of {robot.source}: {exc}") from exc
+
+
+def open_joint(robot: "RobotSpec", joint: "JointSpec", sim_model: ActuatorModel,
+               payload: Payload, *, sim: bool, lockstep: bool, seed: int,
+               **timing) -> Connection:
+    """One joint of a robot file alone, the others not started (their drives stay as they
+    powered up: switch on disabled, brake engaged): its drive on its bus at its node id, or
+    with `sim` a virtual drive commissioned for it, its physics `sim_model`. Raises
+    DriveOpenError (exit 1)."""
+    from driver.canopen_drive import CanOpenDrive
+
+    timing = {"lockstep": lockstep, "velocity_limit": joint.model.limits.velocity_max,
+              "drive_gain": joint.model.parameters.drive_gain, "eds": joint.eds, **timing}
+    if joint.on_ethercat:
+        raise DriveOpenError(f"{robot.source}: joint {joint.name} is on {joint.bus}: EtherCAT "
+                             "joints are driven by driver.ethercat_drive, not in this build")
+    if not sim:
+        try:
+            return Connection(CanOpenDrive.open(joint.bus, joint.address, **timing), None, None,
+                              joint.bus)
+        except Exception as exc:
+            raise DriveOpenError(f"cannot use bus {joint.bus}: {exc}") from exc
+    from sim_bus.embedded import EmbeddedBus
+    from sim_bus.plant import SensorNoise
+
+    link = EmbeddedBus(lockstep=lockstep)
+    try:
+        link.add_drive(sim_model, payload, SensorNoise(seed=seed), joint.address,
+                       eds_path=joint.eds, commissioned=True)
+        return Connection(CanOpenDrive(link.master_network, joint.address, **timing), link,
+                          None, "--sim")
+    except Exception as exc:
+        link.close()
+        raise DriveOpenError(f"cannot open the embedded drive of {joint.name}: {exc}") from exc
 
 
 # --- the model, the payload and hidden effects -----------------------------------------------

@@ -6,7 +6,7 @@ import collections
 import json
 import logging
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 
 import zenoh
 
@@ -28,7 +28,10 @@ class TelemetryPublisher:
     in the publisher thread. When the queue is full, messages are dropped and counted, never
     waited for."""
 
-    def __init__(self, session: zenoh.Session, prefix: str = schema.DEFAULT_PREFIX):
+    def __init__(self, session: zenoh.Session, prefix: str = schema.DEFAULT_PREFIX,
+                 topics: Iterable[str] = tuple(schema.TOPICS)):
+        """`topics`: the keys under the prefix to publish (`schema.ROBOT_TOPICS` for a
+        robot)."""
         self.session = session
         self.prefix = prefix
         self.dropped = 0
@@ -39,7 +42,7 @@ class TelemetryPublisher:
                 schema.key_expr(prefix, topic), encoding=zenoh.Encoding.APPLICATION_PROTOBUF,
                 congestion_control=zenoh.CongestionControl.DROP,
                 express=topic in EXPRESS_TOPICS)
-            for topic in schema.TOPICS}
+            for topic in topics}
         self._queryables: list = []
         # dashboards watch this token to tell a vanished actuatord from a quiet one
         self._alive = session.liveliness().declare_token(
