@@ -12,6 +12,8 @@ raise typed errors; a command turns those into one line on stderr and exit code 
 touches a drive or creates a file.
 """
 
+from __future__ import annotations
+
 import argparse
 import collections
 import copy
@@ -31,13 +33,12 @@ import can
 import can.cli
 import zenoh
 
-from model.effects import EFFECT_KEYS, EFFECT_NAMES
-from model.parameters import GRAVITY, ActuatorModel, Payload
 from protocol.bus_spec import BusSpecError, parse_bus_spec
 from sim_bus.faults import Fault
 
-if TYPE_CHECKING:  # imported when a drive is opened: the dashboard needs neither
+if TYPE_CHECKING:  # imported where used: the dashboard needs none of them (numba, canopen)
     from driver.canopen_drive import CanOpenDrive
+    from model.parameters import ActuatorModel, Payload
     from sim_bus.embedded import EmbeddedDrive
 
 
@@ -274,6 +275,8 @@ def add_virtual_drive_arguments(parser: argparse.ArgumentParser, faults: bool = 
                                 prefix: str = "--sim: ") -> None:
     """The virtual drive's own options: noise seed, hidden effects and, with `faults`,
     scheduled faults. `prefix` marks them as applying to `--sim` only."""
+    from model.effects import EFFECT_NAMES
+
     parser.add_argument("--seed", type=seed, default=0,
                         help=f"{prefix}sensor-noise seed, >= 0 (default: 0)")
     parser.add_argument("--truth-effect", action="append", default=[], metavar="NAME:K=V,...",
@@ -492,8 +495,8 @@ class Connection:
     """The master drive, the embedded virtual drive (`--sim`, else None) and the CAN log
     (`--can-log`, else None), closed together in that order."""
 
-    drive: "CanOpenDrive"
-    sim: "EmbeddedDrive | None"
+    drive: CanOpenDrive
+    sim: EmbeddedDrive | None
     can_log: CanLog | None
     where: str  # the bus, as the user reads it
 
@@ -580,6 +583,8 @@ def payload_from_args(args: argparse.Namespace) -> Payload:
 
 def parse_payload(mass: float, position: str | None) -> Payload:
     """Payload from `--payload-mass KG` and `--payload-position X,Y` (metres, link frame)."""
+    from model.parameters import Payload
+
     x = y = 0.0
     if position is not None:
         parts = position.split(",")
@@ -604,6 +609,8 @@ def check_payload(model: ActuatorModel, payload: Payload) -> None:
     """Refuse a payload the drive could not hold: with it, the arm's gravity torque at its
     worst angle, g |(MX, MY)|, would exceed the drive's peak torque, so no controller keeps the
     joint anywhere but hanging (and absurd values overflow the physics)."""
+    from model.parameters import GRAVITY
+
     loaded = model.parameters.with_payload(payload)
     gravity = GRAVITY * math.hypot(loaded.first_moment_x, loaded.first_moment_y)
     peak = peak_joint_torque(model)
@@ -616,6 +623,8 @@ def check_payload(model: ActuatorModel, payload: Payload) -> None:
 
 def parse_effect_option(text: str) -> tuple[str, dict[str, float]]:
     """'stribeck:breakaway_friction=1.5,velocity=0.05' -> ('stribeck', {...})."""
+    from model.effects import EFFECT_KEYS, EFFECT_NAMES
+
     name, _, rest = text.partition(":")
     if name not in EFFECT_KEYS:
         raise ValueError(f"--truth-effect {text}: effect {name!r}: expected one of "
@@ -637,6 +646,8 @@ def parse_effect_option(text: str) -> tuple[str, dict[str, float]]:
 def with_truth_effects(model: ActuatorModel, options: Iterable[str]) -> ActuatorModel:
     """The model with the `--truth-effect NAME:KEY=VALUE,...` effects added: the hidden "truth"
     a virtual drive can carry. ValueError names the option at fault."""
+    from model.effects import EFFECT_KEYS
+
     parameters = model.parameters
     peak = peak_joint_torque(model)
     for option in options:
