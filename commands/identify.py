@@ -2,12 +2,9 @@
 paper's total least squares, written as a model TOML that sim-bus, actuatord and model-gap
 accept."""
 
-from __future__ import annotations
-
 import datetime
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from commands.options import (
     CommandParser,
@@ -22,11 +19,16 @@ from commands.options import (
     read_recording,
     usage_error,
 )
+from model.identify import (
+    PARAMETERS,
+    Experiment,
+    IdentificationError,
+    Identified,
+    identify,
+)
+from model.model_file import write_model
 from model.parameters import ActuatorModel, ModelFileError, load_model
 from recorder.recording import Recording, RecordingError
-
-if TYPE_CHECKING:
-    from model.identify import Experiment, Identified
 
 PROG = "identify"
 
@@ -49,8 +51,6 @@ def build_parser() -> CommandParser:
 
 
 def _experiment(recording: Recording, payload) -> Experiment:
-    from model.identify import Experiment
-
     return Experiment(recording.t, recording.q, recording.current, recording.joint_torque,
                       payload, recording.source)
 
@@ -62,12 +62,6 @@ def main(argv: list[str] | None = None) -> int:
         check_output_file("-o", args.output)
         if args.plots:
             check_output_folder("--plots", args.plots)
-    except ValueError as exc:
-        return usage_error(PROG, str(exc))
-    # the identification imports scipy: seconds on a busy host, so only after the checks
-    from model.identify import IdentificationError, identify
-
-    try:
         nominal = load_model(args.model)
         no_load = read_recording(args.no_load)
         load = read_recording(args.load)
@@ -95,8 +89,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def table(result: Identified, nominal: ActuatorModel) -> str:
-    from model.identify import PARAMETERS
-
     lines = [f"{'parameter':26s} {'default':>9s} {'identified':>11s} {'rel. std':>9s}"]
     for name in PARAMETERS:
         lines.append(f"{name:26s} {getattr(nominal.parameters, name):9.4f} "
@@ -107,9 +99,6 @@ def table(result: Identified, nominal: ActuatorModel) -> str:
 
 def write_identified(path: Path, result: Identified, nominal: ActuatorModel, no_load: str,
                      load: str) -> None:
-    from model.identify import PARAMETERS
-    from model.model_file import write_model
-
     date = datetime.date.today().isoformat()
     origin = (f"identified from {no_load} and {load} on {date} (total least squares, "
               f"condition number {result.condition_number:.1f})")

@@ -1,13 +1,10 @@
 """`model-gap RECORDING... --model MODEL.toml`: where the model and the measurements disagree,
 which missing effect explains it, and the improved model."""
 
-from __future__ import annotations
-
 import datetime
 import json
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -22,11 +19,11 @@ from commands.options import (
     usage_error,
 )
 from model.effects import EFFECT_KEYS
+from model.gap import GapError, GapResult, find_gap
+from model.identify import Experiment
+from model.model_file import write_model
 from model.parameters import ModelFileError, Payload, load_model
 from recorder.recording import RecordingError
-
-if TYPE_CHECKING:
-    from model.gap import GapResult
 
 PROG = "model-gap"
 
@@ -56,14 +53,6 @@ def main(argv: list[str] | None = None) -> int:
                 check_output_file(option, path)
         if args.plots:
             check_output_folder("--plots", args.plots)
-    except ValueError as exc:
-        return usage_error(PROG, str(exc))
-    # the gap search imports scipy: seconds on a busy host, so only after the checks
-    from model.gap import GapError, find_gap
-    from model.identify import Experiment
-    from model.model_file import write_model
-
-    try:
         model = load_model(args.model)
         experiments = []
         for path in args.recordings:
