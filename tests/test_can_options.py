@@ -85,9 +85,7 @@ def test_can_log_over_a_python_can_bus_holds_every_frame(no_can_config, tmp_path
     network.connect()
     sim = VirtualDrive(network, NODE, load_model())
     sim.boot()
-    # generous watchdogs: this test is about the log, and a busy host delays the threads
-    connection = open_drive(args, load_model(), Payload(), response_timeout=5.0,
-                            heartbeat_timeout_factor=20.0)
+    connection = open_drive(args, load_model(), Payload(), response_timeout=5.0)
     try:
         connection.drive.start()
         for _ in range(50):
