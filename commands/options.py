@@ -12,6 +12,8 @@ raise typed errors; a command turns those into one line on stderr and exit code 
 touches a drive or creates a file.
 """
 
+from __future__ import annotations
+
 import argparse
 import collections
 import copy
@@ -262,6 +264,7 @@ def add_virtual_drive_arguments(parser: argparse.ArgumentParser, faults: bool = 
                                 prefix: str = "--sim: ") -> None:
     """The virtual drive's own options: noise seed, hidden effects and, with `faults`,
     scheduled faults. `prefix` marks them as applying to `--sim` only."""
+
     parser.add_argument("--seed", type=seed, default=0,
                         help=f"{prefix}sensor-noise seed, >= 0 (default: 0)")
     parser.add_argument("--truth-effect", action="append", default=[], metavar="NAME:K=V,...",
@@ -480,8 +483,8 @@ class Connection:
     """The master drive, the embedded virtual drive (`--sim`, else None) and the CAN log
     (`--can-log`, else None), closed together in that order."""
 
-    drive: "CanOpenDrive"
-    sim: "EmbeddedBus | None"
+    drive: CanOpenDrive
+    sim: EmbeddedBus | None
     can_log: CanLog | None
     where: str  # the bus, as the user reads it
 
@@ -573,9 +576,9 @@ class RobotConnection:
     """The joints' drive group and, with --sim, the embedded buses behind it; closed
     together (drives first, so every one is disabled while its bus still carries it)."""
 
-    group: "DriveGroup"
-    sim: list["EmbeddedBus"]
-    devices: dict[str, "Cia402Device"]  # joint -> its virtual drive (--sim only)
+    group: DriveGroup
+    sim: list[EmbeddedBus]
+    devices: dict[str, Cia402Device]  # joint -> its virtual drive (--sim only)
 
     def close(self) -> None:
         try:
@@ -585,7 +588,7 @@ class RobotConnection:
                 bus.close()
 
 
-def open_robot(robot: "RobotSpec", *, sim: bool, lockstep: bool, seed: int, period: float,
+def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period: float,
                response_timeout: float,
                faults: Iterable[tuple[str, Fault, float]] = ()) -> RobotConnection:
     """Every joint's drive, grouped by bus (one SYNC per bus a cycle, `driver.drive_group`).
@@ -643,7 +646,7 @@ def open_robot(robot: "RobotSpec", *, sim: bool, lockstep: bool, seed: int, peri
         raise DriveOpenError(f"cannot open the drives of {robot.source}: {exc}") from exc
 
 
-def open_joint(robot: "RobotSpec", joint: "JointSpec", sim_model: ActuatorModel,
+def open_joint(robot: RobotSpec, joint: JointSpec, sim_model: ActuatorModel,
                payload: Payload, *, sim: bool, lockstep: bool, seed: int,
                **timing) -> Connection:
     """One joint of a robot file alone, the others not started (their drives stay as they
@@ -698,6 +701,8 @@ def payload_from_args(args: argparse.Namespace) -> Payload:
 
 def parse_payload(mass: float, position: str | None) -> Payload:
     """Payload from `--payload-mass KG` and `--payload-position X,Y` (metres, link frame)."""
+    from model.parameters import Payload
+
     x = y = 0.0
     if position is not None:
         parts = position.split(",")
@@ -722,6 +727,7 @@ def check_payload(model: ActuatorModel, payload: Payload) -> None:
     """Refuse a payload the drive could not hold: with it, the arm's gravity torque at its
     worst angle, g |(MX, MY)|, would exceed the drive's peak torque, so no controller keeps the
     joint anywhere but hanging (and absurd values overflow the physics)."""
+
     loaded = model.parameters.with_payload(payload)
     gravity = GRAVITY * math.hypot(loaded.first_moment_x, loaded.first_moment_y)
     peak = peak_joint_torque(model)
@@ -734,6 +740,7 @@ def check_payload(model: ActuatorModel, payload: Payload) -> None:
 
 def parse_effect_option(text: str) -> tuple[str, dict[str, float]]:
     """'stribeck:breakaway_friction=1.5,velocity=0.05' -> ('stribeck', {...})."""
+
     name, _, rest = text.partition(":")
     if name not in EFFECT_KEYS:
         raise ValueError(f"--truth-effect {text}: effect {name!r}: expected one of "
@@ -755,6 +762,7 @@ def parse_effect_option(text: str) -> tuple[str, dict[str, float]]:
 def with_truth_effects(model: ActuatorModel, options: Iterable[str]) -> ActuatorModel:
     """The model with the `--truth-effect NAME:KEY=VALUE,...` effects added: the hidden "truth"
     a virtual drive can carry. ValueError names the option at fault."""
+
     parameters = model.parameters
     peak = peak_joint_torque(model)
     for option in options:

@@ -106,6 +106,9 @@ def main(argv: list[str] | None = None) -> int:
         check_output_file("-o", args.output)
         if args.zenoh:
             check_key_expr("--zenoh", args.zenoh, wildcards=True)
+            if args.can_log:
+                raise ValueError("--can-log: --zenoh records no CAN bus; expected "
+                                 "--exciting-trajectory or --sinusoid")
     except ValueError as exc:
         return usage_error(PROG, str(exc))
     stop = threading.Event()
