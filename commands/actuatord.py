@@ -155,17 +155,6 @@ def main(argv: list[str] | None = None) -> int:
     from controller.telemetry import TelemetryPublisher
 
     publisher = TelemetryPublisher(session, args.prefix)
-    mpc = Mpc(model, settings, payload, reference)
-    loop = ControlLoop(None, mpc, LoopOptions(period=period, lockstep=args.lockstep,
-                                              duration=args.duration,
-                                              keep_history=bool(args.plot)),
-                       publisher.publish, lambda: publisher.dropped)
-    requests = RequestHandler(loop, mpc, model, payload, publisher.publish_audit)
-    publisher.serve_json(telemetry.PARAMETERS, requests.parameters)
-    publisher.serve_json(telemetry.REFERENCE, requests.set_reference)
-    publisher.serve_json(telemetry.WEIGHTS, requests.set_weights)
-    signal.signal(signal.SIGINT, lambda *_: loop.stop())
-    signal.signal(signal.SIGTERM, lambda *_: loop.stop())
     try:
         # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host
         connection = open_drive(args, model, sim_model, payload, schedule, period=period,
@@ -174,7 +163,18 @@ def main(argv: list[str] | None = None) -> int:
         publisher.close()
         session.close()
         return job_error(PROG, str(exc))
-    drive = loop.drive = connection.drive
+    drive = connection.drive
+    mpc = Mpc(model, settings, payload, reference)
+    loop = ControlLoop(drive, mpc, LoopOptions(period=period, lockstep=args.lockstep,
+                                               duration=args.duration,
+                                               keep_history=bool(args.plot)),
+                       [publisher.publish], lambda: publisher.dropped)
+    requests = RequestHandler(loop, mpc, model, payload, publisher.publish_audit)
+    publisher.serve_json(telemetry.PARAMETERS, requests.parameters)
+    publisher.serve_json(telemetry.REFERENCE, requests.set_reference)
+    publisher.serve_json(telemetry.WEIGHTS, requests.set_weights)
+    signal.signal(signal.SIGINT, lambda *_: loop.stop())
+    signal.signal(signal.SIGTERM, lambda *_: loop.stop())
     try:
         drive.start()
         print(f"actuatord: node {args.node_id} on {connection.where} enabled; "

@@ -66,11 +66,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.job == "set":
             payload = _request_payload(args.what, args.values)
+        check_key_expr("--prefix", args.prefix, wildcards=False)
         if args.job == "foxglove":
-            check_key_expr("--key", args.key, wildcards=True)
-            _check_port_free(args.host, args.port)
-        else:
-            check_key_expr("--prefix", args.prefix, wildcards=False)
+            if args.key is not None:
+                check_key_expr("--key", args.key, wildcards=True)
+            for port in (args.port, args.legacy_port):
+                if port is not None:
+                    _check_port_free(args.host, port)
         session = open_session(args)
     except ValueError as exc:
         return usage_error(PROG, str(exc))

@@ -41,13 +41,14 @@ from commands.options import (
     with_truth_effects,
 )
 from model.parameters import ModelFileError, load_model
-from protocol import cia402, telemetry
+from protocol import telemetry
 from protocol.bus_spec import BusSpecError
 from recorder.exciting import ExcitingTrajectory, SlowSinusoid
 from recorder.reader import load_recording
 from recorder.recording import RecordingError
 
 PROG = "recorder"
+RECORDED_TOPICS = ("state", "command", "fault")  # what an experiment's recording keeps
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -137,7 +138,7 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     from recorder.tracking import TrackingLaw
 
     try:
-        connection = open_drive(args, sim_model, payload)
+        connection = open_drive(args, model, sim_model, payload)
     except DriveOpenError as exc:
         return job_error(PROG, str(exc))
     drive = connection.drive
@@ -154,39 +155,23 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         connection.close()
         return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
     # channels named as the Zenoh keys, so a Foxglove layout serves live data and both recordings
+    record = writer.subscriber(RECORDED_TOPICS, telemetry.DEFAULT_PREFIX)
     state_channel = writer.channel(telemetry.key_expr(telemetry.DEFAULT_PREFIX, "state"), "State")
-    command_channel = writer.channel(telemetry.key_expr(telemetry.DEFAULT_PREFIX, "command"),
-                                     "Command")
-    state_class, command_class = (telemetry.message_class("State"),
-                                  telemetry.message_class("Command"))
     law = TrackingLaw(model.parameters.with_payload(payload), model.limits.current_max)
     bar = _progress(args.no_progress, trajectory.duration)
-
-    def sink(sample, current, reference) -> None:
-        # log_time: the wall clock, once for the cycle's two messages; publish_time: drive time
-        log_time, drive_time = time.time_ns(), int(round(sample.t * 1e9))
-        state = cia402.state_from_statusword(sample.statusword)
-        writer.write(state_channel, state_class(
-            t=sample.t, position=sample.position, velocity=sample.velocity,
-            motor_current=sample.motor_current, joint_torque=sample.joint_torque,
-            statusword=sample.statusword, drive_state=state.value).SerializeToString(),
-            publish_time_ns=drive_time, log_time_ns=log_time)
-        writer.write(command_channel, command_class(
-            t=sample.t, current=current, planned_current=current,
-            reference_position=reference[0], reference_velocity=reference[1],
-            current_limit=model.limits.current_max, position_min=model.limits.position_min,
-            position_max=model.limits.position_max).SerializeToString(),
-            publish_time_ns=drive_time, log_time_ns=log_time)
-
     started = time.perf_counter()
     code = 0
     try:
         drive.start()
-        run_trajectory(drive, trajectory, law, sink, args.lockstep, bar, stop.is_set)
+        report = run_trajectory(drive, trajectory, law, model.limits, [record], args.lockstep,
+                                bar, stop)
         if stop.is_set():
             code = 1
-            print(f"recorder: interrupted after {writer.messages_on(state_channel)} samples",
+            print(f"{PROG}: interrupted after {writer.messages_on(state_channel)} samples",
                   file=sys.stderr)
+        elif report.exit_code != 0:
+            code = report.exit_code
+            print(f"{PROG}: error: {report.reason}", file=sys.stderr)
     except DriveError as exc:
         code = job_error(PROG, str(exc))
     finally:

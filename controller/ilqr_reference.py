@@ -1,32 +1,29 @@
 """Readable numpy iLQR: the reference the compiled solver is checked against, and the
 "straightforward numpy" baseline of `bench` (matrices per step, the way one writes it first).
 
-Same problem, discretisation and line search as `controller.ilqr`; the model and cost come from
-the same functions (`model.dynamics.smooth_acceleration`, `controller.cost`).
+Same problem, line search and action model as `controller.ilqr`: the discrete step and the
+cost derivatives come from the same functions (`controller.action_model`), called here on
+numpy arrays and scalars.
 """
 
 import numpy as np
 
-from controller.cost import control_box, control_cost, state_cost
-from controller.problem import C_DT, C_FRICTION_SHARPNESS
-from model.dynamics import smooth_acceleration
+from controller import action_model
+from controller.cost import control_box
 
 
 def discrete_step(x: np.ndarray, u: float, p: np.ndarray, c: np.ndarray):
-    """Semi-implicit Euler step and its Jacobians A = dx+/dx, B = dx+/du."""
-    dt = c[C_DT]
-    a, a_q, a_qd, a_u = smooth_acceleration(x[0], x[1], u, p, c[C_FRICTION_SHARPNESS])
-    qd_next = x[1] + dt * a
-    x_next = np.array([x[0] + dt * qd_next, qd_next])
-    A = np.array([[1.0 + dt * dt * a_q, dt + dt * dt * a_qd], [dt * a_q, 1.0 + dt * a_qd]])
-    B = np.array([dt * dt * a_u, dt * a_u])
-    return x_next, A, B
+    """The action model's step as vectors: x+, A = dx+/dx, B = dx+/du."""
+    s = action_model.discrete_step(x[0], x[1], u, p, c)
+    return np.array([s.q, s.qd]), np.array([[s.a11, s.a12], [s.a21, s.a22]]), np.array([s.b1,
+                                                                                         s.b2])
 
 
 def trajectory_cost(X: np.ndarray, U: np.ndarray, ref: np.ndarray, c: np.ndarray) -> float:
-    ls = state_cost(X[:, 0], X[:, 1], ref[:, 0], ref[:, 1], c)[0]
-    lc = control_cost(U, c)[0]
-    return float(np.sum(ls) + np.sum(lc))
+    """Stage costs over the horizon (the terminal stage has no control) plus the terminal."""
+    running = action_model.stage_cost(X[:-1, 0], X[:-1, 1], U, ref[:-1, 0], ref[:-1, 1], c).l
+    terminal = action_model.terminal_cost(X[-1, 0], X[-1, 1], ref[-1, 0], ref[-1, 1], c).l
+    return float(np.sum(running) + terminal)
 
 
 def rollout(x0, U_base, X_base, K, kff, alpha, p, c):
@@ -44,10 +41,12 @@ def rollout(x0, U_base, X_base, K, kff, alpha, p, c):
 
 def backward(X, U, A, B, ref, c, mu):
     n = len(U)
-    _, lq, lqd, lqq, lqdqd = state_cost(X[:, 0], X[:, 1], ref[:, 0], ref[:, 1], c)
-    _, lu, luu = control_cost(U, c)
-    Vx = np.array([lq[n], lqd[n]])
-    Vxx = np.diag([lqq[n], lqdqd[n]])
+    stage = action_model.stage_cost(X[:-1, 0], X[:-1, 1], U, ref[:-1, 0], ref[:-1, 1], c)
+    lq, lqd, lqq, lqdqd, lu, luu = (stage.l_q, stage.l_qd, stage.l_qq, stage.l_qdqd, stage.l_u,
+                                    stage.l_uu)
+    terminal = action_model.terminal_cost(X[-1, 0], X[-1, 1], ref[-1, 0], ref[-1, 1], c)
+    Vx = np.array([terminal.l_q, terminal.l_qd])
+    Vxx = np.diag([terminal.l_qq, terminal.l_qdqd])
     K = np.zeros((n, 2))
     kff = np.zeros(n)
     dv = np.zeros(2)

@@ -1,23 +1,32 @@
-"""The control loop: read the sample, solve, command the current, publish. Clocked by SYNC.
+"""The control loop: read the sample, decide, command the current, publish. Clocked by SYNC.
 
-In real time the loop sleeps to each period's deadline before triggering the SYNC; in
-lock-step (the virtual drive) it runs as fast as the drive answers, and time is the drive's.
-Requests from outside (a new reference, new weights) are queued and applied at the start of a
-cycle, so the solver never sees a half-made change.
+One loop for every policy (the MPC, an experiment's tracking law) with the same safety net
+around it (`controller.safety`). In real time the loop sleeps to each period's deadline before
+triggering the SYNC; in lock-step (the virtual drive) it runs as fast as the drive answers, and
+time is the drive's. Requests from outside (a new reference, new weights) are queued and applied
+at the start of a cycle, so the policy never sees a half-made change. Every sample and decision
+goes to the subscribers as typed telemetry messages (`controller.messages`), in this thread: a
+subscriber that does I/O hands the message to its own thread.
 """
 
+import collections
 import math
-import queue
 import threading
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-from controller.mpc import Mpc, TickResult
+from controller import messages
+from controller.messages import Subscriber
+from controller.policy import Policy
+from controller.safety import SafeCommand, SafetyNet
 from driver import CommandRangeError, Drive, DriveError, Sample
 from driver.clock import CycleClock, RingStats
 from protocol import cia402
 
 STALL_CYCLES = 10  # missed in a row: worth a message on the fault topic
+HISTORY_KEYS = ("t", "position", "velocity", "reference", "current", "planned_current",
+                "motor_current", "joint_torque")
 
 
 @dataclass
@@ -59,63 +68,85 @@ class LoopReport:
 
 
 class ControlLoop:
-    def __init__(self, drive: Drive, mpc: Mpc, options: LoopOptions,
-                 publish: Callable[[str, dict], None] | None = None,
-                 dropped: Callable[[], int] = lambda: 0):
-        self.drive = drive
-        self.mpc = mpc
+    def __init__(self, drive: Drive, policy: Policy, options: LoopOptions,
+                 subscribers: Sequence[Subscriber] = (),
+                 dropped: Callable[[], int] = lambda: 0, stop: threading.Event | None = None):
+        """`dropped` counts the messages subscribers could not pass on (for LoopStats); `stop`,
+        when given, is the caller's flag to end the run (a signal handler sets it)."""
+        self._drive = drive
+        self.policy = policy
         self.options = options
-        self.publish = publish or (lambda topic, fields: None)
-        self.dropped = dropped
-        self._requests: queue.Queue = queue.Queue()
-        self._stop = threading.Event()
+        self._net = SafetyNet(policy)
+        self._subscribers = tuple(subscribers)
+        self._dropped = dropped
+        # appended by other threads, drained by the loop: deque's append and popleft are atomic
+        self._requests: collections.deque[Callable[[], None]] = collections.deque()
+        self._stop = stop if stop is not None else threading.Event()
         self.report = LoopReport()
+        self.latest: Sample | None = None  # the last sample the loop took
 
-    def request(self, change: Callable[[Mpc], None]) -> None:
-        """Apply `change(mpc)` at the start of the next cycle (thread-safe)."""
-        self._requests.put(change)
+    @property
+    def time(self) -> float:
+        """The drive time of the last sample (0 before the first)."""
+        latest = self.latest
+        return latest.t if latest is not None else 0.0
+
+    def request(self, change: Callable[[], None]) -> None:
+        """Run `change()` at the start of the next cycle (thread-safe)."""
+        self._requests.append(change)
 
     def stop(self) -> None:
         self._stop.set()
 
+    def publish(self, message) -> None:
+        for subscriber in self._subscribers:
+            subscriber(message)
+
     def fault(self, t: float, source: str, cause: str, action: str) -> None:
-        self.publish("fault", {"t": t, "source": source, "cause": cause, "action": action})
+        self.publish(messages.fault(t, source, cause, action))
 
     def run(self) -> LoopReport:
-        """Run until stopped, the duration is reached or the drive fails. The caller owns the
-        drive's life cycle (start before, close after: close always disables it)."""
-        options, report = self.options, self.report
-        history = {k: [] for k in ("t", "position", "velocity", "reference", "current",
-                                   "planned_current", "motor_current", "joint_torque")}
+        """Run until stopped, the duration is reached, the policy is done or the drive fails.
+        The caller owns the drive's life cycle (start before, close after: close always
+        disables it)."""
+        options, report, drive, net = self.options, self.report, self._drive, self._net
+        history = {key: [] for key in HISTORY_KEYS}
         if options.keep_history:
             report.history = history
         clock = report.clock = CycleClock(options.period, options.lockstep)
         next_stats = options.stats_every
         missed = 0
+        statusword, state = None, None
+        perf_counter = time.perf_counter
         while not self._stop.is_set():
             clock.wait()
-            if clock.missed_cycles - missed >= STALL_CYCLES and self.drive.read() is not None:
-                self.fault(self.drive.read().t, "controller",
+            if clock.missed_cycles - missed >= STALL_CYCLES and self.latest is not None:
+                self.fault(self.latest.t, "controller",
                            f"loop stalled: {clock.missed_cycles - missed} cycles missed",
                            "continuing from the next sample")
             missed = clock.missed_cycles
-            self._apply_requests()
+            while self._requests:
+                self._requests.popleft()()
             try:
-                sample = self.drive.sync()
+                sample = drive.sync()
             except DriveError as exc:
-                last = self.drive.read()
                 return self._finish(1, f"drive failed: {exc}", "drive",
                                     "stopped commanding; drive disabled on exit",
-                                    last.t + options.period if last is not None else 0.0)
-            for warning in self.drive.warnings():
+                                    self.time + options.period if self.latest else 0.0)
+            self.latest = sample
+            for warning in drive.warnings():
                 self.fault(sample.t, "drive", warning, "continuing: the command does not use it")
-            state = cia402.state_from_statusword(sample.statusword)
+            if sample.statusword != statusword:
+                statusword, state = sample.statusword, cia402.state_from_statusword(
+                    sample.statusword)
             if state is not cia402.State.OPERATION_ENABLED:
                 return self._finish(1, f"drive left operation enabled: {state.value}", "drive",
                                     "stopped commanding; drive disabled on exit", sample.t)
-            result = self.mpc.tick(sample.position, sample.velocity, sample.t)
+            start = perf_counter()
+            safe = net.decide(sample)
+            decide_time = perf_counter() - start
             try:
-                self.drive.command_current(result.current)
+                drive.command_current(safe.current)
             except (CommandRangeError, DriveError) as exc:
                 source = "controller" if isinstance(exc, CommandRangeError) else "drive"
                 return self._finish(1, f"command refused: {exc}", source,
@@ -123,76 +154,54 @@ class ControlLoop:
             if report.cycles == 0:
                 # the cold solve runs once before the rhythm starts: timed on its own, and the
                 # deadlines begin after it
-                report.cold_solve_us = result.solve_time * 1e6
+                report.cold_solve_us = decide_time * 1e6
                 clock.restart()
             else:
                 clock.check_overrun()
-                report.solve.add(result.solve_time * 1e6)
+                report.solve.add(decide_time * 1e6)
             report.cycles += 1
-            self._publish_cycle(sample, state, result)
+            self._publish_cycle(sample, state, safe, decide_time)
             if options.keep_history:
-                for key, value in (("t", sample.t), ("position", sample.position),
-                                   ("velocity", sample.velocity),
-                                   ("reference", result.reference_position),
-                                   ("current", result.current),
-                                   ("planned_current", result.planned_current),
-                                   ("motor_current", sample.motor_current),
-                                   ("joint_torque", sample.joint_torque)):
-                    history[key].append(value)
+                self._remember(history, sample, safe)
             if sample.t >= next_stats:
                 next_stats += options.stats_every
-                self.publish("loop_stats", self._stats_fields(sample.t))
+                self.publish(self._stats(sample.t))
             if options.duration is not None and sample.t >= options.duration - 1e-9:
                 return self._finish(0, f"ran {options.duration} s", t=sample.t)
-        return self._finish(0, "stop requested", t=self.drive.read().t if self.drive.read()
-                            else 0.0)
+            if safe.decision.finished:
+                return self._finish(0, "the policy finished", t=sample.t)
+        return self._finish(0, "stop requested", t=self.time)
 
-    def _apply_requests(self) -> None:
-        while True:
-            try:
-                change = self._requests.get_nowait()
-            except queue.Empty:
-                return
-            change(self.mpc)
-
-    def _publish_cycle(self, sample: Sample, state: cia402.State, result: TickResult) -> None:
-        limits = self.mpc.limits
-        self.publish("state", {
-            "t": sample.t, "position": sample.position, "velocity": sample.velocity,
-            "motor_current": sample.motor_current, "joint_torque": sample.joint_torque,
-            "statusword": sample.statusword, "drive_state": state.value})
-        self.publish("command", {
-            "t": sample.t, "current": result.current,
-            "planned_current": result.planned_current,
-            "reference_position": result.reference_position,
-            "reference_velocity": result.reference_velocity,
-            "current_limit": limits.current_max, "position_min": limits.position_min,
-            "position_max": limits.position_max, "saturated": result.saturated,
-            "fallback": result.fault is not None})
-        self.publish("solver", {
-            "t": sample.t, "solve_time_us": result.solve_time * 1e6,
-            "iterations": result.solve.iterations, "rollouts": result.solve.rollouts,
-            "status": result.solve.status_name, "cost": result.solve.cost})
-        if result.fault is not None:
+    def _publish_cycle(self, sample: Sample, state: cia402.State, safe: SafeCommand,
+                       decide_time: float) -> None:
+        t = sample.t
+        publish = self.publish
+        publish(messages.state(sample, state.value))
+        publish(messages.command(t, safe, self._net.limits))
+        publish(messages.solver_stats(t, safe, decide_time))
+        if safe.fault is not None:
             self.report.fallbacks += 1
-            self.fault(sample.t, "controller", result.fault,
-                       f"commanded {result.current:.3f} A (safe command)")
+            self.fault(t, "controller", safe.fault,
+                       f"commanded {safe.current:.3f} A (safe command)")
         if self.report.cycles % self.options.plan_every == 0:
-            solver = self.mpc.solver
-            self.publish("plan", {
-                "t": sample.t, "dt": self.mpc.settings.dt,
-                "position": solver.X[:, 0].tolist(), "velocity": solver.X[:, 1].tolist(),
-                "current": solver.U.tolist(),
-                "reference_position": solver.reference_position.tolist()})
+            snapshot = self.policy.plan(t)
+            if snapshot is not None:
+                publish(messages.plan(snapshot))
 
-    def _stats_fields(self, t: float) -> dict:
+    @staticmethod
+    def _remember(history: dict, sample: Sample, safe: SafeCommand) -> None:
+        for key, value in zip(HISTORY_KEYS, (
+                sample.t, sample.position, sample.velocity, safe.decision.reference_position,
+                safe.current, safe.decision.planned_current, sample.motor_current,
+                sample.joint_torque), strict=True):
+            history[key].append(value)
+
+    def _stats(self, t: float):
         report = self.report
-        return {"t": t, "cycles": report.cycles, "missed_cycles": report.missed_cycles,
-                "period_jitter_p99_us": report.jitter.percentile(99),
-                "period_jitter_max_us": report.jitter.max,
-                "solve_median_us": report.solve.percentile(50),
-                "solve_p99_us": report.solve.percentile(99), "solve_max_us": report.solve.max,
-                "dropped_messages": self.dropped()}
+        return messages.loop_stats(
+            t, report.cycles, report.missed_cycles, report.jitter.percentile(99),
+            report.jitter.max, report.solve.percentile(50), report.solve.percentile(99),
+            report.solve.max, self._dropped())
 
     def _finish(self, code: int, reason: str, source: str | None = None,
                 action: str | None = None, t: float = 0.0) -> LoopReport:
@@ -200,5 +209,5 @@ class ControlLoop:
         self.report.reason = reason
         if source is not None:
             self.fault(t, source, reason, action or "")
-        self.publish("loop_stats", self._stats_fields(t))
+        self.publish(self._stats(t))
         return self.report

@@ -1,114 +1,375 @@
-"""Receding-horizon use of the iLQR: warm start shifted by one step, one (or a few) solver
-iterations per tick, and the safety net between the solver and the drive."""
+"""Receding-horizon use of the iLQR: warm start shifted by one step, the reference sampled over
+the horizon, one (or a few) solver iterations per tick, for J independent joints in one
+compiled call (one joint is J = 1: there is one path).
+
+The warm-started tick is a real-time iteration: the previous solution, its linearisation and
+its stage costs are shifted by one step (only the last stage is new), the backward pass runs on
+them directly, and the forward pass from the measured state is the line search. The merit it
+must beat is the shifted cost corrected to the measured state by the value function's quadratic
+model, so the Armijo test stays meaningful. One simulation per tick instead of two.
+
+Joints run in parallel across cores (numba prange, one workspace row each); a single joint runs
+in the calling thread, where waking a thread team would cost more than it saves.
+"""
 
 import math
-import time
-from typing import NamedTuple
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
 
+import numba
 import numpy as np
+from numba.np.unsafe.ndarray import to_fixed_tuple
 
-from controller.ilqr import COLD, NOT_FINITE, RESAMPLE, WARM, IlqrSolver, SolveResult
-from controller.problem import OcpSettings, pack_cost
+from controller import workspace as ws
+from controller.action_model import discrete_step, stage_cost
+from controller.ilqr import (
+    CONVERGED,
+    MAX_ITERATIONS,
+    MU_MIN,
+    STATUS_NAMES,
+    Outcome,
+    backward,
+    evaluate_terminal,
+    iterate,
+    line_search,
+    solve_from_controls,
+    store_stage,
+)
+from controller.policy import Decision, PlanSnapshot
+from controller.problem import C_DT, N_COST, OcpSettings, pack_cost
 from controller.reference import Reference, Sinusoid, check_reference, reference_at
-from model import dynamics
+from controller.safety import holding_current
+from controller.workspace import JIT
+from driver import Sample
+from model.dynamics import N_PARAMS
 from model.parameters import ActuatorModel, Payload
 
-STATE_MARGIN = 0.5  # rad beyond the position limits where the state is still believed
+COLD, WARM, RESAMPLE, SKIP = 0, 1, 2, 3  # tick modes, per joint
 
 
-class TickResult(NamedTuple):
-    """What one MPC tick decided (a NamedTuple: built every millisecond, so kept cheap)."""
+@numba.njit(**JIT)
+def _shift(cur, K, ref_q, ref_qd, p, c):
+    """Advance the stored solution one step: everything moves up by one (in place, ascending,
+    so no temporaries), the last control is repeated and only the last stage and the terminal
+    state are evaluated anew."""
+    X, U, A, B, LX, LXX, LU, LUU, LC = cur
+    n = U.shape[0]
+    for k in range(n):
+        X[k, 0] = X[k + 1, 0]
+        X[k, 1] = X[k + 1, 1]
+        LX[k, 0] = LX[k + 1, 0]
+        LX[k, 1] = LX[k + 1, 1]
+        LXX[k, 0] = LXX[k + 1, 0]
+        LXX[k, 1] = LXX[k + 1, 1]
+        LC[k] = LC[k + 1]
+    for k in range(n - 1):
+        U[k] = U[k + 1]
+        A[k, 0] = A[k + 1, 0]
+        A[k, 1] = A[k + 1, 1]
+        A[k, 2] = A[k + 1, 2]
+        A[k, 3] = A[k + 1, 3]
+        B[k, 0] = B[k + 1, 0]
+        B[k, 1] = B[k + 1, 1]
+        LU[k] = LU[k + 1]
+        LUU[k] = LUU[k + 1]
+        K[k, 0] = K[k + 1, 0]
+        K[k, 1] = K[k + 1, 1]
+    q, qd, u = X[n - 1, 0], X[n - 1, 1], U[n - 2]
+    step = discrete_step(q, qd, u, p, c)
+    store_stage(cur, n - 1, q, qd, u, step, stage_cost(q, qd, u, ref_q[n - 1], ref_qd[n - 1], c))
+    evaluate_terminal(step.q, step.qd, cur, ref_q, ref_qd, c)
 
-    current: float  # A, the command to send (within the current limit)
-    planned_current: float  # A, what the solver asked for before the safety net
-    reference_position: float
-    reference_velocity: float
-    solve: SolveResult
-    solve_time: float  # s
-    fault: str | None  # why the safety net overrode the solver, if it did
 
-    @property
-    def saturated(self) -> bool:
-        return self.fault is None and self.planned_current != self.current
+@numba.njit(**JIT)
+def _tick_warm(q0, qd0, w, p, c, max_iterations, tolerance):
+    """Real-time iteration from the shifted previous solution (see the module docstring)."""
+    cur, trial = w.current, w.trial
+    _shift(cur, w.K, w.reference_position, w.reference_velocity, p, c)
+    sweep = backward(cur, MU_MIN, w.K, w.kff, c)
+    rollouts = 0
+    if sweep.ok:
+        d1, d2 = q0 - cur.X[0, 0], qd0 - cur.X[0, 1]
+        shifted_cost = 0.0
+        for cost in cur.LC:
+            shifted_cost += cost
+        merit = shifted_cost + sweep.vx1 * d1 + sweep.vx2 * d2 + 0.5 * (
+            sweep.v11 * d1 * d1 + 2.0 * sweep.v12 * d1 * d2 + sweep.v22 * d2 * d2)
+        accepted, new_cost, rollouts = line_search(
+            q0, qd0, cur, trial, w.K, w.kff, sweep.dv1, sweep.dv2, merit, w.reference_position,
+            w.reference_velocity, p, c)
+        if accepted:
+            if max_iterations == 1:
+                return Outcome(MAX_ITERATIONS, 1, new_cost, MU_MIN, rollouts, True)
+            more = iterate(q0, qd0, trial, cur, w.K, w.kff, new_cost, w.reference_position,
+                           w.reference_velocity, p, c, max_iterations - 1, tolerance)
+            return Outcome(more.status, more.iterations + 1, more.cost, more.mu,
+                           rollouts + more.rollouts, not more.flipped)
+    fresh = solve_from_controls(q0, qd0, cur, trial, w.K, w.kff, w.reference_position,
+                                w.reference_velocity, p, c, max_iterations, tolerance)
+    return Outcome(fresh.status, fresh.iterations, fresh.cost, fresh.mu,
+                   fresh.rollouts + rollouts, fresh.flipped)
 
 
-class Mpc:
-    """The paper's controller: iLQR with exponential barriers, run at every control period."""
+@numba.njit(**JIT)
+def tick_joint(row, t0, n):
+    """One joint's MPC step, inputs and outputs in its row (controller.workspace). Mode COLD:
+    solve from a constant initial current. WARM: if t0 is exactly one step after the previous
+    tick, a real-time iteration on the shifted solution; otherwise (a missed cycle) the shifted
+    controls are re-simulated and iterated. RESAMPLE: the reference or the weights changed, so
+    the reference is sampled anew before doing the latter. SKIP: nothing."""
+    mode = row[ws.MODE]
+    if mode == SKIP:
+        return
+    w = ws.views(row, n)
+    # the parameters and the cost vector as tuples: values the compiler keeps in registers,
+    # with no reference counting in each nested call and no aliasing with the trajectories
+    p = to_fixed_tuple(row[ws.PARAMETERS:ws.COST_VECTOR], N_PARAMS)
+    c = to_fixed_tuple(row[ws.COST_VECTOR:ws.TRAJECTORIES], N_COST)
+    reference = row[ws.REFERENCE:ws.REFERENCE + 4]
+    q0, qd0 = row[ws.POSITION], row[ws.VELOCITY]
+    max_iterations = int(row[ws.MAX_ITERATIONS])
+    tolerance = row[ws.TOLERANCE]
+    ref_q, ref_qd = w.reference_position, w.reference_velocity
+    dt = c[C_DT]
+    contiguous = abs(t0 - row[ws.LAST_T0] - dt) < 1e-6 * dt
+    row[ws.LAST_T0] = t0
+    if mode == WARM and contiguous:
+        for k in range(n):
+            ref_q[k] = ref_q[k + 1]
+            ref_qd[k] = ref_qd[k + 1]
+        ref_q[n], ref_qd[n] = reference_at(reference, t0 + n * dt)
+        outcome = _tick_warm(q0, qd0, w, p, c, max_iterations, tolerance)
+    else:
+        for k in range(n + 1):
+            ref_q[k], ref_qd[k] = reference_at(reference, t0 + k * dt)
+        U = w.current.U
+        if mode == COLD:
+            U[:] = row[ws.INITIAL_CURRENT]
+        else:
+            for k in range(n - 1):
+                U[k] = U[k + 1]
+        outcome = solve_from_controls(q0, qd0, w.current, w.trial, w.K, w.kff, ref_q, ref_qd, p,
+                                      c, max_iterations, tolerance)
+    row[ws.STATUS] = outcome.status
+    row[ws.ITERATIONS] = outcome.iterations
+    row[ws.COST] = outcome.cost
+    row[ws.MU] = outcome.mu
+    row[ws.ROLLOUTS] = outcome.rollouts
+    if outcome.flipped:
+        row[ws.SECOND_IS_CURRENT] = 1.0 - row[ws.SECOND_IS_CURRENT]
+    U = w.trial.U if outcome.flipped else w.current.U
+    row[ws.PLANNED_CURRENT] = U[0]
+    row[ws.REFERENCE_POSITION] = ref_q[0]
+    row[ws.REFERENCE_VELOCITY] = ref_qd[0]
 
-    def __init__(self, model: ActuatorModel, settings: OcpSettings = OcpSettings(),
-                 payload: Payload = Payload(), reference: Reference = Sinusoid()):
-        self.model = model
-        self._mode = COLD
+
+@numba.njit(parallel=True, **JIT)
+def tick_joints(rows, t0, n):
+    """Every joint's MPC step at time t0: one compiled call for the whole robot."""
+    if rows.shape[0] == 1:
+        tick_joint(rows[0], t0, n)
+        return
+    for j in numba.prange(rows.shape[0]):
+        tick_joint(rows[j], t0, n)
+
+
+@dataclass(frozen=True)
+class JointProblem:
+    """One joint's optimal control problem: its model, solver settings, payload, reference."""
+
+    model: ActuatorModel
+    settings: OcpSettings = field(default_factory=OcpSettings)
+    payload: Payload = field(default_factory=Payload)
+    reference: Reference = field(default_factory=Sinusoid)
+
+
+class _Joint:
+    """Python's side of one joint's row: its problem, mode and named views."""
+
+    def __init__(self, problem: JointProblem, row: np.ndarray, n: int):
+        self.problem = problem
+        self.row = row
+        self.parameters = problem.model.parameters.with_payload(problem.payload)
+        self.packed_parameters = self.parameters.packed()
+        self.limits = problem.model.limits
+        self.mode = COLD
+        self.trajectories = ws.trajectories(row, n)
+        w = ws.views(row, n)
+        self.reference_position, self.reference_velocity = (w.reference_position,
+                                                            w.reference_velocity)
+        row[ws.PARAMETERS:ws.COST_VECTOR] = self.packed_parameters
+        self.set_settings(problem.settings)
+        self.set_reference(problem.reference)
+
+    def set_settings(self, settings: OcpSettings) -> None:
         self.settings = settings
-        self.payload = payload
-        self.parameters = model.parameters.with_payload(payload)
-        self.limits = model.limits
-        self.set_reference(reference)
-        self.solver = IlqrSolver(settings, self.parameters.packed(),
-                                 pack_cost(settings, model.limits, self.parameters.drive_gain))
-        # load the compiled code now, not in the first control cycle
-        middle = 0.5 * (self.limits.position_min + self.limits.position_max)
-        self.solver.tick((middle, 0.0), 0.0, self._reference_packed, COLD, 0.0, 1)
+        self.row[ws.COST_VECTOR:ws.TRAJECTORIES] = pack_cost(settings, self.limits,
+                                                             self.parameters.drive_gain)
+        self.row[ws.TOLERANCE] = settings.tolerance
+        if self.mode == WARM:
+            self.mode = RESAMPLE  # the stored derivatives belong to the old weights
 
     def set_reference(self, reference: Reference) -> None:
         check_reference(reference, self.limits)
         self.reference = reference
-        self._reference_packed = reference.packed()
-        if self._mode == WARM:
-            self._mode = RESAMPLE
+        self.reference_packed = reference.packed()
+        self.row[ws.REFERENCE:ws.REFERENCE + 4] = self.reference_packed
+        if self.mode == WARM:
+            self.mode = RESAMPLE
+
+    def solution(self) -> "ws.Trajectory":
+        return self.trajectories[int(self.row[ws.SECOND_IS_CURRENT])]
+
+
+class BatchMpc:
+    """The paper's controller for J independent joints (the paper's independent joint models),
+    ticked together. All joints share the horizon length (one row width)."""
+
+    def __init__(self, problems: Sequence[JointProblem]):
+        if not problems:
+            raise ValueError("a batch needs at least one joint")
+        horizons = {problem.settings.horizon for problem in problems}
+        if len(horizons) != 1:
+            raise ValueError(f"every joint needs the same horizon, got {sorted(horizons)}")
+        self._build(list(problems))
+
+    def _build(self, problems: list[JointProblem]) -> None:
+        n = problems[0].settings.horizon
+        self.horizon = n
+        self.rows = np.zeros((len(problems), ws.row_size(n)))
+        self.joints = [_Joint(problem, self.rows[j], n) for j, problem in enumerate(problems)]
+        # load the compiled code now, not in the first control cycle
+        for joint in self.joints:
+            middle = 0.5 * (joint.limits.position_min + joint.limits.position_max)
+            self.prepare(joint, middle, 0.0, max_iterations=1)
+        tick_joints(self.rows, 0.0, n)
+
+    def __len__(self) -> int:
+        return len(self.joints)
+
+    def prepare(self, joint: _Joint, position: float, velocity: float,
+                max_iterations: int | None = None) -> None:
+        """Write one joint's inputs for the next tick (its mode decides the iterations)."""
+        row, mode = joint.row, joint.mode
+        row[ws.POSITION] = position
+        row[ws.VELOCITY] = velocity
+        row[ws.MODE] = mode
+        if mode == COLD:
+            row[ws.INITIAL_CURRENT] = holding_current(position, joint.parameters,
+                                                      joint.packed_parameters,
+                                                      joint.limits.current_max)
+            row[ws.MAX_ITERATIONS] = (joint.settings.max_iterations if max_iterations is None
+                                      else max_iterations)
+        else:
+            row[ws.MAX_ITERATIONS] = (joint.settings.tick_iterations if max_iterations is None
+                                      else max_iterations)
+
+    def skip(self, joint: _Joint) -> None:
+        """Leave this joint out of the next tick; it starts cold after."""
+        joint.row[ws.MODE] = SKIP
+        joint.mode = COLD
+
+    def run(self, t: float) -> None:
+        """Tick every prepared joint at time t (one compiled call)."""
+        tick_joints(self.rows, t, self.horizon)
+
+    def decision(self, joint: _Joint) -> Decision:
+        """What the last tick decided for this joint; its mode follows the outcome."""
+        header = joint.row[:ws.HEADER].tolist()
+        status = int(header[ws.STATUS])
+        planned = header[ws.PLANNED_CURRENT]
+        ok = status == CONVERGED or status == MAX_ITERATIONS
+        joint.mode = WARM if ok and math.isfinite(planned) else COLD
+        return Decision(planned, header[ws.REFERENCE_POSITION], header[ws.REFERENCE_VELOCITY],
+                        STATUS_NAMES[status], ok, int(header[ws.ITERATIONS]),
+                        int(header[ws.ROLLOUTS]), header[ws.COST])
+
+    def tick(self, t: float, positions: Sequence[float], velocities: Sequence[float]
+             ) -> list[Decision]:
+        """Every joint from its measured state at time t."""
+        for joint, position, velocity in zip(self.joints, positions, velocities, strict=True):
+            self.prepare(joint, position, velocity)
+        self.run(t)
+        return [self.decision(joint) for joint in self.joints]
+
+    def plan(self, joint: _Joint, t: float) -> PlanSnapshot:
+        solution = joint.solution()
+        return PlanSnapshot(t, joint.settings.dt, solution.X[:, 0].copy(),
+                            solution.X[:, 1].copy(), solution.U.copy(),
+                            joint.reference_position.copy())
+
+    def set_settings(self, joint: _Joint, settings: OcpSettings) -> None:
+        """New weights, sharpness or dt for one joint; a new horizon rebuilds the batch (every
+        joint's horizon changes with it, all start cold)."""
+        if settings.horizon != self.horizon:
+            problems = [JointProblem(j.problem.model, replace(j.settings, horizon=settings.horizon),
+                                     j.problem.payload, j.reference) for j in self.joints]
+            index = self.joints.index(joint)
+            problems[index] = JointProblem(joint.problem.model, settings, joint.problem.payload,
+                                           joint.reference)
+            self._build(problems)
+            return
+        if settings.dt != joint.settings.dt:
+            joint.mode = COLD
+        joint.set_settings(settings)
+
+
+class Mpc:
+    """The paper's controller on one joint, as a policy of the control loop: iLQR with
+    exponential barriers, run at every control period (a batch of one)."""
+
+    def __init__(self, model: ActuatorModel, settings: OcpSettings = OcpSettings(),
+                 payload: Payload = Payload(), reference: Reference = Sinusoid()):
+        self.model = model
+        self.payload = payload
+        self.batch = BatchMpc([JointProblem(model, settings, payload, reference)])
+        self._joint = self.batch.joints[0]
+        self.parameters = self._joint.parameters
+        self.limits = model.limits
+
+    @property
+    def settings(self) -> OcpSettings:
+        return self._joint.settings
+
+    @property
+    def reference(self) -> Reference:
+        return self._joint.reference
+
+    @property
+    def dynamics_parameters(self) -> np.ndarray:
+        """The packed parameters the solver predicts with (model.dynamics layout)."""
+        return self._joint.packed_parameters
+
+    def set_reference(self, reference: Reference) -> None:
+        self._joint.set_reference(reference)
 
     def set_settings(self, settings: OcpSettings) -> None:
-        """New weights or sharpness; horizon and dt changes rebuild the solver (cold start)."""
-        if (settings.horizon, settings.dt) != (self.settings.horizon, self.settings.dt):
-            self.__init__(self.model, settings, self.payload, self.reference)
-            return
-        self.settings = settings
-        self.solver.settings = settings
-        self.solver.c[:] = pack_cost(settings, self.limits, self.parameters.drive_gain)
-        if self._mode == WARM:
-            self._mode = RESAMPLE  # the stored derivatives belong to the old weights
+        self.batch.set_settings(self._joint, settings)
+        self._joint = self.batch.joints[0]
 
-    def hold_current(self, position: float) -> float:
-        """Current that balances gravity and offset at `position`, within the limit."""
-        p = self.parameters
-        torque = dynamics.gravity_torque(position, self.solver.p) + p.torque_offset
-        return float(np.clip(torque / p.drive_gain, -self.limits.current_max,
-                             self.limits.current_max))
+    def tick(self, sample: Sample) -> Decision:
+        batch, joint = self.batch, self._joint
+        batch.prepare(joint, sample.position, sample.velocity)
+        batch.run(sample.t)
+        return batch.decision(joint)
 
-    def tick(self, position: float, velocity: float, t: float) -> TickResult:
-        start = time.perf_counter()
-        state_fault = self._state_fault(position, velocity)
-        if state_fault is not None:
-            self._mode = COLD
-            ref_q, ref_qd = reference_at(self._reference_packed, t)
-            finite = math.isfinite(position) and math.isfinite(velocity)
-            safe = self.hold_current(position) if finite else 0.0
-            return TickResult(safe, math.nan, ref_q, ref_qd, SolveResult(NOT_FINITE, 0, math.inf),
-                              time.perf_counter() - start, state_fault)
-        mode = self._mode
-        result = self.solver.tick(
-            (position, velocity), t, self._reference_packed, mode,
-            self.hold_current(position) if mode == COLD else 0.0,
-            self.settings.max_iterations if mode == COLD else self.settings.tick_iterations)
-        planned = float(self.solver.U[0])
-        elapsed = time.perf_counter() - start
-        ref_q = float(self.solver.reference_position[0])
-        ref_qd = float(self.solver.reference_velocity[0])
-        if not result.ok or not math.isfinite(planned):
-            self._mode = COLD
-            return TickResult(self.hold_current(position), planned, ref_q, ref_qd, result,
-                              elapsed, f"solver {result.status_name}: holding position")
-        self._mode = WARM
-        limit = self.limits.current_max
-        return TickResult(min(max(planned, -limit), limit), planned, ref_q, ref_qd, result,
-                          elapsed, None)
+    def solve(self, position: float, velocity: float, t: float, initial_current: float,
+              max_iterations: int) -> Decision:
+        """A cold solve from a constant initial current (what the first tick does with the
+        holding current); the next tick starts warm from it if it succeeded."""
+        joint = self._joint
+        joint.mode = COLD
+        self.batch.prepare(joint, position, velocity, max_iterations)
+        joint.row[ws.INITIAL_CURRENT] = initial_current
+        self.batch.run(t)
+        return self.batch.decision(joint)
 
-    def _state_fault(self, position: float, velocity: float) -> str | None:
-        if not (math.isfinite(position) and math.isfinite(velocity)):
-            return f"non-finite state (q={position}, qd={velocity}): zero current"
-        low = self.limits.position_min - STATE_MARGIN
-        high = self.limits.position_max + STATE_MARGIN
-        if not low <= position <= high or abs(velocity) > 2 * self.limits.velocity_max:
-            return (f"state out of range (q={position:.3f} rad, qd={velocity:.3f} rad/s): "
-                    "holding position")
-        return None
+    def reference_at(self, t: float) -> tuple[float, float]:
+        q_ref, qd_ref = reference_at(self._joint.reference_packed, t)
+        return float(q_ref), float(qd_ref)
+
+    def reset(self) -> None:
+        self._joint.mode = COLD
+
+    def plan(self, t: float) -> PlanSnapshot:
+        return self.batch.plan(self._joint, t)

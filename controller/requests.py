@@ -65,19 +65,21 @@ class RequestHandler:
     def set_weights(self, payload: bytes | None) -> dict:
         return self._change("weights", payload, self._weights)
 
-    def _reference(self, spec: object) -> Callable[[Mpc], None]:
+    def _reference(self, spec: object) -> Callable[[], None]:
         try:
             reference = reference_from_dict(spec, self.model.limits)
         except ReferenceError as exc:
             raise RequestError(str(exc)) from None
-        return lambda mpc: mpc.set_reference(reference)
+        mpc = self.mpc
+        return lambda: mpc.set_reference(reference)
 
-    def _weights(self, spec: object) -> Callable[[Mpc], None]:
+    def _weights(self, spec: object) -> Callable[[], None]:
         changes = parse_weights(spec)
-        return lambda mpc: mpc.set_settings(mpc.settings.with_weights(**changes))
+        mpc = self.mpc
+        return lambda: mpc.set_settings(mpc.settings.with_weights(**changes))
 
     def _change(self, what: str, payload: bytes | None,
-                build: Callable[[object], Callable[[Mpc], None]]) -> dict:
+                build: Callable[[object], Callable[[], None]]) -> dict:
         text = (payload or b"").decode("utf-8", errors="replace")
         try:
             try:
@@ -87,19 +89,15 @@ class RequestHandler:
             change = build(spec)
         except RequestError as exc:
             self._audit(what, text, False, str(exc))
-            self.loop.fault(self._time(), "request", f"{what} refused: {exc}",
+            self.loop.fault(self.loop.time, "request", f"{what} refused: {exc}",
                             f"{what} unchanged")
             return {"ok": False, "reason": str(exc)}
         self.loop.request(change)
         self._audit(what, text, True, "applied at the next control cycle")
         return {"ok": True, what: spec}
 
-    def _time(self) -> float:
-        sample = self.loop.drive.read() if self.loop.drive is not None else None
-        return sample.t if sample is not None else 0.0
-
     def _audit(self, what: str, text: str, accepted: bool, reason: str) -> None:
         self.audit({"time": datetime.datetime.now(datetime.UTC).isoformat(
                         timespec="milliseconds"),
-                    "t": self._time(), "request": what, "payload": text, "accepted": accepted,
+                    "t": self.loop.time, "request": what, "payload": text, "accepted": accepted,
                     "reason": reason})

@@ -1,31 +1,39 @@
 """Zenoh side of actuatord: publishers fed from a queue by their own thread (the control loop
-never waits on the network), and the queryables for parameters and the reference."""
+never waits on the network, nor serialises), and the queryables for parameters and the
+reference."""
 
+import collections
 import json
 import logging
-import queue
 import threading
 from collections.abc import Callable
 
 import zenoh
 
+from controller.messages import topic_of
 from protocol import telemetry as schema
 
 log = logging.getLogger(__name__)
 
 EXPRESS_TOPICS = ("state", "command")  # latency matters more than batching for these
 QUEUE_DEPTH = 4096
+# s between the publisher thread's passes over the queue. The loop only appends to a deque:
+# no lock, no wake-up of another thread per message (in lock-step each wake-up handed the
+# interpreter lock back and forth three times a cycle); telemetry waits at most this long.
+DRAIN_PERIOD = 1e-3
 
 
 class TelemetryPublisher:
-    """Publishes telemetry messages given as dicts; serialisation happens in the publisher
-    thread. When the queue is full, messages are dropped and counted, never waited for."""
+    """Publishes the loop's telemetry messages (a subscriber of the loop); serialisation happens
+    in the publisher thread. When the queue is full, messages are dropped and counted, never
+    waited for."""
 
     def __init__(self, session: zenoh.Session, prefix: str = schema.DEFAULT_PREFIX):
         self.session = session
         self.prefix = prefix
         self.dropped = 0
-        self._queue: queue.Queue = queue.Queue(QUEUE_DEPTH)
+        self._queue: collections.deque = collections.deque()
+        self._closing = threading.Event()
         self._publishers = {
             topic: session.declare_publisher(
                 schema.key_expr(prefix, topic), encoding=zenoh.Encoding.APPLICATION_PROTOBUF,
@@ -41,10 +49,10 @@ class TelemetryPublisher:
         self._thread = threading.Thread(target=self._run, name="telemetry", daemon=True)
         self._thread.start()
 
-    def publish(self, topic: str, fields: dict) -> None:
-        try:
-            self._queue.put_nowait((topic, fields))
-        except queue.Full:
+    def publish(self, message) -> None:
+        if len(self._queue) < QUEUE_DEPTH:
+            self._queue.append(message)
+        else:
             self.dropped += 1
 
     def publish_audit(self, line: dict) -> None:
@@ -67,20 +75,22 @@ class TelemetryPublisher:
             self.session.declare_queryable(schema.key_expr(self.prefix, name), on_query))
 
     def _run(self) -> None:
-        classes = {topic: schema.message_class(name) for topic, name in schema.TOPICS.items()}
-        while True:
-            item = self._queue.get()
-            if item is None:
-                return
-            topic, fields = item
+        while not self._closing.wait(DRAIN_PERIOD):
+            self._drain()
+        self._drain()
+
+    def _drain(self) -> None:
+        queue = self._queue
+        while queue:
+            message = queue.popleft()
             try:
-                self._publishers[topic].put(classes[topic](**fields).SerializeToString())
-            except Exception:
-                log.exception("publishing %s failed", topic)
+                self._publishers[topic_of(message)].put(message.SerializeToString())
+            except Exception as exc:  # one bad message must not stop the telemetry
+                log.error("publishing %s failed: %s", type(message).__name__, exc)
 
     def close(self) -> None:
         """Flush what is queued, then undeclare everything."""
-        self._queue.put(None)
+        self._closing.set()
         self._thread.join(5)
         for entity in [*self._publishers.values(), *self._queryables, self._audit, self._alive]:
             entity.undeclare()

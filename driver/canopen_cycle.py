@@ -6,10 +6,15 @@ unpack and one slice assignment; a cycle builds no dicts.
 
 Freshness: a TPDO counts for cycle k only if it answers SYNC k. Where the drive echoes the SYNC
 counter (0x2004 in the first TPDO, the elbow drive), the echo decides, and the TPDOs behind it
-follow it in order on the bus. Otherwise, in real time, a TPDO must arrive inside the
-synchronous window (0x1007) after SYNC k; in lock-step the drive answers SYNC k before SYNC k+1
-is sent, so the first copy of each TPDO after SYNC k is its answer. Second copies are counted
-and never mixed in.
+follow it in order on the bus. Otherwise the frame's bus timestamp (python-can's: the kernel's
+receive time on SocketCAN and udp_multicast) must lie inside the synchronous window (0x1007)
+after SYNC k: a frame that reached us before SYNC k went out (a late or doubled answer to SYNC
+k-1 crossing it) is refused, and so is one after the window. The window is the master's
+response timeout: the master sends SYNC k+1 only after the answer to k, so anything inside the
+window answers k, and a tighter window only turns a slow host's late answer into a lost cycle
+(here, between Python processes on udp_multicast, 5 % of answers take over 1 ms under load). In
+lock-step the window's end is not judged (wall time means nothing there). Second copies are
+counted and never mixed in.
 """
 
 import threading
@@ -58,7 +63,7 @@ class SyncCycle:
         self._has_echo = False
         self._window: float | None = None
         self._open = False
-        self._sync_time = 0.0
+        self._sync_stamp = 0.0
         self._arrived = threading.Condition(threading.Lock())
 
     def configure(self, rpdos: Sequence[PlannedPdo], tpdos: Sequence[PlannedPdo],
@@ -99,7 +104,7 @@ class SyncCycle:
                 self._counter = self._counter % cia301.SYNC_COUNTER_MAX + 1
             # without an echo every TPDO after this SYNC answers it (within the window)
             self._open = not self._has_echo
-            self._sync_time = time.monotonic()
+            self._sync_stamp = time.time()  # the clock python-can stamps frames with
         self.network.send_message(cia301.SYNC_COB_ID,
                                   bytes([self._counter]) if self._counting else b"")
         with self._arrived:
@@ -128,11 +133,12 @@ class SyncCycle:
             if echo:
                 # the first TPDO names its SYNC; the others follow it in order on the bus
                 self._open = values[-1] == self._counter
-            elif self._window is not None and not self._has_echo and not self.lockstep:
-                delay = time.monotonic() - self._sync_time
-                if delay > self._window and can_id in self._pending:
-                    self.warnings.append(f"late TPDO 0x{can_id:03X}: {delay * 1e3:.2f} ms after "
-                                         f"SYNC, window {self._window * 1e3:.2f} ms")
+            elif self._window is not None and not self._has_echo:
+                delay = timestamp - self._sync_stamp
+                if delay < 0 or delay > self._window and not self.lockstep:
+                    self.warnings.append(f"TPDO 0x{can_id:03X} {delay * 1e3:+.2f} ms from SYNC, "
+                                         f"outside the {self._window * 1e3:.0f} ms synchronous "
+                                         "window: not this cycle's")
                     return
             if can_id not in self._pending or not self._open:
                 # a second copy, or a frame from an earlier cycle: never mix it in

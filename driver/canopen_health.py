@@ -28,6 +28,16 @@ log = logging.getLogger(__name__)
 
 # a 1 Mbit/s CAN bus carries at most ~8 full frames per millisecond: far more is a flood
 MAX_FRAMES_PER_CYCLE = 32
+MASTER_HEARTBEAT_MS = 100  # the master's own heartbeat period
+# the drive's consumer time for it (0x1016): eight periods, so a host that starves the
+# producer thread for a few hundred ms is not taken for a dead master, while a dead one is
+# noticed within the issue's 1 s (SYNC silence, sim_bus.canopen_watchdogs, is quicker)
+MASTER_HEARTBEAT_CONSUMER_MS = 8 * MASTER_HEARTBEAT_MS
+
+
+def master_node_id(drive_node_id: int) -> int:
+    """The id the master's heartbeat uses: 127, the top of the range, unless the drive has it."""
+    return 127 if drive_node_id != 127 else 126
 
 
 class Health:
@@ -57,6 +67,10 @@ class Health:
         self._on_emergency = on_emergency
         self._watchdog_stop = threading.Event()
         self._watchdog: threading.Thread | None = None
+        self._beat_task = None
+        self._beat_cob_id = 0
+        self._cycles_per_beat = 0
+        self._cycles_to_beat = 0
         network.subscribe(cia301.HEARTBEAT_BASE + node.id, self._on_heartbeat)
         node.emcy.add_callback(self._on_emcy)
         # count at canopen's single entry point for received frames (a python-can bus's
@@ -98,7 +112,13 @@ class Health:
         self._cycles_silent = 0
 
     def count_cycle(self, period: float) -> None:
-        """After each cycle: the bus load, and the lock-step heartbeat verdict in cycles."""
+        """After each cycle: the bus load, and in lock-step the heartbeats in cycles (the
+        drive's judged, the master's produced)."""
+        if self._cycles_per_beat:
+            self._cycles_to_beat -= 1
+            if self._cycles_to_beat <= 0:
+                self._cycles_to_beat = self._cycles_per_beat
+                self.network.send_message(self._beat_cob_id, bytes([cia301.NMT_OPERATIONAL]))
         frames, self._frames_at_cycle = self.frames - self._frames_at_cycle, self.frames
         if frames > MAX_FRAMES_PER_CYCLE:
             self.warnings.append(f"bus overloaded: {frames} frames in one cycle (at most "
@@ -129,6 +149,26 @@ class Health:
         log.error("%s", error)
         self._on_failure(error)
 
+    # --- the master's own heartbeat ---------------------------------------------------------
+
+    def start_producing(self, master_id: int, period: float) -> None:
+        """Beat as node `master_id` (NMT operational) every MASTER_HEARTBEAT_MS: on the wall
+        clock in real time (canopen's periodic send), every N cycles in lock-step."""
+        self.stop_producing()
+        self._beat_cob_id = cia301.HEARTBEAT_BASE + master_id
+        if self.lockstep:
+            self._cycles_per_beat = max(1, round(MASTER_HEARTBEAT_MS * 1e-3 / period))
+            self._cycles_to_beat = self._cycles_per_beat
+        else:
+            self._beat_task = self.network.send_periodic(
+                self._beat_cob_id, bytes([cia301.NMT_OPERATIONAL]), MASTER_HEARTBEAT_MS * 1e-3)
+
+    def stop_producing(self) -> None:
+        self._cycles_per_beat = 0
+        if self._beat_task is not None:
+            self._beat_task.stop()
+            self._beat_task = None
+
     # --- emergencies ------------------------------------------------------------------------
 
     def _on_emcy(self, error: EmcyError) -> None:
@@ -137,3 +177,4 @@ class Health:
     def close(self) -> None:
         self._watchdog_stop.set()
         self._in_use = False
+        self.stop_producing()

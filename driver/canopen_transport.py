@@ -2,6 +2,7 @@
 made of its bring-up (`canopen_bringup`), its cycle (`canopen_cycle`) and its health watch
 (`canopen_health`)."""
 
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -10,16 +11,18 @@ import canopen
 
 from driver.canopen_bringup import SdoAccess, plan_pdos, write_pdos
 from driver.canopen_cycle import PlannedPdo, SyncCycle
-from driver.canopen_health import Health
-from driver.interface import DriveError, DriveLost
+from driver.canopen_health import MASTER_HEARTBEAT_CONSUMER_MS, Health, master_node_id
+from driver.interface import DriveError, DriveLost, ForeignMaster
 from driver.transport import Transport
-from protocol import cia301, eds_path, objects
+from protocol import cia301, cia402, eds_path, objects
 from protocol.bus_spec import parse_bus_spec
-from protocol.dictionary import has, load_dictionary, mapped_object, variable
+from protocol.cia402 import State
+from protocol.dictionary import default_value, has, load_dictionary, mapped_object, variable
 from protocol.pdo import MappedObject
 
 NOTIFIER_CYCLE = 0.05  # s; bounds how long closing the network waits for the receive thread
 DEFAULT_HEARTBEAT_MS = 100  # the drive's producer period the master asks for (0x1017)
+FOREIGN_TRAFFIC_WINDOW = 0.1  # s of listening for another master before resetting the drive
 
 
 def open_network(bus_spec: str) -> canopen.Network:
@@ -50,6 +53,8 @@ class CanOpenTransport(Transport):
         self.node = canopen.RemoteNode(node_id, self.dictionary)
         network.add_node(self.node)
         self.heartbeat_ms = heartbeat_ms
+        self.lockstep = lockstep
+        self.master_id = master_node_id(node_id)
         self.period = 0.0
         self._warnings: list[str] = []
         self.sdo = SdoAccess(self.node, self.name)
@@ -66,7 +71,9 @@ class CanOpenTransport(Transport):
     # --- acyclic ----------------------------------------------------------------------------
 
     def boot(self, timeout: float) -> None:
-        """NMT reset communication and wait for the boot-up message."""
+        """Refuse a drive another master drives, then NMT reset communication and wait for
+        the boot-up message."""
+        self._refuse_if_driven()
         self.health.expect_boot()
         try:
             self.node.nmt.state = "RESET COMMUNICATION"
@@ -76,6 +83,43 @@ class CanOpenTransport(Transport):
             raise DriveLost(f"{self.name}: no boot-up message within {timeout} s "
                             "(is the drive powered and on this bus?)")
         self.sync_cycle.failure = None
+
+    def _refuse_if_driven(self) -> None:
+        """ForeignMaster if someone else is driving the drive: its SYNC or the drive's RPDOs
+        on the bus while we listen (a master cycling at 10 Hz or faster is heard), or the
+        drive already past switch on disabled. A lock-step link has one master by
+        construction, so it is not listened to (its drive's state is still checked)."""
+        seen: dict[int, int] = {}
+
+        def count(can_id: int, data: bytes, timestamp: float) -> None:
+            seen[can_id] = seen.get(can_id, 0) + 1
+
+        watched = {cia301.SYNC_COB_ID} | {base + self.node_id for base in cia301.RPDO_BASES}
+        for n in range(objects.PDO_CHANNELS):
+            if has(self.dictionary, objects.RPDO_COMM + n, 1):
+                cob_id = default_value(variable(self.dictionary, objects.RPDO_COMM + n, 1))
+                if not cob_id & cia301.PDO_INVALID and cob_id & cia301.COB_ID_MASK:
+                    watched.add(cob_id & cia301.COB_ID_MASK)
+        if not self.lockstep:
+            for cob_id in watched:
+                self.network.subscribe(cob_id, count)
+            time.sleep(FOREIGN_TRAFFIC_WINDOW)
+            for cob_id in watched:
+                self.network.unsubscribe(cob_id, count)
+        if seen:
+            kinds = {cia301.SYNC_COB_ID: "SYNC"}
+            frames = ", ".join(f"{n} x 0x{cob_id:03X} ({kinds.get(cob_id, 'RPDO')})"
+                               for cob_id, n in sorted(seen.items()))
+            raise ForeignMaster(f"{self.name}: another master is driving it: {frames} in "
+                                f"{FOREIGN_TRAFFIC_WINDOW * 1e3:.0f} ms")
+        try:
+            statusword = self.read(objects.STATUSWORD)
+        except DriveError:
+            return  # not answering: the boot-up wait says so
+        state = cia402.state_from_statusword(statusword)
+        if state not in (State.SWITCH_ON_DISABLED, State.NOT_READY_TO_SWITCH_ON, State.FAULT):
+            raise ForeignMaster(f"{self.name}: another master is driving it: the drive is "
+                                f"already in '{state.value}' (statusword 0x{statusword:04X})")
 
     def read(self, index: int, subindex: int = 0) -> int:
         return self.sdo.read(index, subindex)
@@ -104,8 +148,8 @@ class CanOpenTransport(Transport):
         self._plan = (rpdos, tpdos, counting, len(inputs))
 
     def start(self, period: float) -> None:
-        """Cycle period, synchronous window (one period) and heartbeat by SDO, then NMT
-        operational; the heartbeat consumer starts watching."""
+        """Cycle period, synchronous window and heartbeats by SDO, then NMT operational; the
+        heartbeat consumer starts watching."""
         if self._plan is None:
             raise DriveError(f"{self.name}: start before map_process_data")
         rpdos, tpdos, counting, inputs = self._plan
@@ -115,12 +159,18 @@ class CanOpenTransport(Transport):
             self.write(objects.CYCLE_PERIOD_US, 0, period_us)
         window = None
         if has(self.dictionary, objects.SYNC_WINDOW_US):
-            self.write(objects.SYNC_WINDOW_US, 0, period_us)
-            window = period
+            # the response timeout, for the reason in driver.canopen_cycle
+            window = self.sync_cycle.response_timeout
+            self.write(objects.SYNC_WINDOW_US, 0, int(round(window * 1e6)))
         heartbeat_ms = 0
         if has(self.dictionary, objects.PRODUCER_HEARTBEAT_MS):
             self.write(objects.PRODUCER_HEARTBEAT_MS, 0, self.heartbeat_ms)
             heartbeat_ms = self.heartbeat_ms
+        self.health.start_producing(self.master_id, period)
+        if has(self.dictionary, objects.CONSUMER_HEARTBEAT, 1):
+            self.write(objects.CONSUMER_HEARTBEAT, 1,
+                       self.master_id << cia301.HEARTBEAT_CONSUMER_NODE_SHIFT
+                       | MASTER_HEARTBEAT_CONSUMER_MS)
         self.sync_cycle.configure(rpdos, tpdos, inputs, counting, window)
         try:
             self.node.nmt.state = "OPERATIONAL"
@@ -156,11 +206,15 @@ class CanOpenTransport(Transport):
     # --- shutdown ---------------------------------------------------------------------------
 
     def stop(self) -> None:
-        self.health.close()
+        """Tell the drive to stop watching us, leave operational, stop our heartbeat."""
         try:
+            if has(self.dictionary, objects.CONSUMER_HEARTBEAT, 1):
+                self.write(objects.CONSUMER_HEARTBEAT, 1, 0)
             self.node.nmt.state = "PRE-OPERATIONAL"
-        except (can.CanError, OSError, RuntimeError):
-            pass  # best effort: the bus may be gone
+        except (DriveError, can.CanError, OSError, RuntimeError):
+            pass  # best effort: the bus or the drive may be gone
+        finally:
+            self.health.close()
 
     def close(self) -> None:
         if self._closed:

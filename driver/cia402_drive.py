@@ -75,6 +75,7 @@ class Cia402Drive(Drive):
         self._warnings: list[str] = []
         self._lock = threading.Lock()  # emergencies arrive in the transport's receive thread
         self._closed = False
+        self._booted = False
         transport.on_emergency = self._on_emergency
 
     # --- bring-up ---------------------------------------------------------------------------
@@ -82,6 +83,7 @@ class Cia402Drive(Drive):
     def start(self) -> None:
         t = self.transport
         t.boot(BOOT_TIMEOUT)
+        self._booted = True  # from here on the drive is ours to leave disabled
         self.scaling = read_scaling(self.profile, t.read, t.dictionary, self.drive_gain)
         self.current_limit = self.scaling.current_limit
         t.write(objects.MODES_OF_OPERATION, 0, self.profile.mode)
@@ -221,16 +223,20 @@ class Cia402Drive(Drive):
     def close(self) -> None:
         """Leave the drive disabled: zero current and disable voltage cyclically, disable
         voltage acyclically, leave cyclic operation. Each step best effort, so a dead drive
-        does not stop the rest. Idempotent."""
+        does not stop the rest. A drive never booted (refused, or another master's) is left
+        alone. Idempotent."""
         if self._closed:
             return
         self._closed = True
         try:
-            if self.scaling is not None:
-                self._send(cia402.Command.DISABLE_VOLTAGE.value, 0.0)
-            self.transport.write(objects.CONTROLWORD, 0, cia402.Command.DISABLE_VOLTAGE.value)
+            if self._booted:
+                if self.scaling is not None:
+                    self._send(cia402.Command.DISABLE_VOLTAGE.value, 0.0)
+                self.transport.write(objects.CONTROLWORD, 0,
+                                     cia402.Command.DISABLE_VOLTAGE.value)
         except DriveError as exc:
             log.warning("%s: could not confirm disable on close: %s", self.name, exc)
         finally:
-            self.transport.stop()
+            if self._booted:
+                self.transport.stop()
             self.transport.close()

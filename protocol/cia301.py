@@ -26,13 +26,11 @@ NMT_STOPPED = 0x04
 NMT_OPERATIONAL = 0x05
 NMT_PRE_OPERATIONAL = 0x7F
 
-# SYNC (0x1019 synchronous counter overflow value: 2..240 enables the counter byte)
-SYNC_COUNTER_MIN = 2
+# SYNC counter byte: 1..overflow value (0x1019, at most 240; 0 means no counter byte)
 SYNC_COUNTER_MAX = 240
 
 # PDO communication parameter (0x1400.., 0x1800..) sub 1: COB-ID and its flag bits
 PDO_INVALID = 0x80000000  # bit 31: the PDO does not exist (disabled)
-PDO_NO_RTR = 0x40000000  # bit 30: no remote transmission request
 TRANSMISSION_SYNC = 1  # sub 2: sent on every SYNC
 TRANSMISSION_ASYNC = 255  # sub 2: event-driven (manufacturer / profile specific)
 PDO_MAX_BYTES = 8  # classic CAN frame
@@ -55,13 +53,11 @@ SDO_ABORT_NO_SUBINDEX = 0x06090011
 SDO_ABORT_VALUE_RANGE = 0x06090030
 SDO_ABORT_VALUE_TOO_HIGH = 0x06090031
 SDO_ABORT_VALUE_TOO_LOW = 0x06090032
-SDO_ABORT_GENERAL = 0x08000000
 SDO_ABORT_WRONG_STATE = 0x08000022  # "because of the present device state"
 
 # Emergency error codes (CiA 301 table 21, CiA 402 annex)
 EMCY_NO_ERROR = 0x0000
 EMCY_OVERCURRENT = 0x2310  # continuous over-current, device output side
-EMCY_SENSOR = 0x7300
 EMCY_HEARTBEAT = 0x8130  # life guard or heartbeat error
 EMCY_SYNC_LENGTH = 0x8240  # unexpected SYNC data length
 EMCY_POSITION_LIMIT = 0x8612  # positioning controller: reference limit

@@ -8,7 +8,6 @@ constants (COB-IDs, NMT, abort and emergency codes) are in `protocol.cia301`.
 import math
 
 # CiA 301 communication objects
-DEVICE_TYPE = 0x1000
 ERROR_REGISTER = 0x1001
 SYNC_COB_ID = 0x1005  # the object holding the SYNC COB-ID, not the COB-ID itself
 CYCLE_PERIOD_US = 0x1006
@@ -59,10 +58,6 @@ FAULT_INJECTION = 0x2010  # virtual drive only
 
 # Modes of operation (0x6060)
 MODE_NONE = 0
-MODE_PROFILE_POSITION = 1
-MODE_PROFILE_VELOCITY = 3
-MODE_CYCLIC_SYNC_POSITION = 8
-MODE_CYCLIC_SYNC_VELOCITY = 9
 MODE_CYCLIC_SYNC_TORQUE = 10
 MODE_CYCLIC_SYNC_CURRENT = -1  # manufacturer specific: target 0x2000 in mA
 
@@ -72,12 +67,7 @@ def supports_mode(supported_drive_modes: int, mode: int) -> bool:
     return mode > 0 and bool(supported_drive_modes >> (mode - 1) & 1)
 
 
-def supported_modes_word(*modes: int) -> int:
-    return sum(1 << (mode - 1) for mode in modes if mode > 0)
-
-
-# Abort connection option codes (0x6007)
-ABORT_NO_ACTION = 0
+# Abort connection option codes (0x6007; 0 and others: no action)
 ABORT_FAULT = 1
 ABORT_DISABLE_VOLTAGE = 2
 ABORT_QUICK_STOP = 3

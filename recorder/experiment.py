@@ -1,39 +1,35 @@
-"""Run a reference trajectory on a drive and hand every sample to a sink."""
+"""Run an experiment's trajectory on a drive through the control loop, handing every message
+to the recording's subscribers."""
 
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Sequence
 
-from driver import Drive, Sample
-from driver.clock import CycleClock
-from recorder.exciting import ExcitingTrajectory, SlowSinusoid
-from recorder.tracking import TrackingLaw
+from controller import messages
+from controller.loop import ControlLoop, LoopOptions, LoopReport
+from controller.messages import Subscriber
+from driver import Drive
+from model.parameters import Limits
+from recorder.tracking import TrackingLaw, TrackingPolicy, Trajectory
 
-SampleSink = Callable[[Sample, float, tuple[float, float, float]], None]
+PROGRESS_EVERY = 500  # samples between progress updates
 
 
-def run_trajectory(drive: Drive, trajectory: ExcitingTrajectory | SlowSinusoid, law: TrackingLaw,
-                            sink: SampleSink, lockstep: bool,
-                            progress: Callable[[float], None] = lambda fraction: None,
-                            should_stop: Callable[[], bool] = lambda: False) -> int:
-    """Track the trajectory from the drive's time 0 to its end; returns the samples taken.
-    The drive must be started (enabled); the caller closes it."""
-    clock = CycleClock(drive.period, lockstep)
+def run_trajectory(drive: Drive, trajectory: Trajectory, law: TrackingLaw, limits: Limits,
+                   subscribers: Sequence[Subscriber], lockstep: bool,
+                   progress: Callable[[float], None] = lambda fraction: None,
+                   stop: threading.Event | None = None) -> LoopReport:
+    """Track the trajectory from the drive's first sample to its end (or until `stop` is set);
+    report.cycles is the number of samples taken. The drive must be started (enabled); the
+    caller closes it."""
+    policy = TrackingPolicy(trajectory, law, limits)
     duration = trajectory.duration
-    samples = 0
-    t0 = None
-    while not should_stop():
-        clock.wait()
-        sample = drive.sync()
-        if t0 is None:
-            t0 = sample.t
-        t = sample.t - t0
-        reference = trajectory.sample(t)
-        current = law.current(sample.position, sample.velocity, reference)
-        drive.command_current(current)
-        sink(sample, current, reference)
-        samples += 1
-        if samples % 500 == 0:
-            progress(min(t / duration, 1.0))
-        if t >= duration:
-            break
+
+    def follow(message) -> None:
+        if type(message) is messages.State and loop.report.cycles % PROGRESS_EVERY == 0:
+            progress(min(policy.elapsed(message.t) / duration, 1.0))
+
+    loop = ControlLoop(drive, policy, LoopOptions(period=drive.period, lockstep=lockstep),
+                       [*subscribers, follow], stop=stop)
+    report = loop.run()
     progress(1.0)
-    return samples
+    return report

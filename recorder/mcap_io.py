@@ -15,7 +15,7 @@ experiments), the same as the `t` inside the message.
 
 import time
 import zlib
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from pathlib import Path
 from typing import NamedTuple
 
@@ -25,6 +25,7 @@ from mcap.data_stream import RecordBuilder
 from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
+from controller.messages import Subscriber, topic_of
 from protocol import telemetry
 from recorder.mcap_records import MAGIC, DamagedMcap, DataSection, chunk_records
 from recorder.recording import Recording, RecordingError
@@ -116,6 +117,22 @@ class McapRecorder:
         self._file.file.write(_provisional_end(self._file.crc))
         self._file.flush()
         self._file.file.seek(position)
+
+    def subscriber(self, topics: Collection[str], prefix: str) -> Subscriber:
+        """A control-loop subscriber that writes the messages on `topics` (e.g. 'state'), each
+        on the channel named as its Zenoh key under `prefix` (so one Foxglove layout serves the
+        live bridge and every recording), logged at the wall clock with its drive time as
+        publish time."""
+        channels = {topic: self.channel(telemetry.key_expr(prefix, topic),
+                                        telemetry.TOPICS[topic]) for topic in topics}
+
+        def write(message) -> None:
+            channel = channels.get(topic_of(message))
+            if channel is not None:
+                self.write(channel, message.SerializeToString(),
+                           publish_time_ns=int(round(message.t * 1e9)))
+
+        return write
 
     def close(self) -> None:
         """Finish the file: the last chunk, the real DataEnd, summary, indexes, statistics."""

@@ -1,14 +1,26 @@
-"""The position-tracking current loop used to run exciting trajectories: computed torque from
-the nominal model plus PD, well enough to follow the double S-curves within a few mrad."""
+"""The position-tracking current law used to run exciting trajectories: computed torque from
+the nominal model plus PD, well enough to follow the double S-curves within a few mrad; and
+the policy that runs it in the control loop."""
 
 import math
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Protocol
 
 import numpy as np
 
+from controller.policy import Decision
+from driver import Sample
 from model import dynamics
-from model.parameters import ActuatorParameters
+from model.parameters import ActuatorParameters, Limits
+
+
+class Trajectory(Protocol):
+    duration: float  # s
+
+    def sample(self, t: float) -> tuple[float, float, float]:
+        """(q*, qd*, qdd*) at time t from the start."""
+
 
 BANDWIDTH_HZ = 8.0  # closed-loop bandwidth of the PD part (assumed; far below the 1 kHz loop)
 DAMPING = 0.9
@@ -39,3 +51,38 @@ class TrackingLaw:
                                                      self._packed)
         drive_gain = self.parameters.drive_gain
         return max(-self.current_limit, min(self.current_limit, float(torque) / drive_gain))
+
+
+class TrackingPolicy:
+    """An experiment's trajectory tracked by the law above, as a policy of the control loop
+    (so a recording runs inside the loop's safety net). Time starts at the first sample; the
+    policy is finished at the sample where the trajectory's duration is reached."""
+
+    def __init__(self, trajectory: Trajectory, law: TrackingLaw, limits: Limits):
+        self.trajectory = trajectory
+        self.law = law
+        self.parameters = law.parameters
+        self.limits = limits
+        self.start: float | None = None  # drive time of the first sample
+
+    def elapsed(self, t: float) -> float:
+        if self.start is None:
+            self.start = t
+        return t - self.start
+
+    def tick(self, sample: Sample) -> Decision:
+        t = self.elapsed(sample.t)
+        reference = self.trajectory.sample(t)
+        current = self.law.current(sample.position, sample.velocity, reference)
+        return Decision(current, reference[0], reference[1], "tracking", True,
+                        finished=t >= self.trajectory.duration)
+
+    def reference_at(self, t: float) -> tuple[float, float]:
+        q_ref, qd_ref, _ = self.trajectory.sample(self.elapsed(t))
+        return q_ref, qd_ref
+
+    def reset(self) -> None:
+        """Nothing to forget: the law has no memory."""
+
+    def plan(self, t: float) -> None:
+        return None

@@ -5,11 +5,10 @@ Every handler runs in the thread that delivers the frame (the network's receive 
 sender's with the embedded link), so a SYNC is handled completely before the next frame is
 looked at: lock-step comes for free when the master waits for the TPDOs.
 
-Heartbeat producer (0x1017): on the wall clock in real time; in lock-step it counts the drive's
-cycles instead, because there the drive's time *is* the SYNC count. A wall-clock producer in a
-lock-step run beats at a rate unrelated to the drive's time (ten drive seconds pass in one wall
-second, or one wall second passes on a busy host without a single cycle), so no consumer could
-judge it deterministically. Counted in cycles, the beats fall on the same cycles every run.
+The heartbeats and the watch over the master are in `sim_bus.canopen_watchdogs` (why they
+count cycles in lock-step is explained there). A SYNC whose length disagrees with the
+synchronous counter overflow value 0x1019 (a counter byte while it is 0, none while it is set)
+is answered with EMCY 0x8240, once until the SYNCs are right again, and still runs the cycle.
 """
 
 import logging
@@ -23,12 +22,15 @@ from canopen.objectdictionary import ObjectDictionary
 from canopen.sdo import SdoAbortedError, SdoServer
 
 from protocol import cia301, objects
-from protocol.dictionary import mappable_object
+from protocol.dictionary import has, mappable_object
 from protocol.pdo import PdoLayout
+from sim_bus.canopen_watchdogs import DEFAULT_SILENCE_TIMEOUT, HeartbeatProducer, MasterWatch
 from sim_bus.device import Cia402Device, DeviceAccessError
 from sim_bus.faults import FLOOD_COB_ID, FLOOD_SECONDS, TPDO_DELAY, Fault
 
 log = logging.getLogger(__name__)
+
+RESET_TIME = 0.01  # s from an NMT reset (or power-on) to the boot-up message, real time
 
 NMT_STATE_NAMES = {cia301.NMT_BOOT_UP: "INITIALISING", cia301.NMT_STOPPED: "STOPPED",
                    cia301.NMT_OPERATIONAL: "OPERATIONAL",
@@ -52,10 +54,15 @@ class _Pdo:
 
 
 class CanOpenNode:
-    """CANopen node `node_id` on `network`, serving `device`."""
+    """CANopen node `node_id` on `network`, serving `device`.
+
+    `lockstep`: the watchdogs count cycles; `silence_timeout` (s, None: off): SYNC/RPDO
+    silence after which the master counts as lost (real time only).
+    """
 
     def __init__(self, network: canopen.Network, node_id: int, device: Cia402Device, *,
-                 lockstep: bool = False):
+                 lockstep: bool = False,
+                 silence_timeout: float | None = DEFAULT_SILENCE_TIMEOUT):
         self.network = network
         self.node_id = node_id
         self.device = device
@@ -71,7 +78,14 @@ class CanOpenNode:
         self._tpdos: list[_Pdo] = []
         self._rpdos: dict[int, _Pdo] = {}
         self._latched: list[tuple[_Pdo, tuple[int, ...]]] = []  # synchronous RPDOs
-        self._heartbeat = _HeartbeatProducer(self)
+        self._heartbeat = HeartbeatProducer(network.send_message, node_id,
+                                            lambda: self.nmt_state, lockstep)
+        self.master_watch = MasterWatch(
+            network.subscribe, device.read,
+            has(device.dictionary, objects.CONSUMER_HEARTBEAT, 1), device.master_lost,
+            lockstep, silence_timeout, f"node {node_id}")
+        self._counting = has(device.dictionary, objects.SYNC_COUNTER_OVERFLOW)
+        self._sync_length_reported = False
         self._late_once = self._twice_once = self._reboot_in_cycle = False
         device.add_emergency_handler(self._send_emcy)
         device.add_fault_handler(self._act_fault)
@@ -91,13 +105,31 @@ class CanOpenNode:
         self._restart()
 
     def _restart(self) -> None:
+        """Initialisation, then the boot-up message. In real time it takes RESET_TIME, as a
+        device's reset does: a master that sends the reset and then starts waiting for the
+        boot-up (canopen's documented `wait_for_bootup`) is not outrun by it."""
         self._heartbeat.stop()
         self._stop_pdos()
+        self.master_watch.rearm()
+        self.master_watch.configure(self.device.period)
         self.nmt_state = cia301.NMT_BOOT_UP
+        if self.lockstep:
+            self._boot_up()
+        else:
+            timer = threading.Timer(RESET_TIME, self._boot_up)
+            timer.daemon = True
+            timer.start()
+
+    def _boot_up(self) -> None:
+        if self._silent:
+            return
         self.network.send_message(cia301.HEARTBEAT_BASE + self.node_id,
                                   bytes([cia301.NMT_BOOT_UP]))
         self.nmt_state = cia301.NMT_PRE_OPERATIONAL
-        self._heartbeat.start()
+        self._start_heartbeat()
+
+    def _start_heartbeat(self) -> None:
+        self._heartbeat.start(self.device.read(objects.PRODUCER_HEARTBEAT_MS), self.device.period)
 
     def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if self._silent or len(data) != 2 or data[1] not in (0, self.node_id):
@@ -133,6 +165,7 @@ class CanOpenNode:
         for cob_id in self._rpdos:
             self.network.unsubscribe(cob_id, self._on_rpdo)
         self._tpdos, self._rpdos, self._latched = [], {}, []
+        self.master_watch.stop_silence_watch()
 
     def _configured(self, comm: int, mapping: int) -> list[_Pdo]:
         """The enabled PDOs as the dictionary holds them now."""
@@ -159,6 +192,7 @@ class CanOpenNode:
             log.warning("node %d: RPDO 0x%03X with %d bytes, %d expected", self.node_id,
                         can_id, len(data), pdo.codec.size)
             return
+        self.master_watch.activity()
         values = pdo.codec.unpack(data)
         if pdo.synchronous:
             self._latched.append((pdo, values))  # CiA 301: applied at the next SYNC
@@ -170,7 +204,15 @@ class CanOpenNode:
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if self._silent or self.nmt_state != cia301.NMT_OPERATIONAL:
             return
+        self.master_watch.activity()
         device = self.device
+        counting = self._counting and device.values[_SYNC_OVERFLOW] > 0
+        if len(data) != (1 if counting else 0):
+            if not self._sync_length_reported:
+                self._sync_length_reported = True
+                self._send_emcy(cia301.EMCY_SYNC_LENGTH, cia301.ERROR_REGISTER_COMMUNICATION)
+        else:
+            self._sync_length_reported = False
         for pdo, values in self._latched:
             device.write_outputs(pdo.keys, values)
         self._latched = []
@@ -179,6 +221,7 @@ class CanOpenNode:
         device.cycle(data[0] if data else 0)
         if self.lockstep:
             self._heartbeat.count_cycle()
+            self.master_watch.count_cycle()
         if self._silent or self._reboot_in_cycle:
             return
         table = device.values
@@ -219,7 +262,9 @@ class CanOpenNode:
         except DeviceAccessError as exc:
             raise SdoAbortedError(exc.abort_code) from None
         if index == objects.PRODUCER_HEARTBEAT_MS:
-            self._heartbeat.start()
+            self._start_heartbeat()
+        elif index == objects.CONSUMER_HEARTBEAT or index == objects.CYCLE_PERIOD_US:
+            self.master_watch.configure(self.device.period)
 
     def _check_mapping_write(self, index: int, subindex: int, data: bytes) -> None:
         """What CAN adds to the device's own checks: no remapping while the PDOs run, and at
@@ -274,59 +319,15 @@ class CanOpenNode:
         """Fault injection: the node disappears from the bus (power loss, cable cut)."""
         self._silent = True
         self._heartbeat.stop()
+        self.master_watch.close()
 
     def close(self) -> None:
         self._heartbeat.stop()
+        self.master_watch.close()
         self._stop_pdos()
         self.network.unsubscribe(cia301.SYNC_COB_ID, self._on_sync)
         self.network.unsubscribe(cia301.NMT_COB_ID, self._on_nmt)
         self.network.unsubscribe(self.sdo.rx_cobid, self.sdo.on_request)
 
 
-class _HeartbeatProducer:
-    """0x1017 heartbeat: a wall-clock thread in real time, every N cycles in lock-step. The
-    first beat comes one period after the boot-up message, as on real devices: a beat right
-    behind the boot-up can overtake it in a master waiting for the boot-up (canopen's own
-    wait_for_bootup reads the latest state)."""
-
-    def __init__(self, node: CanOpenNode):
-        self._node = node
-        self._stop: threading.Event | None = None
-        self._cycles_per_beat = 0
-        self._cycles = 0
-
-    def start(self) -> None:
-        self.stop()
-        period_ms = self._node.device.read(objects.PRODUCER_HEARTBEAT_MS)
-        if period_ms <= 0:
-            return
-        if self._node.lockstep:
-            self._cycles_per_beat = max(1, round(period_ms * 1e-3 / self._node.device.period))
-            self._cycles = 0
-            return
-        self._stop = stop = threading.Event()
-        threading.Thread(target=self._run, args=(stop, period_ms * 1e-3), daemon=True,
-                         name=f"heartbeat-{self._node.node_id}").start()
-
-    def stop(self) -> None:
-        self._cycles_per_beat = 0
-        if self._stop is not None:
-            self._stop.set()
-            self._stop = None
-
-    def count_cycle(self) -> None:
-        if self._cycles_per_beat:
-            self._cycles += 1
-            if self._cycles >= self._cycles_per_beat:
-                self._cycles = 0
-                self._beat()
-
-    def _run(self, stop: threading.Event, period: float) -> None:
-        while not stop.wait(period):
-            self._beat()
-
-    def _beat(self) -> None:
-        node = self._node
-        node.network.send_message(cia301.HEARTBEAT_BASE + node.node_id,
-                                  bytes([node.nmt_state]))
-
+_SYNC_OVERFLOW = (objects.SYNC_COUNTER_OVERFLOW, 0)

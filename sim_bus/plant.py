@@ -12,6 +12,7 @@ from model.parameters import ActuatorParameters, Payload
 # assumed: above the motor's rated torque (30 N.m, 0x6076) as holding brakes are sized, and
 # above the 25 N.m the paper's heaviest payload (30 kg at 5 cm) hangs on the joint
 BRAKE_HOLDING_TORQUE = 40.0  # N.m
+NOISE_BATCH = 4096  # sensor-noise draws per numpy call
 
 
 @dataclass(frozen=True)
@@ -45,6 +46,8 @@ class Plant:
         self.base_parameters = parameters
         self.noise = noise
         self._rng = np.random.default_rng(noise.seed)
+        self._draws: list[float] = []
+        self._next_draw = 0
         self.set_payload(payload)
         self.position = (dynamics.rest_position(self._packed) if initial_position is None
                          else initial_position)
@@ -87,10 +90,19 @@ class Plant:
                                                     self._acceleration, direction, self._packed)
         return float(joint)
 
+    def _standard_normal(self) -> float:
+        """The generator's next N(0, 1) draw, taken in batches (one numpy call per draw cost
+        more than the rest of a measurement); the sequence is the one scalar draws give."""
+        if self._next_draw == len(self._draws):
+            self._draws = self._rng.standard_normal(NOISE_BATCH).tolist()
+            self._next_draw = 0
+        self._next_draw += 1
+        return self._draws[self._next_draw - 1]
+
     def measure(self) -> Measurement:
-        current = self._current + self._rng.normal(0.0, self.noise.current)
+        current = self._current + self.noise.current * self._standard_normal()
         reading = (self.joint_torque() / self.parameters.torque_sensor_gain
-                   + self._rng.normal(0.0, self.noise.joint_torque))
+                   + self.noise.joint_torque * self._standard_normal())
         return Measurement(
             position=self.position,
             velocity=self.velocity,

@@ -5,10 +5,14 @@ import sys
 import time
 from contextlib import contextmanager
 
+import can
+import canopen
 import pytest
+from can.interfaces.udp_multicast import UdpMulticastBus
 
 from driver.canopen_drive import CanOpenDrive
 from model.parameters import Payload, load_model
+from protocol.bus_spec import parse_bus_spec
 from sim_bus.embedded import EmbeddedDrive
 from sim_bus.plant import SensorNoise
 
@@ -67,3 +71,47 @@ def sim_bus_process(bus: str | None, *extra: str):
             proc.wait(10)
         except subprocess.TimeoutExpired:
             proc.kill()
+
+
+@contextmanager
+def virtual_drive_process(bus: str, node_id: int = 2, *extra: str):
+    """A virtual drive in its own process (`tests.virtual_drive_process`), booted."""
+    proc = subprocess.Popen([sys.executable, "-m", "tests.virtual_drive_process", bus,
+                             str(node_id), *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+        assert "ready" in line, f"drive did not start: {line!r} {proc.stderr.read()}"
+        yield proc
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
+class CanSemanticsBus(UdpMulticastBus):
+    """python-can's udp_multicast hands a sender its own frames back, which a CAN controller
+    does not: this bus drops every frame whose identifier it has sent itself."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._sent: set[int] = set()
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self._sent.add(msg.arbitration_id)
+        super().send(msg, timeout)
+
+    def _recv_internal(self, timeout: float | None):
+        msg, filtered = super()._recv_internal(timeout)
+        if msg is not None and msg.arbitration_id in self._sent:
+            return None, filtered
+        return msg, filtered
+
+
+def can_semantics_network(bus_spec: str) -> canopen.Network:
+    """A connected canopen Network on a udp_multicast bus spec, with CAN semantics."""
+    kwargs = parse_bus_spec(bus_spec)
+    bus = CanSemanticsBus(channel=kwargs["channel"], port=kwargs["port"])
+    return canopen.Network(bus).connect()

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
+from commands.options import with_truth_effects
 from model import dynamics
-from model.effects import EFFECTS, HIDDEN_ONLY, LIBRARY, FitContext, with_truth_effects
+from model.effects import EFFECTS, HIDDEN_ONLY, LIBRARY, FitContext
 from model.identify import Columns, rows
 from model.parameters import ModelFileError, Payload, default_model_path, load_model
 

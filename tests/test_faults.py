@@ -1,11 +1,13 @@
 """Each injectable fault of the virtual drive against the driver and the control loop, in
 lock-step: how many cycles until it is seen, the commanded current on every cycle, the
-message on the fault topic, and the state the drive is left in."""
+message on the fault topic, and the state the drive is left in. The drive is linked to the
+master as `--sim` links it, so a flood and a late TPDO are reported there as on a bus."""
 
 import pytest
 
 from commands.options import parse_fault
 from controller.loop import ControlLoop, LoopOptions
+from controller.messages import topic_of
 from controller.mpc import Mpc
 from model.parameters import load_model
 from protocol import objects
@@ -19,23 +21,24 @@ AT = 0.5  # s of drive time when the fault is injected
 
 def run_with(fault: Fault, duration: float = 1.5, via_sdo: bool = False):
     messages = []
+    mpc = Mpc(MODEL)  # compiled code loaded before the drive is enabled, as actuatord does
     with virtual_pair(response_timeout=0.1) as (sim, drive):
         drive.start()
         if via_sdo:
             drive.node.sdo[objects.FAULT_INJECTION].raw = int(Fault.NONE)  # SDO path exists
         sim.device.schedule(fault, AT)
-        loop = ControlLoop(drive, Mpc(MODEL), LoopOptions(lockstep=True, duration=duration),
-                           lambda topic, fields: messages.append((topic, fields)))
+        loop = ControlLoop(drive, mpc, LoopOptions(lockstep=True, duration=duration),
+                           [lambda message: messages.append((topic_of(message), message))])
         report = loop.run()
         drive.close()
         final_state = sim.device.state
-    commands = [f["current"] for topic, f in messages if topic == "command"]
+    commands = [f.current for topic, f in messages if topic == "command"]
     faults = [f for topic, f in messages if topic == "fault"]
     return report, commands, faults, final_state
 
 
-def detection_cycles(faults: list[dict]) -> int:
-    return round((faults[0]["t"] - AT) / 1e-3)
+def detection_cycles(faults: list) -> int:
+    return round((faults[0].t - AT) / 1e-3)
 
 
 @pytest.mark.parametrize("fault,cause,max_cycles,final", [
@@ -49,7 +52,7 @@ def test_fatal_faults_stop_the_loop_safely(fault, cause, max_cycles, final):
     report, commands, faults, final_state = run_with(fault)
     assert report.exit_code == 1
     assert cause in report.reason
-    assert faults and faults[-1]["source"] == "drive" and cause in faults[-1]["cause"]
+    assert faults and faults[-1].source == "drive" and cause in faults[-1].cause
     assert 0 <= detection_cycles(faults) <= max_cycles
     assert all(abs(c) <= MODEL.limits.current_max for c in commands)
     assert len(commands) <= AT / 1e-3 + max_cycles
@@ -65,9 +68,9 @@ def test_fatal_faults_stop_the_loop_safely(fault, cause, max_cycles, final):
 def test_benign_faults_are_reported_and_the_loop_goes_on(fault, cause):
     report, commands, faults, final_state = run_with(fault)
     assert report.exit_code == 0, report.reason
-    matching = [f for f in faults if cause in f["cause"]]
+    matching = [f for f in faults if cause in f.cause]
     assert matching, faults
-    assert 0 <= round((matching[0]["t"] - AT) / 1e-3) <= 1
+    assert 0 <= round((matching[0].t - AT) / 1e-3) <= 1
     assert all(abs(c) <= MODEL.limits.current_max for c in commands)
     assert len(commands) == 1500
     assert final_state is State.SWITCH_ON_DISABLED  # disabled on close
@@ -110,12 +113,37 @@ def test_a_stall_in_real_time_is_reported_on_the_fault_topic():
         drive.start()
         sim.device.schedule(Fault.TPDO_LATE, 0.3)
         loop = ControlLoop(drive, Mpc(MODEL), LoopOptions(duration=0.8),
-                           lambda topic, fields: messages.append((topic, fields)))
+                           [lambda message: messages.append((topic_of(message), message))])
         report = loop.run()
     finally:
         drive.close()
         sim.close()
     assert report.exit_code == 0
-    stalls = [f for topic, f in messages if topic == "fault" and "stalled" in f["cause"]]
-    assert stalls and int(stalls[0]["cause"].split()[2]) >= 150
+    stalls = [f for topic, f in messages if topic == "fault" and "stalled" in f.cause]
+    assert stalls and int(stalls[0].cause.split()[2]) >= 150
     assert report.missed_cycles >= 150
+
+
+def test_a_fault_at_time_zero_fires_on_the_first_cycle():
+    with virtual_pair() as (sim, drive):
+        drive.start()
+        sim.device.schedule(Fault.TORQUE_SENSOR_SATURATED, 0.0)
+        first = drive.sync()
+        assert sim.device.injected == [(1, Fault.TORQUE_SENSOR_SATURATED)]
+        assert first.joint_torque != first.joint_torque  # NaN: the reading is not a torque
+        assert any("saturated" in w for w in drive.warnings())
+
+
+def test_several_faults_due_in_one_cycle_all_fire():
+    with virtual_pair() as (sim, drive):
+        drive.start()
+        for fault in (Fault.TPDO_TWICE, Fault.TORQUE_SENSOR_SATURATED, Fault.HEARTBEAT_STOPS):
+            sim.device.schedule(fault, 0.01)
+        for _ in range(10):
+            drive.sync()
+            drive.command_current(0.0)
+        assert sorted(sim.device.injected) == [
+            (10, Fault.HEARTBEAT_STOPS), (10, Fault.TPDO_TWICE),
+            (10, Fault.TORQUE_SENSOR_SATURATED)]
+        warnings = " | ".join(drive.warnings())
+        assert "unexpected TPDO" in warnings and "saturated" in warnings

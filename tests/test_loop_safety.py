@@ -7,6 +7,7 @@ import sys
 import numpy as np
 
 from controller.loop import ControlLoop, LoopOptions
+from controller.messages import topic_of
 from controller.mpc import Mpc
 from controller.problem import OcpSettings
 from model.parameters import load_model
@@ -17,38 +18,39 @@ MODEL = load_model()
 
 def collect():
     messages = []
-    return messages, lambda topic, fields: messages.append((topic, fields))
+    return messages, lambda message: messages.append((topic_of(message), message))
 
 
 def test_failing_solver_holds_position_and_says_so_every_cycle():
     messages, publish = collect()
+    mpc = Mpc(MODEL, OcpSettings().with_weights(position=1e308))  # compiled code loaded first
     with virtual_pair() as (sim, drive):
         drive.start()
-        mpc = Mpc(MODEL, OcpSettings().with_weights(position=1e308))
-        loop = ControlLoop(drive, mpc, LoopOptions(lockstep=True, duration=0.5), publish)
+        loop = ControlLoop(drive, mpc, LoopOptions(lockstep=True, duration=0.5), [publish])
         report = loop.run()
         final_position = sim.device.plant.position
     assert report.exit_code == 0 and report.fallbacks == report.cycles == 500
     faults = [f for topic, f in messages if topic == "fault"]
     assert len(faults) == 500
-    assert faults[0]["source"] == "controller" and "solver" in faults[0]["cause"]
+    assert faults[0].source == "controller" and "solver" in faults[0].cause
     commands = [f for topic, f in messages if topic == "command"]
-    assert all(c["fallback"] and abs(c["current"]) <= 6.0 for c in commands)
-    assert abs(final_position - commands[0]["reference_position"]) > 0.1  # did not track...
+    assert all(c.fallback and abs(c.current) <= 6.0 for c in commands)
+    assert abs(final_position - commands[0].reference_position) > 0.1  # did not track...
     assert abs(final_position - (-0.0997)) < 0.01  # ... it held where it was
 
 
 def test_drive_fault_stops_the_loop_with_exit_code_1_and_a_fault_message():
     messages, publish = collect()
+    mpc = Mpc(MODEL)
     with virtual_pair() as (sim, drive):
         drive.start()
         drive.node.sdo[0x2003].raw = 100  # trip at 0.1 A: the first real command faults it
-        loop = ControlLoop(drive, Mpc(MODEL), LoopOptions(lockstep=True, duration=2.0), publish)
+        loop = ControlLoop(drive, mpc, LoopOptions(lockstep=True, duration=2.0), [publish])
         report = loop.run()
     assert report.exit_code == 1
     assert "drive" in report.reason
     faults = [f for topic, f in messages if topic == "fault"]
-    assert faults[-1]["source"] == "drive"
+    assert faults[-1].source == "drive"
     assert report.cycles < 10
 
 

@@ -82,7 +82,7 @@ def test_hidden_effect_is_named_and_the_gap_shrinks(scenarios, effect, tmp_path)
     assert len(list(tmp_path.glob("*.png"))) == 3
     # the improved model reaches the controller's dynamics
     mpc = Mpc(model)
-    assert mpc.solver.p[dynamics.EFFECT_OFFSET[effect]] != 0.0
+    assert mpc.dynamics_parameters[dynamics.EFFECT_OFFSET[effect]] != 0.0
 
 
 def test_hidden_effect_parameters_come_back(scenarios, tmp_path):

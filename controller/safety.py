@@ -1,0 +1,82 @@
+"""The safety net between any policy and the drive.
+
+A state the sensors cannot have measured (non-finite) gives zero current: nothing is known, so
+nothing is pushed. A state outside what the joint can reach, or a failed policy, holds the
+position against gravity. Every command is clipped to the current limit. The policy is not
+asked at all while the state is unbelievable, and is told to start afresh after.
+"""
+
+import math
+from typing import NamedTuple
+
+from controller import ilqr
+from controller.ilqr import STATUS_NAMES
+from controller.policy import Decision, Policy
+from driver import Sample
+from model import dynamics
+from model.parameters import ActuatorParameters
+
+STATE_MARGIN = 0.5  # rad beyond the position limits where the state is still believed
+VELOCITY_MARGIN = 2.0  # x velocity_max: faster than that is a sensor fault, not motion
+NOT_FINITE = STATUS_NAMES[ilqr.NOT_FINITE]  # status of a cycle decided without the policy
+
+
+def holding_current(position: float, parameters: ActuatorParameters, packed, limit: float
+                    ) -> float:
+    """Current that balances gravity and the torque offset at `position`, within +-limit.
+    `packed` is parameters.packed(), passed in so a 1 kHz caller packs once."""
+    torque = dynamics.gravity_torque(position, packed) + parameters.torque_offset
+    return float(min(max(torque / parameters.drive_gain, -limit), limit))
+
+
+class SafeCommand(NamedTuple):
+    """What goes to the drive, the decision it came from, and why the net overrode it."""
+
+    current: float  # A, within the current limit
+    decision: Decision
+    fault: str | None  # None when the policy's command went out (clipped at most)
+
+    @property
+    def saturated(self) -> bool:
+        return self.fault is None and self.decision.planned_current != self.current
+
+
+class SafetyNet:
+    def __init__(self, policy: Policy):
+        self.policy = policy
+        self.limits = policy.limits
+        self._parameters = policy.parameters
+        self._packed = policy.parameters.packed()
+
+    def hold_current(self, position: float) -> float:
+        return holding_current(position, self._parameters, self._packed,
+                               self.limits.current_max)
+
+    def decide(self, sample: Sample) -> SafeCommand:
+        position, velocity = sample.position, sample.velocity
+        state_fault = self._state_fault(position, velocity)
+        if state_fault is not None:
+            self.policy.reset()
+            q_ref, qd_ref = self.policy.reference_at(sample.t)
+            finite = math.isfinite(position) and math.isfinite(velocity)
+            return SafeCommand(self.hold_current(position) if finite else 0.0,
+                               Decision(math.nan, q_ref, qd_ref, NOT_FINITE, False,
+                                        cost=math.inf), state_fault)
+        decision = self.policy.tick(sample)
+        planned = decision.planned_current
+        if not decision.ok or not math.isfinite(planned):
+            return SafeCommand(self.hold_current(position), decision,
+                               f"solver {decision.status}: holding position")
+        limit = self.limits.current_max
+        return SafeCommand(min(max(planned, -limit), limit), decision, None)
+
+    def _state_fault(self, position: float, velocity: float) -> str | None:
+        if not (math.isfinite(position) and math.isfinite(velocity)):
+            return f"non-finite state (q={position}, qd={velocity}): zero current"
+        limits = self.limits
+        if not (limits.position_min - STATE_MARGIN <= position
+                <= limits.position_max + STATE_MARGIN) or abs(velocity) > (
+                VELOCITY_MARGIN * limits.velocity_max):
+            return (f"state out of range (q={position:.3f} rad, qd={velocity:.3f} rad/s): "
+                    "holding position")
+        return None
