@@ -142,15 +142,18 @@ class EthercatMaster:
             return
         master = self.master
         if not self.mapped:
-            if self.lockstep or self.watchdog is not None:
-                milliseconds = 0.0 if self.lockstep else self.watchdog * 1e3
-                for slave in self.slaves:
-                    slave.set_watchdog("processdata", milliseconds)
             try:
+                if self.lockstep or self.watchdog is not None:
+                    milliseconds = 0.0 if self.lockstep else self.watchdog * 1e3
+                    for slave in self.slaves:
+                        slave.set_watchdog("processdata", milliseconds)
                 master.config_map()
             except pysoem.ConfigMapError as exc:
                 raise DriveError(f"EtherCAT {self.interface}: reading the PDO assignment "
                                  f"failed: {_errors(exc.error_list)}") from None
+            except (pysoem.WkcError, AttributeError) as exc:
+                raise DriveError(f"EtherCAT {self.interface}: setting the process data "
+                                 f"watchdog failed: {exc!r}") from None
             self.mapped = True
         for _, stage in self._claimed.values():
             stage()

@@ -57,6 +57,7 @@ class EthercatTransport(Transport):
         self._emergency_polls = 0
         self._mapped = False
         self._closed = False
+        self._listening = None  # the pysoem slave our emergency callback is on
         line.claim(position, lambda: self._mapped, self._stage)
 
     @property
@@ -70,7 +71,10 @@ class EthercatTransport(Transport):
         There is no other master to find: a line has one master port."""
         if self.line.master is None or self.line.failure is not None:
             self.line.scan(timeout)
-        self.slave.add_emergency_callback(self._on_emergency)
+        slave = self.slave
+        if slave is not self._listening:  # a new scan made new slave objects
+            slave.add_emergency_callback(self._on_emergency)
+            self._listening = slave
 
     def read(self, index: int, subindex: int = 0) -> int:
         var = self._variable(index, subindex)
