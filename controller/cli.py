@@ -132,6 +132,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"actuatord: error: cannot open bus {bus!r}: {exc}", file=sys.stderr)
         publisher.close()
         session.close()
+        if sim is not None:
+            sim.close()
         return 1
     mpc = Mpc(model, settings, payload, reference)
     loop = ControlLoop(drive, mpc, LoopOptions(period=period, lockstep=args.lockstep,
