@@ -6,7 +6,8 @@ on them in DIR/gap.json. One process per case pays the imports and the compiled 
 import sys
 from pathlib import Path
 
-from recorder import cli, gap_cli, identify_cli
+from commands import identify, model_gap
+from commands import recorder as cli
 
 # 9.5 s each: two cruise speeds over the whole range, both directions
 TRAJECTORY = ["--velocity-min", "1.0", "--velocity-max", "2.4", "--steps", "2"]
@@ -26,10 +27,10 @@ def main(argv: list[str]) -> int:
         if code:
             return code
     baseline = str(folder / "baseline.toml")
-    code = identify_cli.main([files["noload"], files["load"], "-o", baseline])
+    code = identify.main([files["noload"], files["load"], "-o", baseline])
     if code:
         return code
-    return gap_cli.main([files["noload"], files["load"], "--model", baseline, "--report",
+    return model_gap.main([files["noload"], files["load"], "--model", baseline, "--report",
                          str(folder / "gap.json")])
 
 
