@@ -46,6 +46,11 @@ def case_id(case: tuple) -> str:
     return f"{'+'.join(effects) or 'clean'}-{seed}"
 
 
+# the first test pays for every case's recordings (about 30 cases, two at a time): longer
+# than the suite's 300 s per-test default even on a quiet machine
+pytestmark = pytest.mark.timeout(1800)
+
+
 @pytest.fixture(scope="session")
 def reports(tmp_path_factory) -> dict[str, dict | str]:
     """Each case's report, or why the case could not run (each test checks its own)."""
