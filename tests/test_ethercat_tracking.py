@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from commands.identify import main as identify
+from controller import messages
 from controller.loop import ControlLoop, LoopOptions
 from controller.mpc import Mpc
 from controller.problem import OcpSettings
@@ -83,18 +84,20 @@ def record(drive, payload: Payload, path) -> None:
     """The exciting trajectory with its tracking law, written as the CSV interchange file."""
     columns = {"t": [], "q": [], "current": [], "joint_torque": []}
 
-    def sink(sample, current, reference) -> None:
-        for key, value in (("t", sample.t), ("q", sample.position),
-                           ("current", sample.motor_current),
-                           ("joint_torque", sample.joint_torque)):
-            columns[key].append(value)
+    def subscriber(message) -> None:
+        if type(message) is messages.State:
+            for key, value in (("t", message.t), ("q", message.position),
+                               ("current", message.motor_current),
+                               ("joint_torque", message.joint_torque)):
+                columns[key].append(value)
 
     law = TrackingLaw(MODEL.parameters.with_payload(payload), MODEL.limits.current_max)
     try:
         drive.start()
-        run_trajectory(drive, SHORT, law, sink, lockstep=True)
+        report = run_trajectory(drive, SHORT, law, MODEL.limits, [subscriber], lockstep=True)
     finally:
         drive.close()
+    assert report.exit_code == 0, report.reason
     write_csv(Recording(**{k: np.asarray(v) for k, v in columns.items()}, metadata={
         "payload_mass": str(payload.mass), "payload_position": f"{payload.x},{payload.y}"}),
         path)
