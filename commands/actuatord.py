@@ -1,6 +1,7 @@
 """`actuatord`: the 1 kHz iLQR loop on a CiA 402 drive, telemetry on Zenoh."""
 
 import argparse
+import dataclasses
 import json
 import signal
 import sys
@@ -73,8 +74,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--reference", metavar="JSON",
                         help='reference, e.g. \'{"kind": "setpoint", "position": -1.0}\' '
                              "(default: the paper's sinusoid)")
-    parser.add_argument("--prefix", default=telemetry.DEFAULT_PREFIX,
-                        help="Zenoh key prefix (default: %(default)s)")
+    parser.add_argument("--prefix",
+                        help=f"Zenoh key prefix (default: {telemetry.DEFAULT_PREFIX}, with "
+                             "--robot robots/NAME)")
+    parser.add_argument("--robot", metavar="FILE",
+                        help="every joint of a robot file (robots/*.toml) in one cycle: one "
+                             "SYNC per bus, one batched MPC call; --sim embeds every drive; "
+                             "--inject-fault then takes JOINT:NAME@SECONDS")
     parser.add_argument("--plot", metavar="DIR", help="save position and current figures here")
     add_virtual_drive_arguments(parser)
     add_zenoh_arguments(parser)
@@ -128,6 +134,10 @@ def _reference(text: str | None, model: ActuatorModel):
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)
+    if args.robot is not None:
+        return _run_robot(args)
+    if args.prefix is None:
+        args.prefix = telemetry.DEFAULT_PREFIX
     try:
         model = load_model(args.model)
         sim_model = with_truth_effects(model, args.truth_effect)
@@ -198,6 +208,148 @@ def main(argv: list[str] | None = None) -> int:
             title = f"{payload.mass:g} kg payload, {title}"
         for path in save_figures(report.history, model.limits, Path(args.plot), title):
             print(f"actuatord: wrote {path}", flush=True)
+    return report.exit_code
+
+
+# --- a robot file: every joint in one cycle ---------------------------------------------------
+
+# s: joints start where they rest, up to ~2 rad from their reference's start; at their
+# velocity limits (3..5 rad/s) they reach it well within this, after which errors are tracking
+TRACKING_SETTLE = 1.0
+# options that name one joint's drive, model or reference; a robot file names each joint's
+_SINGLE_JOINT_OPTIONS = (("--model", "model", None), ("--bus", "bus", None),
+                         ("-i", "interface", None), ("-c", "channel", None),
+                         ("--node-id", "node_id", 2), ("--reference", "reference", None),
+                         ("--plot", "plot", None), ("--can-log", "can_log", None),
+                         ("--truth-effect", "truth_effect", []),
+                         ("--payload-mass", "payload_mass", 0.0),
+                         ("--no-current-barrier", "no_current_barrier", False))
+
+
+def _robot_problems(args: argparse.Namespace, robot) -> list:
+    """One optimal control problem per joint: the command line's horizon, step and weights,
+    the robot file's weights and reference for the joint on top."""
+    from controller.mpc import JointProblem
+
+    common = parse_assignments(args.weight, Weights.__dataclass_fields__, "--weight")
+    if not 2 <= args.horizon <= MAX_HORIZON:
+        raise ValueError(f"--horizon {args.horizon}: expected 2..{MAX_HORIZON} steps")
+    problems = []
+    for joint in robot.joints:
+        try:
+            settings = OcpSettings(horizon=args.horizon, dt=args.dt).with_weights(
+                **{**common, **joint.weights})
+            if joint.friction_sharpness is not None:
+                settings = dataclasses.replace(settings,
+                                               friction_sharpness=joint.friction_sharpness)
+        except ValueError as exc:
+            raise ValueError(f"--weight/--dt for joint {joint.name}: {exc}") from None
+        try:
+            _check_resolution(settings, joint.model, args.period_us)
+        except ValueError as exc:
+            raise ValueError(f"joint {joint.name}: {exc}") from None
+        problems.append(JointProblem(joint.model, settings, reference=joint.reference))
+    return problems
+
+
+def _robot_parameters(robot, problems: list) -> dict:
+    """What the parameters queryable reports for a robot: every joint."""
+    return {"robot": robot.name, "period_us": robot.period_us, "joints": [
+        {"name": joint.name, "bus": joint.bus, "address": joint.address,
+         "parameters": dataclasses.asdict(joint.model.parameters),
+         "limits": vars(joint.model.limits), "provenance": joint.model.provenance,
+         "settings": {"horizon": problem.settings.horizon, "dt": problem.settings.dt,
+                      "weights": vars(problem.settings.weights),
+                      "friction_sharpness": problem.settings.friction_sharpness},
+         "reference": {"kind": type(joint.reference).__name__.lower(), **vars(joint.reference)}}
+        for joint, problem in zip(robot.joints, problems, strict=True)]}
+
+
+def _run_robot(args: argparse.Namespace) -> int:
+    """`actuatord --robot FILE`: exit 0 when the run ends as asked, 1 when a joint failed
+    (every joint quick-stopped, the joint named), 2 for a bad file or option."""
+    from commands.options import RobotConnection, open_robot, parse_joint_fault
+    from commands.robot_file import RobotFileError, load_robot
+
+    try:
+        for option, key, default in _SINGLE_JOINT_OPTIONS:
+            if getattr(args, key, default) != default:
+                raise ValueError(f"--robot and {option}: the robot file names each joint's "
+                                 "bus, model and reference")
+        robot = load_robot(args.robot)
+        if args.period_us != robot.period_us:
+            raise ValueError(f"--period-us {args.period_us}: the robot file {args.robot} sets "
+                             f"period_us = {robot.period_us}")
+        check_drive_arguments(args)
+        faults = [parse_joint_fault(text, [j.name for j in robot.joints])
+                  for text in args.inject_fault]
+        if faults and not args.sim:
+            raise ValueError("--inject-fault needs --sim")
+        args.prefix = args.prefix or f"robots/{robot.name}"
+        check_key_expr("--prefix", args.prefix, wildcards=False)
+        problems = _robot_problems(args, robot)
+    except (RobotFileError, BusSpecError, ValueError) as exc:
+        return usage_error(PROG, str(exc))
+
+    from controller.mpc import BatchMpc
+    from controller.robot_loop import RobotLoop
+    from controller.telemetry import TelemetryPublisher
+    from driver import DriveError
+
+    period = robot.period_us * 1e-6
+    try:
+        session = open_session(args)
+    except ValueError as exc:
+        return usage_error(PROG, str(exc))
+    publisher = TelemetryPublisher(session, args.prefix, telemetry.ROBOT_TOPICS)
+    try:
+        # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host
+        connection: RobotConnection = open_robot(
+            robot, sim=args.sim, lockstep=args.lockstep, seed=args.seed, period=period,
+            response_timeout=1.0 if args.lockstep else 0.1, faults=faults)
+    except DriveOpenError as exc:
+        publisher.close()
+        session.close()
+        return job_error(PROG, str(exc))
+    group = connection.group
+    batch = BatchMpc(problems)  # compiled before any drive is enabled
+    loop = RobotLoop(group, batch, LoopOptions(period=period, lockstep=args.lockstep,
+                                               duration=args.duration),
+                     [publisher.publish], lambda: publisher.dropped, settle=TRACKING_SETTLE)
+    parameters = _robot_parameters(robot, problems)
+    publisher.serve_json(telemetry.PARAMETERS, lambda _: parameters)
+    signal.signal(signal.SIGINT, lambda *_: loop.stop())
+    signal.signal(signal.SIGTERM, lambda *_: loop.stop())
+    failure = None
+    try:
+        group.start()
+        print(f"actuatord: {len(group)} joints of {robot.name} on "
+              f"{', '.join(robot.buses())}{' (--sim)' if args.sim else ''} enabled; telemetry "
+              f"under {args.prefix}/", flush=True)
+        report = loop.run()
+        if report.exit_code != 0:
+            failure = report.reason
+    except DriveError as exc:
+        report = loop.report
+        report.exit_code, report.reason = 1, str(exc)
+        failure = str(exc)
+    try:
+        if failure is not None:
+            states = group.quick_stop_all()
+            print("actuatord: quick stop: " + ", ".join(f"{name} {state}"
+                                                          for name, state in states),
+                  flush=True)
+    finally:
+        connection.close()
+        publisher.close()
+        session.close()
+    if failure is not None:
+        job_error(PROG, failure)
+    print(f"actuatord: {report.summary()}", flush=True)
+    rms = loop.tracking_rms()
+    print(f"actuatord: RMS tracking error after {TRACKING_SETTLE:g} s (mrad): " + ", ".join(
+        f"{name} {1e3 * value:.1f}" for name, value in zip(loop.names, rms,
+                                                           strict=True)), flush=True)
     return report.exit_code
 
 

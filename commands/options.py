@@ -12,6 +12,8 @@ raise typed errors; a command turns those into one line on stderr and exit code 
 touches a drive or creates a file.
 """
 
+from __future__ import annotations
+
 import argparse
 import collections
 import copy
@@ -33,12 +35,15 @@ import zenoh
 
 from model.effects import EFFECT_KEYS, EFFECT_NAMES
 from model.parameters import GRAVITY, ActuatorModel, Payload
-from protocol.bus_spec import BusSpecError, parse_bus_spec
+from protocol.bus_spec import BusSpecError, is_ethercat, parse_bus_spec
 from sim_bus.faults import Fault
 
 if TYPE_CHECKING:  # imported when a drive is opened: the dashboard needs neither
+    from commands.robot_file import JointSpec, RobotSpec
     from driver.canopen_drive import CanOpenDrive
-    from sim_bus.embedded import EmbeddedDrive
+    from driver.drive_group import DriveGroup
+    from sim_bus.device import Cia402Device
+    from sim_bus.embedded import EmbeddedBus
 
 
 class CommandParser(argparse.ArgumentParser):
@@ -129,7 +134,8 @@ def add_logging_argument(parser: argparse.ArgumentParser) -> None:
 
 class _Once(logging.Filter):
     """Passes each warning or error text once: a fault that a library logs and the command then
-    reports is read once, and a warning repeated every cycle does not flood the terminal."""
+    reports (as is, or behind its own words: "drive failed: <the fault>") is read once, and a
+    warning repeated every cycle does not flood the terminal."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -141,7 +147,7 @@ class _Once(logging.Filter):
             return True
         text = record.getMessage()
         with self._lock:
-            if text in self._seen:
+            if text in self._seen or any(text.endswith(": " + seen) for seen in self._seen):
                 return False
             self._seen.add(text)
         return True
@@ -258,6 +264,7 @@ def add_virtual_drive_arguments(parser: argparse.ArgumentParser, faults: bool = 
                                 prefix: str = "--sim: ") -> None:
     """The virtual drive's own options: noise seed, hidden effects and, with `faults`,
     scheduled faults. `prefix` marks them as applying to `--sim` only."""
+
     parser.add_argument("--seed", type=seed, default=0,
                         help=f"{prefix}sensor-noise seed, >= 0 (default: 0)")
     parser.add_argument("--truth-effect", action="append", default=[], metavar="NAME:K=V,...",
@@ -476,8 +483,8 @@ class Connection:
     """The master drive, the embedded virtual drive (`--sim`, else None) and the CAN log
     (`--can-log`, else None), closed together in that order."""
 
-    drive: "CanOpenDrive"
-    sim: "EmbeddedDrive | None"
+    drive: CanOpenDrive
+    sim: EmbeddedBus | None
     can_log: CanLog | None
     where: str  # the bus, as the user reads it
 
@@ -550,6 +557,129 @@ def open_drive(args: argparse.Namespace, model: ActuatorModel, sim_model: Actuat
         raise DriveOpenError(f"cannot open the embedded drive: {exc}") from exc
 
 
+# --- a robot: every joint's drive, on its bus or embedded ---------------------------------------
+
+def parse_joint_fault(text: str, joints: Iterable[str]) -> tuple[str, Fault, float]:
+    """`--inject-fault JOINT:NAME@SECONDS` with --robot: 'arm_left_4_joint:overcurrent_trip@2'
+    -> (joint, fault, s of drive time); ValueError names the option and what was expected."""
+    joint, sep, fault_text = text.rpartition(":")
+    names = list(joints)
+    if not sep or joint not in names:
+        raise ValueError(f"--inject-fault {text}: with --robot expected JOINT:NAME@SECONDS, "
+                         f"JOINT one of {', '.join(names)}")
+    fault, seconds = parse_fault(fault_text)
+    return joint, fault, seconds
+
+
+@dataclass
+class RobotConnection:
+    """The joints' drive group and, with --sim, the embedded buses behind it; closed
+    together (drives first, so every one is disabled while its bus still carries it)."""
+
+    group: DriveGroup
+    sim: list[EmbeddedBus]
+    devices: dict[str, Cia402Device]  # joint -> its virtual drive (--sim only)
+
+    def close(self) -> None:
+        try:
+            self.group.close()
+        finally:
+            for bus in self.sim:
+                bus.close()
+
+
+def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period: float,
+               response_timeout: float,
+               faults: Iterable[tuple[str, Fault, float]] = ()) -> RobotConnection:
+    """Every joint's drive, grouped by bus (one SYNC per bus a cycle, `driver.drive_group`).
+    With `sim`, each CAN bus is an in-process network carrying one virtual drive per joint,
+    commissioned for the joint's model (`sim_bus.commissioning`), its physics the joint's
+    model, its noise seeded `seed` + the joint's index. Raises DriveOpenError (exit 1)."""
+    from driver.canopen_transport import CanOpenTransport, open_network
+    from driver.cia402_drive import Cia402Drive
+    from driver.drive_group import CanOpenBus, DriveGroup
+
+    ethercat = [bus for bus in robot.buses() if is_ethercat(bus)]
+    if ethercat:
+        # the seam: driver.drive_group.Segment over open_ethercat_drives (branch ethercat)
+        raise DriveOpenError(f"{robot.source}: bus {ethercat[0]}: EtherCAT joints are driven "
+                             "by driver.ethercat_drive, not in this build")
+    faults = list(faults)
+    segments, embedded, devices = [], [], {}
+    try:
+        for bus, joints in robot.buses().items():
+            if sim:
+                from sim_bus.embedded import EmbeddedBus
+                from sim_bus.plant import SensorNoise
+
+                link = EmbeddedBus(lockstep=lockstep)
+                embedded.append(link)
+                for joint in joints:
+                    index = robot.joints.index(joint)
+                    devices[joint.name] = device = link.add_drive(
+                        joint.model, Payload(), SensorNoise(seed=seed + index), joint.address,
+                        eds_path=joint.eds, commissioned=True)
+                    for name, fault, seconds in faults:
+                        if name == joint.name:
+                            device.schedule(fault, seconds)
+                network = link.master_network
+            else:
+                network = open_network(bus, robot.bitrates.get(bus))
+            segments.append(CanOpenBus(bus, network, []))
+            for joint in joints:
+                transport = CanOpenTransport(network, joint.address, eds=joint.eds,
+                                             lockstep=lockstep,
+                                             response_timeout=response_timeout,
+                                             owns_network=False)
+                segments[-1].joints.append((joint.name, Cia402Drive(
+                    transport, velocity_limit=joint.model.limits.velocity_max, period=period,
+                    drive_gain=joint.model.parameters.drive_gain)))
+        return RobotConnection(DriveGroup([j.name for j in robot.joints], segments), embedded,
+                               devices)
+    except Exception as exc:
+        for segment in segments:
+            for _, drive in segment.joints:
+                drive.transport.close()
+            segment.close()
+        for link in embedded:
+            link.close()
+        raise DriveOpenError(f"cannot open the drives of {robot.source}: {exc}") from exc
+
+
+def open_joint(robot: RobotSpec, joint: JointSpec, sim_model: ActuatorModel,
+               payload: Payload, *, sim: bool, lockstep: bool, seed: int,
+               **timing) -> Connection:
+    """One joint of a robot file alone, the others not started (their drives stay as they
+    powered up: switch on disabled, brake engaged): its drive on its bus at its node id, or
+    with `sim` a virtual drive commissioned for it, its physics `sim_model`. Raises
+    DriveOpenError (exit 1)."""
+    from driver.canopen_drive import CanOpenDrive
+
+    timing = {"lockstep": lockstep, "velocity_limit": joint.model.limits.velocity_max,
+              "drive_gain": joint.model.parameters.drive_gain, "eds": joint.eds, **timing}
+    if joint.on_ethercat:
+        raise DriveOpenError(f"{robot.source}: joint {joint.name} is on {joint.bus}: EtherCAT "
+                             "joints are driven by driver.ethercat_drive, not in this build")
+    if not sim:
+        try:
+            return Connection(CanOpenDrive.open(joint.bus, joint.address, **timing), None, None,
+                              joint.bus)
+        except Exception as exc:
+            raise DriveOpenError(f"cannot use bus {joint.bus}: {exc}") from exc
+    from sim_bus.embedded import EmbeddedBus
+    from sim_bus.plant import SensorNoise
+
+    link = EmbeddedBus(lockstep=lockstep)
+    try:
+        link.add_drive(sim_model, payload, SensorNoise(seed=seed), joint.address,
+                       eds_path=joint.eds, commissioned=True)
+        return Connection(CanOpenDrive(link.master_network, joint.address, **timing), link,
+                          None, "--sim")
+    except Exception as exc:
+        link.close()
+        raise DriveOpenError(f"cannot open the embedded drive of {joint.name}: {exc}") from exc
+
+
 # --- the model, the payload and hidden effects -----------------------------------------------
 
 def add_model_argument(parser: argparse.ArgumentParser,
@@ -571,6 +701,8 @@ def payload_from_args(args: argparse.Namespace) -> Payload:
 
 def parse_payload(mass: float, position: str | None) -> Payload:
     """Payload from `--payload-mass KG` and `--payload-position X,Y` (metres, link frame)."""
+    from model.parameters import Payload
+
     x = y = 0.0
     if position is not None:
         parts = position.split(",")
@@ -595,6 +727,7 @@ def check_payload(model: ActuatorModel, payload: Payload) -> None:
     """Refuse a payload the drive could not hold: with it, the arm's gravity torque at its
     worst angle, g |(MX, MY)|, would exceed the drive's peak torque, so no controller keeps the
     joint anywhere but hanging (and absurd values overflow the physics)."""
+
     loaded = model.parameters.with_payload(payload)
     gravity = GRAVITY * math.hypot(loaded.first_moment_x, loaded.first_moment_y)
     peak = peak_joint_torque(model)
@@ -607,6 +740,7 @@ def check_payload(model: ActuatorModel, payload: Payload) -> None:
 
 def parse_effect_option(text: str) -> tuple[str, dict[str, float]]:
     """'stribeck:breakaway_friction=1.5,velocity=0.05' -> ('stribeck', {...})."""
+
     name, _, rest = text.partition(":")
     if name not in EFFECT_KEYS:
         raise ValueError(f"--truth-effect {text}: effect {name!r}: expected one of "
@@ -628,6 +762,7 @@ def parse_effect_option(text: str) -> tuple[str, dict[str, float]]:
 def with_truth_effects(model: ActuatorModel, options: Iterable[str]) -> ActuatorModel:
     """The model with the `--truth-effect NAME:KEY=VALUE,...` effects added: the hidden "truth"
     a virtual drive can carry. ValueError names the option at fault."""
+
     parameters = model.parameters
     peak = peak_joint_torque(model)
     for option in options:

@@ -34,6 +34,7 @@ from commands.options import (
     int_range,
     job_error,
     open_drive,
+    open_joint,
     open_session,
     payload_from_args,
     positive_float,
@@ -49,6 +50,7 @@ from recorder.recording import RecordingError
 
 PROG = "recorder"
 RECORDED_TOPICS = ("state", "command", "fault")  # what an experiment's recording keeps
+ELBOW_MARGIN = 0.15  # rad: the exciting trajectory's default margin inside the elbow's limits
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -81,6 +83,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--duration", type=positive_float, metavar="S",
                         help="--zenoh: stop after S seconds; --sinusoid: its length")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--robot", metavar="FILE",
+                        help="record one joint of a robot file (with --joint): its bus, node id, "
+                             "EDS and model from the file; the other joints are not started "
+                             "(their drives stay disabled, brakes engaged); the trajectory's "
+                             "defaults fit the joint's range")
+    parser.add_argument("--joint", metavar="NAME", help="with --robot: the joint to record")
     add_zenoh_arguments(parser)
     add_logging_argument(parser)
     return parser
@@ -98,6 +106,9 @@ def main(argv: list[str] | None = None) -> int:
         check_output_file("-o", args.output)
         if args.zenoh:
             check_key_expr("--zenoh", args.zenoh, wildcards=True)
+            if args.can_log:
+                raise ValueError("--can-log: --zenoh records no CAN bus; expected "
+                                 "--exciting-trajectory or --sinusoid")
     except ValueError as exc:
         return usage_error(PROG, str(exc))
     stop = threading.Event()
@@ -108,9 +119,43 @@ def main(argv: list[str] | None = None) -> int:
     return _record_trajectory(args, stop)
 
 
+def _robot_joint(args: argparse.Namespace):
+    """(robot, joint) for --robot/--joint, the trajectory's defaults fitted to the joint;
+    (None, None) without --robot. ValueError names the option."""
+    from commands.robot_file import load_robot
+
+    if args.robot is None:
+        if args.joint is not None:
+            raise ValueError("--joint needs --robot")
+        return None, None
+    for option, key, default in (("--model", "model", None), ("--bus", "bus", None),
+                                 ("-i", "interface", None), ("-c", "channel", None),
+                                 ("--node-id", "node_id", 2)):
+        if getattr(args, key, default) != default:
+            raise ValueError(f"--robot and {option}: the robot file names the joint's bus, "
+                             "node id and model")
+    robot = load_robot(args.robot)
+    names = [j.name for j in robot.joints]
+    if args.joint not in names:
+        raise ValueError(f"--joint {args.joint}: expected one of {', '.join(names)}")
+    joint = robot.joints[names.index(args.joint)]
+    limits, defaults = joint.model.limits, ExcitingTrajectory()
+    # the elbow's defaults keep 0.15 rad inside its limits and cruise up to half its velocity
+    # limit: the same margins for this joint, where the option was left at the elbow's value
+    if args.position_low == defaults.position_low:
+        args.position_low = limits.position_min + ELBOW_MARGIN
+    if args.position_high == defaults.position_high:
+        args.position_high = limits.position_max - ELBOW_MARGIN
+    if args.velocity_max == defaults.velocity_max:
+        args.velocity_max = min(defaults.velocity_max, 0.5 * limits.velocity_max)
+    args.velocity_min = min(args.velocity_min, args.velocity_max)
+    return robot, joint
+
+
 def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     try:
-        model = load_model(args.model)
+        robot, joint = _robot_joint(args)
+        model = load_model(args.model) if joint is None else joint.model
         sim_model = with_truth_effects(model, args.truth_effect)
         payload = payload_from_args(args)
         check_payload(model, payload)
@@ -138,7 +183,9 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     from recorder.tracking import TrackingLaw
 
     try:
-        connection = open_drive(args, model, sim_model, payload)
+        connection = (open_drive(args, model, sim_model, payload) if joint is None else
+                      open_joint(robot, joint, sim_model, payload, sim=args.sim,
+                                 lockstep=args.lockstep, seed=args.seed))
     except DriveOpenError as exc:
         return job_error(PROG, str(exc))
     drive = connection.drive
@@ -147,7 +194,9 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         "experiment": "sinusoid" if args.sinusoid else "exciting_trajectory",
         "trajectory": repr(trajectory), "truth_effects": ";".join(args.truth_effect),
         "model": model.source, "bus": "sim" if args.sim else connection.where,
-        "node_id": args.node_id, "period_s": 1e-3,
+        "node_id": args.node_id if joint is None else joint.address, "period_s": 1e-3,
+        "robot": "" if robot is None else str(robot.source),
+        "joint": "" if joint is None else joint.name,
         "recorded_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
     try:  # before the drive runs
         writer = McapRecorder(args.output, metadata)
@@ -170,8 +219,7 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
             print(f"{PROG}: interrupted after {writer.messages_on(state_channel)} samples",
                   file=sys.stderr)
         elif report.exit_code != 0:
-            code = report.exit_code
-            print(f"{PROG}: error: {report.reason}", file=sys.stderr)
+            code = job_error(PROG, report.reason)
     except DriveError as exc:
         code = job_error(PROG, str(exc))
     finally:

@@ -23,6 +23,8 @@ the load figure and the fastest period that would fit.
     weights = { position = 300 }           # optional: MPC cost weights
     reference = { kind = "setpoint", position = -1.0 }   # optional (default: a sinusoid
                                            # over the middle half of the joint's range)
+    friction_sharpness = 10                # optional: the MPC's beta in tanh(beta qd), 1/(rad/s)
+                                           # (default: the paper's 1000; see talos_arm.toml)
 """
 
 import math
@@ -58,6 +60,7 @@ class JointSpec:
     eds: Path | None
     weights: dict[str, float]
     reference: Reference
+    friction_sharpness: float | None = None  # the MPC's beta for this joint (None: default)
 
     @property
     def on_ethercat(self) -> bool:
@@ -152,7 +155,7 @@ def _joint(path: Path, number: int, entry: dict,
     name = _string(path, f"joint {number}.name", entry.get("name"))
     where = f"joint {name!r}"
     _keys(path, where, entry, {"name", "bus", "node_id", "slave", "model", "eds", "limits",
-                               "weights", "reference"}, {"name", "bus"})
+                               "weights", "reference", "friction_sharpness"}, {"name", "bus"})
     bus = _string(path, f"{where}.bus", entry["bus"])
     try:
         parse_bus_spec(bus)
@@ -183,7 +186,13 @@ def _joint(path: Path, number: int, entry: dict,
                                                  entry.get("limits", {}))))
     weights = _weights(path, where, _table(path, f"{where}.weights", entry.get("weights", {})))
     reference = _reference(path, where, entry.get("reference"), model.limits)
-    return JointSpec(name, bus, address, model, eds, weights, reference)
+    sharpness = None
+    if "friction_sharpness" in entry:
+        sharpness = _number(path, f"{where}.friction_sharpness", entry["friction_sharpness"])
+        if sharpness <= 0:
+            raise RobotFileError(f"{path}: {where}.friction_sharpness: expected > 0, got "
+                                 f"{sharpness}")
+    return JointSpec(name, bus, address, model, eds, weights, reference, sharpness)
 
 
 def default_reference(limits: Limits) -> Sinusoid:

@@ -53,13 +53,79 @@ def build_parser() -> CommandParser:
                         default=SensorNoise.joint_torque, metavar="NM",
                         help="std of the torque-sensor reading (default: %(default)s N.m)")
     add_virtual_drive_arguments(parser, prefix="")
+    parser.add_argument("--robot", metavar="FILE",
+                        help="every drive of a robot file, each on its bus at its node id, "
+                             "commissioned for its joint (--inject-fault then takes "
+                             "JOINT:NAME@SECONDS)")
     add_logging_argument(parser)
     return parser
+
+
+def _serve_robot(args) -> int:
+    """`sim-bus --robot FILE`: all the file's CAN drives in this process until a signal."""
+    from commands.options import parse_joint_fault
+    from commands.robot_file import RobotFileError, load_robot
+    from driver.canopen_transport import open_network
+    from model.parameters import Payload
+    from protocol.bus_spec import is_ethercat
+    from sim_bus.embedded import power_on
+
+    try:
+        for option, key in (("--bus", "bus"), ("-i", "interface"), ("-c", "channel"),
+                            ("--model", "model"), ("--can-log", "can_log")):
+            if getattr(args, key, None) is not None:
+                raise ValueError(f"--robot and {option}: the robot file names each joint's bus "
+                                 "and model")
+        robot = load_robot(args.robot)
+        ethercat = [bus for bus in robot.buses() if is_ethercat(bus)]
+        if ethercat:
+            raise ValueError(f"--robot {args.robot}: bus {ethercat[0]}: EtherCAT slaves are "
+                             "not served by this build")
+        faults = [parse_joint_fault(text, [j.name for j in robot.joints])
+                  for text in args.inject_fault]
+    except (RobotFileError, BusSpecError, ValueError) as exc:
+        return usage_error(PROG, str(exc))
+    networks, nodes = [], []
+    try:
+        for bus, joints in robot.buses().items():
+            networks.append(open_network(bus, robot.bitrates.get(bus)))
+            for joint in joints:
+                index = robot.joints.index(joint)
+                noise = SensorNoise(current=args.current_noise, joint_torque=args.torque_noise,
+                                    seed=args.seed + index)
+                nodes.append(power_on(networks[-1], joint.model, Payload(), noise,
+                                      joint.address, eds_path=joint.eds, commissioned=True))
+                for name, fault, seconds in faults:
+                    if name == joint.name:
+                        nodes[-1].device.schedule(fault, seconds)
+    except Exception as exc:  # python-can raises per interface: CanError, OSError, ImportError
+        for node in nodes:
+            node.close()
+        for network in networks:
+            network.disconnect()
+        return job_error(PROG, f"cannot serve {args.robot}: {exc}")
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    print(f"sim-bus: {len(nodes)} drives of {robot.name} on {', '.join(robot.buses())} ready",
+          flush=True)
+    stop.wait()
+    print("sim-bus: stopped; " + ", ".join(
+        f"{joint.name} {node.device.cycle_count} cycles '{node.device.state.value}'"
+        for joint, node in zip([j for js in robot.buses().values() for j in js], nodes,
+                               strict=True)), flush=True)
+    for node in nodes:
+        node.close()
+    for network in networks:
+        network.disconnect()
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)
+    if args.robot is not None:
+        return _serve_robot(args)
     try:
         check_drive_arguments(args)
         nominal = load_model(args.model)

@@ -4,7 +4,7 @@ thread (protobuf checks both at construction), not later in a publisher thread. 
 subscriber (Zenoh, an MCAP recording, a test) receives the same objects.
 """
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 from google.protobuf.message import Message
 
@@ -21,7 +21,10 @@ Plan = telemetry.message_class("Plan")
 Fault = telemetry.message_class("Fault")
 LoopStats = telemetry.message_class("LoopStats")
 
-_TOPICS = {telemetry.message_class(name): topic for topic, name in telemetry.TOPICS.items()}
+JointStates = telemetry.message_class("JointStates")
+
+_TOPICS = {telemetry.message_class(name): topic
+           for topic, name in (*telemetry.TOPICS.items(), *telemetry.ROBOT_TOPICS.items())}
 
 Subscriber = Callable[[Message], None]
 
@@ -70,3 +73,18 @@ def loop_stats(t: float, cycles: int, missed_cycles: int, jitter_p99_us: float,
                      period_jitter_p99_us=jitter_p99_us, period_jitter_max_us=jitter_max_us,
                      solve_median_us=solve_median_us, solve_p99_us=solve_p99_us,
                      solve_max_us=solve_max_us, dropped_messages=dropped_messages)
+
+
+def joint_states(t: float, names: Sequence[str], samples: Sequence[Sample],
+                 drive_states: Sequence[str], commands: Sequence[SafeCommand],
+                 decide_time: float) -> Message:
+    """Every joint of one cycle, in the robot file's order."""
+    return JointStates(
+        t=t, name=names, position=[s.position for s in samples],
+        velocity=[s.velocity for s in samples], effort=[s.joint_torque for s in samples],
+        motor_current=[s.motor_current for s in samples], current=[c.current for c in commands],
+        planned_current=[c.decision.planned_current for c in commands],
+        reference_position=[c.decision.reference_position for c in commands],
+        drive_state=drive_states, solver_status=[c.decision.status for c in commands],
+        iterations=[c.decision.iterations for c in commands],
+        fallback=[c.fault is not None for c in commands], solve_time_us=decide_time * 1e6)

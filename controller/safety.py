@@ -14,7 +14,7 @@ from controller.ilqr import STATUS_NAMES
 from controller.policy import Decision, Policy
 from driver import Sample
 from model import dynamics
-from model.parameters import ActuatorParameters
+from model.parameters import ActuatorParameters, Limits
 
 STATE_MARGIN = 0.5  # rad beyond the position limits where the state is still believed
 VELOCITY_MARGIN = 2.0  # x velocity_max: faster than that is a sensor fault, not motion
@@ -53,30 +53,43 @@ class SafetyNet:
                                self.limits.current_max)
 
     def decide(self, sample: Sample) -> SafeCommand:
+        screened = self.screen(sample)
+        if screened is not None:
+            return screened
+        return self.check(sample, self.policy.tick(sample))
+
+    def screen(self, sample: Sample) -> SafeCommand | None:
+        """The command for a sample the policy must not see (unbelievable state), else None.
+        Split from `check` so a batch of joints can screen each, tick the rest together
+        (`controller.robot_loop`), then check each decision."""
         position, velocity = sample.position, sample.velocity
-        state_fault = self._state_fault(position, velocity)
-        if state_fault is not None:
-            self.policy.reset()
-            q_ref, qd_ref = self.policy.reference_at(sample.t)
-            finite = math.isfinite(position) and math.isfinite(velocity)
-            return SafeCommand(self.hold_current(position) if finite else 0.0,
-                               Decision(math.nan, q_ref, qd_ref, NOT_FINITE, False,
-                                        cost=math.inf), state_fault)
-        decision = self.policy.tick(sample)
+        why = state_fault(position, velocity, self.limits)
+        if why is None:
+            return None
+        self.policy.reset()
+        q_ref, qd_ref = self.policy.reference_at(sample.t)
+        finite = math.isfinite(position) and math.isfinite(velocity)
+        return SafeCommand(self.hold_current(position) if finite else 0.0,
+                           Decision(math.nan, q_ref, qd_ref, NOT_FINITE, False,
+                                    cost=math.inf), why)
+
+    def check(self, sample: Sample, decision: Decision) -> SafeCommand:
+        """The policy's decision as it may go out: held if it failed, clipped to the limit."""
         planned = decision.planned_current
         if not decision.ok or not math.isfinite(planned):
-            return SafeCommand(self.hold_current(position), decision,
+            return SafeCommand(self.hold_current(sample.position), decision,
                                f"solver {decision.status}: holding position")
         limit = self.limits.current_max
         return SafeCommand(min(max(planned, -limit), limit), decision, None)
 
-    def _state_fault(self, position: float, velocity: float) -> str | None:
-        if not (math.isfinite(position) and math.isfinite(velocity)):
-            return f"non-finite state (q={position}, qd={velocity}): zero current"
-        limits = self.limits
-        if not (limits.position_min - STATE_MARGIN <= position
-                <= limits.position_max + STATE_MARGIN) or abs(velocity) > (
-                VELOCITY_MARGIN * limits.velocity_max):
-            return (f"state out of range (q={position:.3f} rad, qd={velocity:.3f} rad/s): "
-                    "holding position")
-        return None
+
+def state_fault(position: float, velocity: float, limits: Limits) -> str | None:
+    """Why the measured state cannot be believed, or None."""
+    if not (math.isfinite(position) and math.isfinite(velocity)):
+        return f"non-finite state (q={position}, qd={velocity}): zero current"
+    if not (limits.position_min - STATE_MARGIN <= position
+            <= limits.position_max + STATE_MARGIN) or abs(velocity) > (
+            VELOCITY_MARGIN * limits.velocity_max):
+        return (f"state out of range (q={position:.3f} rad, qd={velocity:.3f} rad/s): "
+                "holding position")
+    return None

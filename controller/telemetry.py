@@ -6,11 +6,12 @@ import collections
 import json
 import logging
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 
 import zenoh
 
 from controller.messages import topic_of
+from controller.requests import Body
 from protocol import telemetry as schema
 
 log = logging.getLogger(__name__)
@@ -28,7 +29,10 @@ class TelemetryPublisher:
     in the publisher thread. When the queue is full, messages are dropped and counted, never
     waited for."""
 
-    def __init__(self, session: zenoh.Session, prefix: str = schema.DEFAULT_PREFIX):
+    def __init__(self, session: zenoh.Session, prefix: str = schema.DEFAULT_PREFIX,
+                 topics: Iterable[str] = tuple(schema.TOPICS)):
+        """`topics`: the keys under the prefix to publish (`schema.ROBOT_TOPICS` for a
+        robot)."""
         self.session = session
         self.prefix = prefix
         self.dropped = 0
@@ -39,13 +43,17 @@ class TelemetryPublisher:
                 schema.key_expr(prefix, topic), encoding=zenoh.Encoding.APPLICATION_PROTOBUF,
                 congestion_control=zenoh.CongestionControl.DROP,
                 express=topic in EXPRESS_TOPICS)
-            for topic in schema.TOPICS}
+            for topic in topics}
         self._queryables: list = []
         # dashboards watch this token to tell a vanished actuatord from a quiet one
         self._alive = session.liveliness().declare_token(
             schema.key_expr(prefix, schema.LIVELINESS))
-        self._audit = session.declare_publisher(schema.key_expr(prefix, schema.AUDIT),
-                                                encoding=zenoh.Encoding.APPLICATION_JSON)
+        # audit lines must not be lost in a burst of telemetry: blocking (they are put from
+        # the queryables' threads, never the loop's) and in a queue of their own priority
+        self._audit = session.declare_publisher(
+            schema.key_expr(prefix, schema.AUDIT), encoding=zenoh.Encoding.APPLICATION_JSON,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            priority=zenoh.Priority.INTERACTIVE_HIGH)
         self._thread = threading.Thread(target=self._run, name="telemetry", daemon=True)
         self._thread.start()
 
@@ -55,21 +63,29 @@ class TelemetryPublisher:
         else:
             self.dropped += 1
 
-    def publish_audit(self, line: dict) -> None:
-        """Audit lines are rare and must not be dropped: published directly."""
-        self._audit.put(json.dumps(line))
+    def publish_audit(self, line: str) -> None:
+        """Audit lines (bounded JSON, see controller.requests) are rare and must not be
+        dropped: published directly."""
+        self._audit.put(line)
         log.info("audit: %s", line)
 
-    def serve_json(self, name: str, answer: Callable[[bytes | None], dict]) -> None:
-        """A queryable at {prefix}/{name} that replies with answer(payload) as JSON."""
+    def serve_json(self, name: str, answer: Callable[[Body], dict]) -> None:
+        """A queryable at {prefix}/{name} that replies with answer(body) as JSON. The body is
+        handed over as its size and a way to read it: Zenoh knows the size of what arrived
+        without copying it, so an oversized body is refused without being read."""
         def on_query(query: zenoh.Query) -> None:
-            payload = query.payload.to_bytes() if query.payload is not None else None
+            payload = query.payload
+            body = (Body(0, bytes) if payload is None else
+                    Body(len(payload), payload.to_bytes))
             try:
-                reply = json.dumps(answer(payload))
-            except Exception as exc:  # a bad request must never take the service down
-                log.exception("query on %s failed", name)
-                reply = json.dumps({"ok": False, "reason": f"internal error: {exc}"})
-            query.reply(query.key_expr, reply, encoding=zenoh.Encoding.APPLICATION_JSON)
+                reply = json.dumps(answer(body))
+            except Exception as exc:  # answer() refuses cleanly itself; this is the last net
+                log.error("query on %s failed: %s", name, type(exc).__name__)
+                reply = json.dumps({"ok": False, "reason": "internal error"})
+            try:
+                query.reply(query.key_expr, reply, encoding=zenoh.Encoding.APPLICATION_JSON)
+            except Exception as exc:  # the querier may be gone
+                log.warning("reply on %s not sent: %s", name, exc)
 
         self._queryables.append(
             self.session.declare_queryable(schema.key_expr(self.prefix, name), on_query))

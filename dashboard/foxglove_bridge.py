@@ -44,8 +44,9 @@ RESPONSE_SCHEMA = {"title": "accepted change", "type": "object",
                    "properties": {"ok": {"type": "boolean"}}}
 
 
-class ChangeRefused(RuntimeError):
-    """actuatord refused the change: the viewer shows the reason as the call's failure."""
+class ChangeFailed(RuntimeError):
+    """Refused by actuatord, or no actuatord answered: the viewer shows why as the call's
+    failure."""
 
 
 class FoxgloveBridge:
@@ -116,10 +117,10 @@ class FoxgloveBridge:
             try:
                 answers = request_change(self.session, self.prefix, what, request.payload)
             except NoAnswer as exc:
-                raise ChangeRefused(str(exc)) from None
+                raise ChangeFailed(str(exc)) from None
             refused = [a.reason for a in answers if not a.accepted]
             if refused:
-                raise ChangeRefused(f"{what} refused: {'; '.join(refused)}")
+                raise ChangeFailed(f"{what} refused: {'; '.join(refused)}")
             return json.dumps({"ok": True, what: answers[0].change}).encode()
 
         return foxglove.Service(

@@ -140,12 +140,12 @@ def build_layout(prefixes: list[str] | None = None) -> fl.Layout:
     """The layout for the actuatords under `prefixes` (default: the elbow); several get a tab
     each."""
     prefixes = prefixes or [telemetry.DEFAULT_PREFIX]
-    views = [(JointPaths.own_topics(p), joint_view(p, JointPaths.own_topics(p)))
-             for p in prefixes]
+    joints = {prefix: JointPaths.own_topics(prefix) for prefix in prefixes}
+    views = [fl.TabItem(title=joint.name, content=joint_view(prefix, joint))
+             for prefix, joint in joints.items()]
     if len(views) == 1:
-        return fl.Layout(content=views[0][1])
-    return fl.Layout(content=fl.TabContainer(
-        tabs=[fl.TabItem(title=joint.name, content=view) for joint, view in views]))
+        return fl.Layout(content=views[0].content)
+    return fl.Layout(content=fl.TabContainer(tabs=views))
 
 
 def layout_json(layout: fl.Layout) -> str:

@@ -96,6 +96,15 @@ class SyncCycle:
             self._arrived.notify_all()
 
     def exchange(self) -> tuple[int, ...]:
+        """One cycle of this drive alone: arm, send its SYNC, collect."""
+        self.network.send_message(cia301.SYNC_COB_ID, self.arm())
+        return self.collect()
+
+    def arm(self) -> bytes:
+        """Expect the TPDOs that answer the next SYNC; returns that SYNC's data (the counter
+        byte where the drive counts SYNCs). Split from `collect` so that several drives on
+        one bus can share one SYNC (`driver.drive_group`): arm each, send one SYNC, collect
+        each."""
         if self.failure is not None:
             raise self.failure
         with self._arrived:
@@ -105,8 +114,10 @@ class SyncCycle:
             # without an echo every TPDO after this SYNC answers it (within the window)
             self._open = not self._has_echo
             self._sync_stamp = time.time()  # the clock python-can stamps frames with
-        self.network.send_message(cia301.SYNC_COB_ID,
-                                  bytes([self._counter]) if self._counting else b"")
+        return bytes([self._counter]) if self._counting else b""
+
+    def collect(self) -> tuple[int, ...]:
+        """The inputs answering the armed SYNC, waiting up to the response timeout."""
         with self._arrived:
             if self._pending and self.failure is None:
                 self._arrived.wait_for(lambda: not self._pending or self.failure is not None,

@@ -102,6 +102,11 @@ class Health:
                                           name=f"heartbeat-watch-{self.name}")
         self._watchdog.start()
 
+    def restart_count(self) -> None:
+        """Bus load counts from now: the bring-up of the other drives on a shared bus is not
+        load (`driver.drive_group.CanOpenBus.started`)."""
+        self._frames_at_cycle = self.frames
+
     def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if data and data[0] == cia301.NMT_BOOT_UP:
             self.booted.set()

@@ -25,17 +25,22 @@ DEFAULT_HEARTBEAT_MS = 100  # the drive's producer period the master asks for (0
 FOREIGN_TRAFFIC_WINDOW = 0.1  # s of listening for another master before resetting the drive
 
 
-def open_network(bus_spec: str) -> canopen.Network:
-    """A connected canopen Network for a bus spec (see protocol.bus_spec)."""
+def open_network(bus_spec: str, bitrate: int | None = None) -> canopen.Network:
+    """A connected canopen Network for a bus spec (see protocol.bus_spec); `bitrate` (bit/s)
+    where the interface sets one."""
     network = canopen.Network()
     network.NOTIFIER_CYCLE = NOTIFIER_CYCLE
-    network.connect(**parse_bus_spec(bus_spec))
+    config = parse_bus_spec(bus_spec)
+    if bitrate is not None:
+        config["bitrate"] = bitrate
+    network.connect(**config)
     return network
 
 
 class CanOpenTransport(Transport):
-    """Drive `node_id` on `network`, described by `eds` (default: the shipped elbow EDS). The
-    transport owns the network and disconnects it on close.
+    """Drive `node_id` on `network`, described by `eds` (default: the shipped elbow EDS). With
+    `owns_network` (one drive on its bus) the transport disconnects the network on close;
+    drives sharing a bus leave that to whoever owns it (`driver.drive_group.CanOpenBus`).
 
     `lockstep`: watchdogs count cycles (see `driver.canopen_health`); `response_timeout` (s)
     bounds the wait for a cycle's TPDOs.
@@ -43,10 +48,12 @@ class CanOpenTransport(Transport):
 
     def __init__(self, network: canopen.Network, node_id: int, *,
                  eds: str | Path | None = None, lockstep: bool = False,
-                 response_timeout: float = 1.0, heartbeat_ms: int = DEFAULT_HEARTBEAT_MS):
+                 response_timeout: float = 1.0, heartbeat_ms: int = DEFAULT_HEARTBEAT_MS,
+                 owns_network: bool = True):
         if not 1 <= node_id <= 127:
             raise ValueError(f"node id {node_id} outside 1..127")
         self.network = network
+        self.owns_network = owns_network
         self.node_id = node_id
         self.name = f"node {node_id}"
         self.dictionary = load_dictionary(eds if eds is not None else eds_path(), node_id)
@@ -192,6 +199,17 @@ class CanOpenTransport(Transport):
         self.health.count_cycle(self.period)
         return values
 
+    def arm(self) -> bytes:
+        """`exchange` in two halves around a SYNC the caller sends for every drive on the bus
+        (`driver.drive_group.CanOpenBus`): returns the SYNC's data this drive expects."""
+        return self.sync_cycle.arm()
+
+    def collect(self) -> tuple[int, ...]:
+        """The second half: this drive's inputs answering the shared SYNC."""
+        values = self.sync_cycle.collect()
+        self.health.count_cycle(self.period)
+        return values
+
     @property
     def failure(self) -> DriveError | None:
         return self.sync_cycle.failure
@@ -222,4 +240,5 @@ class CanOpenTransport(Transport):
         self._closed = True
         self.health.close()
         self.sync_cycle.close()
-        self.network.disconnect()
+        if self.owns_network:
+            self.network.disconnect()

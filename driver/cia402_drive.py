@@ -10,6 +10,7 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from canopen.emcy import EmcyError
@@ -137,9 +138,21 @@ class Cia402Drive(Drive):
         return self._fault or self.transport.failure
 
     def sync(self) -> Sample:
-        self._raise_if_unhealthy()
+        self.check_healthy()
+        return self.take(self.transport.exchange)
+
+    def check_healthy(self) -> None:
+        """Raise what stops this drive, if anything (before a cycle is triggered)."""
+        fault = self.fault
+        if fault is not None:
+            raise fault
+
+    def take(self, inputs: Callable[[], tuple[int, ...]]) -> Sample:
+        """This cycle's sample from `inputs()`: the transport's `exchange`, or, where several
+        drives share one SYNC or frame (`driver.drive_group`), the half that collects this
+        drive's process data after it."""
         try:
-            values = self.transport.exchange()
+            values = inputs()
         except DriveTimeout:
             if self._fault is not None:
                 raise self._fault from None  # the drive faulted and stopped answering
@@ -187,7 +200,7 @@ class Cia402Drive(Drive):
         if abs(current) > self.current_limit:
             raise CommandRangeError(f"motor current command {current:.3f} A outside the drive's "
                                     f"limit of +/-{self.current_limit:.3f} A")
-        self._raise_if_unhealthy()
+        self.check_healthy()
         self._send(cia402.Command.ENABLE_OPERATION.value, current)
 
     def _send(self, controlword: int, current: float) -> None:
@@ -213,10 +226,21 @@ class Cia402Drive(Drive):
     def _emergency_code(self) -> int:
         return self.last_emergency.code if self.last_emergency is not None else 0
 
-    def _raise_if_unhealthy(self) -> None:
-        fault = self.fault
-        if fault is not None:
-            raise fault
+    def quick_stop(self) -> None:
+        """CiA 402 quick stop, now: the controlword by process data (the fastest way in) and
+        again acyclically (in case the cyclic path is what failed). A torque drive then
+        applies no torque and engages its brake (quick stop option 0x605A). Best effort:
+        never raises, so one dead drive does not keep the others running."""
+        controlword = cia402.Command.QUICK_STOP.value
+        try:
+            if self.scaling is not None:
+                self._send(controlword, 0.0)
+        except DriveError as exc:
+            log.warning("%s: quick stop by process data failed: %s", self.name, exc)
+        try:
+            self.transport.write(objects.CONTROLWORD, 0, controlword)
+        except DriveError as exc:
+            log.warning("%s: quick stop by acyclic write failed: %s", self.name, exc)
 
     # --- shutdown ---------------------------------------------------------------------------
 

@@ -121,13 +121,21 @@ def _stribeck_term(q, qd, p, k, coulomb, gravity, d_gravity):
 
 
 @register_jitable
-def _position_ripple_term(q, qd, p, k, coulomb, gravity, d_gravity):
-    zero = 0.0 * q
+def _harmonic(q, p, k):
+    """a sin(wq) + b cos(wq) with (a, b, w) = p[k:k + 3], and its slope in q (free when
+    a = b = 0)."""
     if p[k] == 0.0 and p[k + 1] == 0.0:
-        return zero, zero, zero, zero, zero, zero
+        return 0.0 * q, 0.0 * q
     w = p[k + 2]
     s, c = np.sin(w * q), np.cos(w * q)
-    return zero, zero, zero, p[k] * s + p[k + 1] * c, w * (p[k] * c - p[k + 1] * s), zero
+    return p[k] * s + p[k + 1] * c, w * (p[k] * c - p[k + 1] * s)
+
+
+@register_jitable
+def _position_ripple_term(q, qd, p, k, coulomb, gravity, d_gravity):
+    torque, slope = _harmonic(q, p, k)
+    zero = 0.0 * q
+    return zero, zero, zero, torque, slope, zero
 
 
 @register_jitable
@@ -141,12 +149,9 @@ def _load_friction_term(q, qd, p, k, coulomb, gravity, d_gravity):
 
 @register_jitable
 def _friction_ripple_term(q, qd, p, k, coulomb, gravity, d_gravity):
+    level, slope = _harmonic(q, p, k)
     zero = 0.0 * q
-    if p[k] == 0.0 and p[k + 1] == 0.0:
-        return zero, zero, zero, zero, zero, zero
-    w = p[k + 2]
-    s, c = np.sin(w * q), np.cos(w * q)
-    return p[k] * s + p[k + 1] * c, w * (p[k] * c - p[k + 1] * s), zero, zero, zero, zero
+    return level, slope, zero, zero, zero, zero
 
 
 @register_jitable
@@ -232,22 +237,27 @@ class PositionRipple(Effect):
         return []
 
 
-class LoadDependentFriction(Effect):
-    name = "load_dependent_friction"
-    model = "dry friction growing with the transmitted gravity load: Fs + mu |G(q)|"
-    keys = (Key("coefficient", "N.m per N.m of load", 0.0, "mu"),)
-    strength = "coefficient"
+class _OneNumber(Effect):
+    """An effect whose one key is its one packed slot and its one linear coefficient."""
+
     slots = 1
-    term = staticmethod(_load_friction_term)
 
     def pack(self, table):
-        return (table["coefficient"],)
+        return (table[self.strength],)
 
     def packed_fit(self, shape, coefficients):
         return (coefficients[0],)
 
     def table_from_fit(self, shape, coefficients):
-        return {"coefficient": float(coefficients[0])}
+        return {self.strength: float(coefficients[0])}
+
+
+class LoadDependentFriction(_OneNumber):
+    name = "load_dependent_friction"
+    model = "dry friction growing with the transmitted gravity load: Fs + mu |G(q)|"
+    keys = (Key("coefficient", "N.m per N.m of load", 0.0, "mu"),)
+    strength = "coefficient"
+    term = staticmethod(_load_friction_term)
 
     def violations(self, table, context):
         mu = table["coefficient"]
@@ -271,22 +281,18 @@ class FrictionRipple(PositionRipple):
         return out
 
 
-class SmoothReversal(Effect):
+class SmoothReversal(_OneNumber):
     """Outside the library on purpose (see the module docstring)."""
 
     name = "smooth_reversal"
     model = "dry friction reversing smoothly instead of sticking: Fs tanh(qd / v)"
     keys = (Key("velocity", "rad/s", 0.0, "v: the speed over which the friction reverses"),)
     strength = "velocity"
-    slots = 1
     term = staticmethod(_smooth_reversal_term)
 
     def validate(self, table):
         if table["velocity"] < 0:
             raise ValueError("smooth_reversal velocity must be >= 0")
-
-    def pack(self, table):
-        return (table["velocity"],)
 
 
 LIBRARY: tuple[Effect, ...] = (Stribeck(), PositionRipple(), LoadDependentFriction(),

@@ -9,6 +9,7 @@ Key expressions live under a prefix, e.g. `actuators/elbow`:
     {prefix}/solver      SolverStats  every control cycle
     {prefix}/fault       Fault        when something goes wrong (or a request is refused)
     {prefix}/loop_stats  LoopStats    once a second and at exit
+    {prefix}/joints      JointStates  every control cycle, every joint (actuatord --robot)
     {prefix}/parameters  queryable: model parameters, limits and solver settings (JSON)
     {prefix}/reference   queryable: set the reference, payload JSON; reply {"ok", "reason"}
     {prefix}/weights     queryable: set cost weights, e.g. {"position": 300}; same reply
@@ -74,6 +75,24 @@ SCHEMAS: dict[str, list[tuple]] = {
         ("cause", STRING, "what happened"),
         ("action", STRING, "what was done about it"),
     ],
+    # every joint of a robot in one message per cycle (actuatord --robot); the first three
+    # repeated fields are named as ROS's sensor_msgs/JointState and foxglove's joint states
+    "JointStates": [
+        ("t", DOUBLE, "s, drive time of the cycle (every joint sampled in it)"),
+        ("name", STRING, "joint names, in the robot file's order", REPEATED),
+        ("position", DOUBLE, "rad", REPEATED),
+        ("velocity", DOUBLE, "rad/s", REPEATED),
+        ("effort", DOUBLE, "N.m, joint torque-sensor reading", REPEATED),
+        ("motor_current", DOUBLE, "A, measured", REPEATED),
+        ("current", DOUBLE, "A, commanded (after the safety net)", REPEATED),
+        ("planned_current", DOUBLE, "A, what the solver asked for", REPEATED),
+        ("reference_position", DOUBLE, "rad", REPEATED),
+        ("drive_state", STRING, "CiA 402 state name", REPEATED),
+        ("solver_status", STRING, "converged | max_iterations | ... per joint", REPEATED),
+        ("iterations", UINT32, "iLQR iterations per joint", REPEATED),
+        ("fallback", BOOL, "the safety net replaced the solver's command", REPEATED),
+        ("solve_time_us", DOUBLE, "us, wall time of the batched MPC tick (all joints)"),
+    ],
     "LoopStats": [
         ("t", DOUBLE, "s"),
         ("cycles", UINT64, "control cycles run"),
@@ -89,6 +108,9 @@ SCHEMAS: dict[str, list[tuple]] = {
 
 TOPICS = {"state": "State", "command": "Command", "plan": "Plan", "solver": "SolverStats",
           "fault": "Fault", "loop_stats": "LoopStats"}
+# what `actuatord --robot` publishes: every joint in one message per cycle instead of the
+# single joint's state, command and solver topics
+ROBOT_TOPICS = {"joints": "JointStates", "fault": "Fault", "loop_stats": "LoopStats"}
 PARAMETERS = "parameters"
 REFERENCE = "reference"
 WEIGHTS = "weights"

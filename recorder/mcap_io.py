@@ -43,9 +43,11 @@ class _DataFile:
     def __init__(self, path: Path):
         self.file = open(path, "wb", buffering=WRITE_BUFFER)
         self.crc = 0
+        self.written = False  # since the recorder last cleared it: a chunk was closed
 
     def write(self, data: bytes) -> int:
         self.crc = zlib.crc32(data, self.crc)
+        self.written = True
         return self.file.write(data)
 
     def tell(self) -> int:
@@ -98,12 +100,12 @@ class McapRecorder:
         experiment); `log_time_ns`: when it was logged, the wall clock now unless given (a
         Zenoh recording passes the time the sample arrived)."""
         log_time = time.time_ns() if log_time_ns is None else log_time_ns
-        before = self._file.tell()
+        self._file.written = False
         self._writer.add_message(channel_id, log_time, data, publish_time_ns, self._sequence)
         self._sequence += 1
         self.messages += 1
         self._counts[channel_id] += 1
-        if self._file.tell() != before:  # a chunk was closed: get it to the file now
+        if self._file.written:  # a chunk was closed: get it to the file now
             self._end_here()
 
     def messages_on(self, channel_id: int) -> int:

@@ -103,6 +103,7 @@ class Cia402Device:
         self.cycle_count = 0
         self.master_loss: str | None = None  # why the master was declared lost, until reset
         self._values: dict[tuple[int, int], int] = {}
+        self._stored: dict[tuple[int, int], int] = {}  # see `store`
         self.reset_application()
 
     # --- handlers the exposing node registers -----------------------------------------------
@@ -147,8 +148,20 @@ class Cia402Device:
         with self._lock:
             for key, var in self._variables.items():
                 self._values[key] = default_value(var)
+            self._values.update(self._stored)
             self._after_reset()
             self.master_loss = None
+
+    def store(self, values: dict[tuple[int, int], int]) -> None:
+        """Write these objects (checked as SDO writes) and keep them over power-on resets, as
+        a drive keeps what a commissioning tool stored in its non-volatile memory (CiA 301
+        0x1010): the joint-specific settings of `sim_bus.commissioning`. Objects the
+        dictionary lacks are skipped."""
+        with self._lock:
+            for (index, subindex), value in values.items():
+                if (index, subindex) in self._variables:
+                    self.write(index, subindex, value)
+                    self._stored[(index, subindex)] = value
 
     def reset_communication(self) -> None:
         """Power-on values for the communication objects (0x1000..0x1FFF). The power stage

@@ -13,8 +13,10 @@ from pathlib import Path
 
 import canopen
 
+from model.dynamics import rest_position
 from model.parameters import ActuatorModel, Payload
 from sim_bus.canopen_node import CanOpenNode
+from sim_bus.commissioning import drive_settings
 from sim_bus.device import Cia402Device
 from sim_bus.plant import SensorNoise
 
@@ -69,25 +71,75 @@ class _PeriodicFrame:
         self._stop.set()
 
 
-class EmbeddedDrive:
-    """A booted virtual drive and the network a master should use to reach it.
+class EmbeddedBus:
+    """Virtual drives on one in-process bus: the drives' network linked to the one a master
+    should use, and a `Cia402Device` exposed by a `CanOpenNode` per drive. Several nodes on
+    one network share its frames as on a real bus: one SYNC reaches them all.
 
-    `lockstep`: the drive's heartbeat (and every other watchdog of its node) counts cycles,
+    `lockstep`: the drives' heartbeats (and every other watchdog of their nodes) count cycles,
     as the master's must then too (`CanOpenDrive(..., lockstep=True)`).
     """
 
-    def __init__(self, model: ActuatorModel, payload: Payload, noise: SensorNoise,
-                 node_id: int = 2, *, lockstep: bool = False, eds_path: str | Path | None = None,
-                 initial_position: float | None = None):
+    def __init__(self, *, lockstep: bool = False):
+        self.lockstep = lockstep
         self.network = LinkedNetwork()
         self.master_network = LinkedNetwork()
         self.network.peers.append(self.master_network)
         self.master_network.peers.append(self.network)
-        self.device = Cia402Device(model, payload, noise, eds_path=eds_path,
-                                   initial_position=initial_position, node_id=node_id)
-        self.node = CanOpenNode(self.network, node_id, self.device, lockstep=lockstep)
-        self.node.boot()
+        self.nodes: list[CanOpenNode] = []
+
+    def add_drive(self, model: ActuatorModel, payload: Payload, noise: SensorNoise,
+                  node_id: int, *, eds_path: str | Path | None = None,
+                  initial_position: float | None = None,
+                  commissioned: bool = False) -> Cia402Device:
+        """Power on a drive at `node_id` on this bus (see `power_on`)."""
+        node = power_on(self.network, model, payload, noise, node_id, lockstep=self.lockstep,
+                        eds_path=eds_path, initial_position=initial_position,
+                        commissioned=commissioned)
+        self.nodes.append(node)
+        return node.device
 
     def close(self) -> None:
-        self.node.close()
+        for node in self.nodes:
+            node.close()
         self.network.disconnect()
+
+
+def power_on(network: canopen.Network, model: ActuatorModel, payload: Payload,
+             noise: SensorNoise, node_id: int, *, lockstep: bool = False,
+             eds_path: str | Path | None = None, initial_position: float | None = None,
+             commissioned: bool = False) -> CanOpenNode:
+    """A virtual drive at `node_id` on `network` (embedded or a python-can bus), booted.
+    `commissioned`: its window and currents follow the model's limits
+    (`sim_bus.commissioning`) instead of the EDS's elbow values, and the joint starts inside
+    its limits (at rest if gravity lets it hang there, else at the middle of its range)."""
+    if commissioned and initial_position is None:
+        initial_position = _start_position(model, payload)
+    device = Cia402Device(model, payload, noise, eds_path=eds_path,
+                          initial_position=initial_position, node_id=node_id)
+    if commissioned:
+        device.store(drive_settings(model.limits, device.increments_per_rad))
+    node = CanOpenNode(network, node_id, device, lockstep=lockstep)
+    node.boot()
+    return node
+
+
+def _start_position(model: ActuatorModel, payload: Payload) -> float:
+    limits = model.limits
+    rest = rest_position(model.parameters.with_payload(payload).packed())
+    if limits.position_min <= rest <= limits.position_max:
+        return rest
+    return 0.5 * (limits.position_min + limits.position_max)
+
+
+class EmbeddedDrive(EmbeddedBus):
+    """One booted virtual drive (`device`, `node`) and the network a master should use to
+    reach it, its values from the EDS as shipped."""
+
+    def __init__(self, model: ActuatorModel, payload: Payload, noise: SensorNoise,
+                 node_id: int = 2, *, lockstep: bool = False, eds_path: str | Path | None = None,
+                 initial_position: float | None = None):
+        super().__init__(lockstep=lockstep)
+        self.device = self.add_drive(model, payload, noise, node_id, eds_path=eds_path,
+                                     initial_position=initial_position)
+        self.node = self.nodes[0]

@@ -93,6 +93,7 @@ CASES = [
     ("recorder", ["--sinusoid", *SIM, "--duration", "nan", "-o", "{out}"], "--duration"),
     ("recorder", ["--sinusoid", *SIM, "--duration", "-5", "-o", "{out}"], "--duration"),
     ("recorder", ["--zenoh", "a//b", "-o", "{out}"], "--zenoh"),
+    ("recorder", ["--zenoh", "x/**", "--can-log", "{tmp}/x.log", "-o", "{out}"], "--can-log"),
     ("recorder", ["export", "{bin}", "-o", "{tmp}/x.csv"], "blob.csv"),
     ("recorder", ["export", "{dir}", "-o", "{tmp}/x.csv"], "folder"),
     ("recorder", ["export", "{rec}", "-o", "/nonexistent/x.csv"], "/nonexistent/x.csv"),

@@ -84,7 +84,7 @@ def record(drive, payload: Payload, path) -> None:
     """The exciting trajectory with its tracking law, written as the CSV interchange file."""
     columns = {"t": [], "q": [], "current": [], "joint_torque": []}
 
-    def subscriber(message) -> None:
+    def sink(message) -> None:
         if type(message) is messages.State:
             for key, value in (("t", message.t), ("q", message.position),
                                ("current", message.motor_current),
@@ -94,10 +94,10 @@ def record(drive, payload: Payload, path) -> None:
     law = TrackingLaw(MODEL.parameters.with_payload(payload), MODEL.limits.current_max)
     try:
         drive.start()
-        report = run_trajectory(drive, SHORT, law, MODEL.limits, [subscriber], lockstep=True)
+        report = run_trajectory(drive, SHORT, law, MODEL.limits, [sink], lockstep=True)
+        assert report.exit_code == 0, report.reason
     finally:
         drive.close()
-    assert report.exit_code == 0, report.reason
     write_csv(Recording(**{k: np.asarray(v) for k, v in columns.items()}, metadata={
         "payload_mass": str(payload.mass), "payload_position": f"{payload.x},{payload.y}"}),
         path)

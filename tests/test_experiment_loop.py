@@ -26,7 +26,7 @@ def record(duration: float, fault: Fault | None = None, at: float = 0.0):
     with virtual_pair() as (sim, drive):
         drive.start()
         if fault is not None:
-            sim.schedule(fault, at)
+            sim.device.schedule(fault, at)
         report = run_trajectory(drive, SlowSinusoid(duration=duration), LAW, MODEL.limits,
                                 [lambda message: received.append((topic_of(message), message))],
                                 lockstep=True)

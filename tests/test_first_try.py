@@ -9,7 +9,7 @@ from model.parameters import load_model
 from protocol.cia402 import State, state_from_statusword
 from tests.conftest import udp_bus_spec
 
-SIM_BUS = "sim_bus.cli"  # the module behind the sim-bus console script
+SIM_BUS = "commands.sim_bus"  # the module behind the sim-bus console script
 LIMITS = load_model().limits
 TRIES = 10
 

@@ -20,7 +20,7 @@ from protocol import cia301, eds_path, objects
 from protocol.cia402 import State, state_from_statusword
 from tests.conftest import can_semantics_network, udp_bus_spec, virtual_drive_process
 
-ACTUATORD = "controller.cli"  # the module behind the actuatord console script
+ACTUATORD = "commands.actuatord"  # the module behind the actuatord console script
 PAYLOAD = ("--payload-mass", "2", "--payload-position", "0,0.05")
 LIMITS = load_model().limits
 

@@ -87,10 +87,6 @@ def predicted_motor_torque(s: Signals, parameters: ActuatorParameters) -> np.nda
     return predicted_torques(s, parameters)[0]
 
 
-def predicted_joint_torque(s: Signals, parameters: ActuatorParameters) -> np.ndarray:
-    return predicted_torques(s, parameters)[1]
-
-
 def gravity(s: Signals, parameters: ActuatorParameters) -> tuple:
     """The model's gravity torque per row (payload included) and its slope dG/dq."""
     return _per_recording(s, parameters,

@@ -1,0 +1,38 @@
+"""One model-gap case in one process (python -m tests.gap_case DIR SEED [TRUTH ...]): two short
+exciting trajectories recorded in lock-step on the virtual drive carrying the hidden truth
+(without and with 5 kg at (0, 0.1) m), a baseline identified from them, and model-gap's report
+on them in DIR/gap.json. One process per case pays the imports and the compiled code once."""
+
+import sys
+from pathlib import Path
+
+from commands import identify, model_gap
+from commands import recorder as cli
+
+# 9.5 s each: two cruise speeds over the whole range, both directions
+TRAJECTORY = ["--velocity-min", "1.0", "--velocity-max", "2.4", "--steps", "2"]
+
+
+def main(argv: list[str]) -> int:
+    folder, seed, *truths = argv
+    folder = Path(folder)
+    hidden = [arg for truth in truths for arg in ("--truth-effect", truth)]
+    files = {name: str(folder / f"{name}.mcap") for name in ("noload", "load")}
+    common = ["--exciting-trajectory", "--sim", "--lockstep", "--no-progress", *TRAJECTORY,
+              *hidden]
+    for name, noise_seed, extra in (
+            ("noload", 2 * int(seed), []),
+            ("load", 2 * int(seed) + 1, ["--payload-mass", "5", "--payload-position", "0,0.1"])):
+        code = cli.main([*common, *extra, "--seed", str(noise_seed), "-o", files[name]])
+        if code:
+            return code
+    baseline = str(folder / "baseline.toml")
+    code = identify.main([files["noload"], files["load"], "-o", baseline])
+    if code:
+        return code
+    return model_gap.main([files["noload"], files["load"], "--model", baseline, "--report",
+                         str(folder / "gap.json")])
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
