@@ -10,6 +10,7 @@ import time
 import pysoem
 import pytest
 
+from driver.drive_group import DriveGroup, Segment
 from driver.ethercat_drive import JointOnLine, open_ethercat_drives
 from driver.ethercat_transport import open_ethercat_transports
 from driver.interface import DriveError, DriveFault, DriveLost, ProfileError
@@ -122,6 +123,32 @@ def test_lockstep_drives_move_each_joint_the_commanded_way_one_frame_per_cycle(l
     assert report[0]["cycles"] == report[1]["cycles"]
     assert [r["state"] for r in report] == ["SWITCH_ON_DISABLED"] * 2  # closed cleanly
     assert not any(r["master_loss"] for r in report)
+
+
+def test_a_line_is_one_segment_of_a_drive_group(link):
+    """The robot's seam: three joints on one line, started in joint order (the line goes to
+    OP with the last), one frame per group cycle, a quick stop for all."""
+    names = ["shoulder", "elbow", "wrist"]
+    with slaves(link, 3) as line, link.entered():
+        drives = open_ethercat_drives(link.master_port, [joint(k) for k in range(3)],
+                                      lockstep=True)
+        group = DriveGroup(names, [Segment(f"ethercat:{link.master_port}",
+                                           list(zip(names, drives, strict=True)))])
+        try:
+            group.start()
+            frames = drives[0].transport.line.frames
+            for _ in range(50):
+                samples = group.sync()
+                group.command_currents([0.2, 0.0, -0.2])
+            assert drives[0].transport.line.frames == frames + 50
+            assert [round(s.motor_current, 1) for s in samples] == [0.2, 0.0, -0.2]
+            states = group.quick_stop_all()
+        finally:
+            group.close()
+        report = line.report()
+    assert [name for name, _ in states] == names
+    assert all(state in ("quick stop active", "switch on disabled") for _, state in states)
+    assert [r["brake_engaged"] for r in report] == [True] * 3
 
 
 def test_identity_other_than_the_esi_is_refused(link):

@@ -58,7 +58,7 @@ def test_bus_specs(spec, expected):
 
 @pytest.mark.parametrize("spec,message", [
     ("", "empty bus spec"),
-    ("can:0", "unknown interface 'can'; expected one of python-can's: canalystii"),
+    ("can:0", "unknown interface 'can'; expected ethercat or one of python-can's: canalystii"),
     ("udp_multicast:10.0.0.1", "not a multicast group"),
     ("udp_multicast:239.0.0.1:99999", "port '99999'"),
     ("virtual:", "needs a channel name"),
