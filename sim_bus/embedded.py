@@ -79,6 +79,8 @@ class EmbeddedDrive:
     def __init__(self, model: ActuatorModel, payload: Payload, noise: SensorNoise,
                  node_id: int = 2, *, lockstep: bool = False, eds_path: str | Path | None = None,
                  initial_position: float | None = None):
+        if not 1 <= node_id <= 127:
+            raise ValueError(f"node id {node_id} outside 1..127")
         self.network = LinkedNetwork()
         self.master_network = LinkedNetwork()
         self.network.peers.append(self.master_network)
