@@ -73,7 +73,9 @@ class EmbeddedDrive:
     """A booted virtual drive and the network a master should use to reach it.
 
     `lockstep`: the drive's heartbeat (and every other watchdog of its node) counts cycles,
-    as the master's must then too (`CanOpenDrive(..., lockstep=True)`).
+    as the master's must then too (`CanOpenDrive(..., lockstep=True)`). The drive does not
+    watch for SYNC silence here: its master lives and dies with this process, and a stall of
+    the host would only stop the joint for nothing.
     """
 
     def __init__(self, model: ActuatorModel, payload: Payload, noise: SensorNoise,
@@ -87,7 +89,8 @@ class EmbeddedDrive:
         self.master_network.peers.append(self.network)
         self.device = Cia402Device(model, payload, noise, eds_path=eds_path,
                                    initial_position=initial_position, node_id=node_id)
-        self.node = CanOpenNode(self.network, node_id, self.device, lockstep=lockstep)
+        self.node = CanOpenNode(self.network, node_id, self.device, lockstep=lockstep,
+                                silence_timeout=None)
         self.node.boot()
 
     def close(self) -> None:
