@@ -64,11 +64,7 @@ class SyncCycle:
         self._window: float | None = None
         self._open = False
         self._sync_stamp = 0.0
-        # two plain locks, not a Condition: a cycle takes them five times, and a Condition's
-        # Python-level enter/exit was a visible share of the lock-step cycle
-        self._lock = threading.Lock()  # guards the cycle's state between the two threads
-        self._waiting = threading.Lock()  # held while the cycle is incomplete
-        self._waiting.acquire()
+        self._arrived = threading.Condition(threading.Lock())
 
     def configure(self, rpdos: Sequence[PlannedPdo], tpdos: Sequence[PlannedPdo],
                   inputs: int, counting: bool, window: float | None) -> None:
@@ -94,32 +90,27 @@ class SyncCycle:
     def fail(self, error: DriveError) -> None:
         """Record what ended the link and wake an exchange waiting for TPDOs that will not
         come (first failure wins)."""
-        with self._lock:
+        with self._arrived:
             if self.failure is None:
                 self.failure = error
-            self._wake()
-
-    def _wake(self) -> None:
-        """Release the waiting exchange (call with `_lock` held)."""
-        if self._waiting.locked():
-            self._waiting.release()
+            self._arrived.notify_all()
 
     def exchange(self) -> tuple[int, ...]:
         if self.failure is not None:
             raise self.failure
-        with self._lock:
+        with self._arrived:
             self._pending = set(self._all_tpdos)
             if self._counting:
                 self._counter = self._counter % cia301.SYNC_COUNTER_MAX + 1
             # without an echo every TPDO after this SYNC answers it (within the window)
             self._open = not self._has_echo
             self._sync_stamp = time.time()  # the clock python-can stamps frames with
-            self._waiting.acquire(blocking=False)  # held until the cycle completes or fails
         self.network.send_message(cia301.SYNC_COB_ID,
                                   bytes([self._counter]) if self._counting else b"")
-        if self._pending and self.failure is None:
-            self._waiting.acquire(timeout=self.response_timeout)
-        with self._lock:
+        with self._arrived:
+            if self._pending and self.failure is None:
+                self._arrived.wait_for(lambda: not self._pending or self.failure is not None,
+                                       self.response_timeout)
             if self._pending:
                 if self.failure is not None:
                     raise self.failure  # a reboot or a lost heartbeat ended the wait
@@ -138,7 +129,7 @@ class SyncCycle:
                                  f"{codec.size} expected")
             return
         values = codec.unpack(data)
-        with self._lock:
+        with self._arrived:
             if echo:
                 # the first TPDO names its SYNC; the others follow it in order on the bus
                 self._open = values[-1] == self._counter
@@ -156,7 +147,7 @@ class SyncCycle:
             self._inputs[start:stop] = values[:stop - start]
             self._pending.discard(can_id)
             if not self._pending:
-                self._wake()
+                self._arrived.notify_all()
 
     def close(self) -> None:
         for cob_id in self._tpdos:

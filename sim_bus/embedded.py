@@ -73,24 +73,19 @@ class EmbeddedDrive:
     """A booted virtual drive and the network a master should use to reach it.
 
     `lockstep`: the drive's heartbeat (and every other watchdog of its node) counts cycles,
-    as the master's must then too (`CanOpenDrive(..., lockstep=True)`). The drive does not
-    watch for SYNC silence here: its master lives and dies with this process, and a stall of
-    the host would only stop the joint for nothing.
+    as the master's must then too (`CanOpenDrive(..., lockstep=True)`).
     """
 
     def __init__(self, model: ActuatorModel, payload: Payload, noise: SensorNoise,
                  node_id: int = 2, *, lockstep: bool = False, eds_path: str | Path | None = None,
                  initial_position: float | None = None):
-        if not 1 <= node_id <= 127:
-            raise ValueError(f"node id {node_id} outside 1..127")
         self.network = LinkedNetwork()
         self.master_network = LinkedNetwork()
         self.network.peers.append(self.master_network)
         self.master_network.peers.append(self.network)
         self.device = Cia402Device(model, payload, noise, eds_path=eds_path,
                                    initial_position=initial_position, node_id=node_id)
-        self.node = CanOpenNode(self.network, node_id, self.device, lockstep=lockstep,
-                                silence_timeout=None)
+        self.node = CanOpenNode(self.network, node_id, self.device, lockstep=lockstep)
         self.node.boot()
 
     def close(self) -> None:
