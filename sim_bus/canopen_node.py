@@ -63,6 +63,8 @@ class CanOpenNode:
     def __init__(self, network: canopen.Network, node_id: int, device: Cia402Device, *,
                  lockstep: bool = False,
                  silence_timeout: float | None = DEFAULT_SILENCE_TIMEOUT):
+        if not 1 <= node_id <= 127:
+            raise ValueError(f"node id {node_id} outside 1..127")
         self.network = network
         self.node_id = node_id
         self.device = device

@@ -31,6 +31,7 @@ class Observer:
     def __init__(self, bus: str):
         self.network = can_semantics_network(bus)
         self.node = canopen.RemoteNode(2, str(eds_path()))
+        self.node.sdo.RESPONSE_TIMEOUT = 2.0  # a loaded host answers late, not never
         self.network.add_node(self.node)
         self.emcys: list[tuple[float, int]] = []
         self.samples: list[tuple[int, int]] = []
