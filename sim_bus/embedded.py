@@ -16,6 +16,7 @@ import canopen
 from model.dynamics import rest_position
 from model.parameters import ActuatorModel, Payload
 from sim_bus.canopen_node import CanOpenNode
+from sim_bus.canopen_watchdogs import DEFAULT_SILENCE_TIMEOUT
 from sim_bus.commissioning import drive_settings
 from sim_bus.device import Cia402Device
 from sim_bus.plant import SensorNoise
@@ -93,9 +94,11 @@ class EmbeddedBus:
                   initial_position: float | None = None,
                   commissioned: bool = False) -> Cia402Device:
         """Power on a drive at `node_id` on this bus (see `power_on`)."""
+        # no SYNC-silence watch: the master shares this process, so it cannot die apart from
+        # the drive, and a stall of the whole process (GC, a loaded host) is not a lost master
         node = power_on(self.network, model, payload, noise, node_id, lockstep=self.lockstep,
                         eds_path=eds_path, initial_position=initial_position,
-                        commissioned=commissioned)
+                        commissioned=commissioned, silence_timeout=None)
         self.nodes.append(node)
         return node.device
 
@@ -108,18 +111,21 @@ class EmbeddedBus:
 def power_on(network: canopen.Network, model: ActuatorModel, payload: Payload,
              noise: SensorNoise, node_id: int, *, lockstep: bool = False,
              eds_path: str | Path | None = None, initial_position: float | None = None,
-             commissioned: bool = False) -> CanOpenNode:
+             commissioned: bool = False,
+             silence_timeout: float | None = DEFAULT_SILENCE_TIMEOUT) -> CanOpenNode:
     """A virtual drive at `node_id` on `network` (embedded or a python-can bus), booted.
     `commissioned`: its window and currents follow the model's limits
     (`sim_bus.commissioning`) instead of the EDS's elbow values, and the joint starts inside
-    its limits (at rest if gravity lets it hang there, else at the middle of its range)."""
+    its limits (at rest if gravity lets it hang there, else at the middle of its range).
+    `silence_timeout`: see `CanOpenNode`."""
     if commissioned and initial_position is None:
         initial_position = _start_position(model, payload)
     device = Cia402Device(model, payload, noise, eds_path=eds_path,
                           initial_position=initial_position, node_id=node_id)
     if commissioned:
         device.store(drive_settings(model.limits, device.increments_per_rad))
-    node = CanOpenNode(network, node_id, device, lockstep=lockstep)
+    node = CanOpenNode(network, node_id, device, lockstep=lockstep,
+                       silence_timeout=silence_timeout)
     node.boot()
     return node
 
