@@ -17,6 +17,7 @@ from commands.options import (
     add_virtual_drive_arguments,
     add_zenoh_arguments,
     check_drive_arguments,
+    check_eds,
     check_key_expr,
     check_output_folder,
     check_payload,
@@ -147,6 +148,7 @@ def main(argv: list[str] | None = None) -> int:
         payload = payload_from_args(args)
         check_payload(model, payload)
         check_drive_arguments(args)
+        check_eds(args.eds, model.parameters.drive_gain)
         check_key_expr("--prefix", args.prefix, wildcards=False)
         settings = _settings(args, model)
         reference = _reference(args.reference, model)
@@ -219,7 +221,8 @@ TRACKING_SETTLE = 1.0
 # options that name one joint's drive, model or reference; a robot file names each joint's
 _SINGLE_JOINT_OPTIONS = (("--model", "model", None), ("--bus", "bus", None),
                          ("-i", "interface", None), ("-c", "channel", None),
-                         ("--node-id", "node_id", 2), ("--reference", "reference", None),
+                         ("--node-id", "node_id", 2), ("--eds", "eds", None),
+                         ("--reference", "reference", None),
                          ("--plot", "plot", None), ("--can-log", "can_log", None),
                          ("--truth-effect", "truth_effect", []),
                          ("--payload-mass", "payload_mass", 0.0),

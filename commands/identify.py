@@ -53,6 +53,7 @@ def build_parser() -> CommandParser:
 
 
 def _experiment(recording: Recording, payload) -> Experiment:
+    recording.with_joint_torque()
     return Experiment(recording.t, recording.q, recording.current, recording.joint_torque,
                       payload, recording.source)
 

@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
         model = load_model(args.model)
         experiments = []
         for path in args.recordings:
-            recording = load_recording(path)
+            recording = load_recording(path).with_joint_torque()
             experiments.append(Experiment(recording.t, recording.q, recording.current,
                                           recording.joint_torque,
                                           recording.payload() or Payload(), path))

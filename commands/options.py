@@ -255,6 +255,11 @@ def add_bus_arguments(parser: argparse.ArgumentParser, sim: bool = True) -> None
                            help="with --sim: run as fast as the virtual drive answers")
     group.add_argument("--node-id", type=NODE_ID, default=2,
                        help="CANopen node id, 1..127 (default: 2)")
+    group.add_argument("--eds", metavar="FILE",
+                       help="the drive's EDS: standard CiA 402 objects unless it offers the "
+                            "manufacturer current mode (default: the shipped elbow drive, "
+                            "protocol/elbow_drive.eds)" + ("; with --sim the embedded drive "
+                                                           "serves it too" if sim else ""))
     group.add_argument("--can-log", metavar="FILE",
                        help="log every CAN frame sent and received with python-can's writer "
                             "for the suffix: .log (candump), .asc, .blf, ...")
@@ -295,6 +300,31 @@ def check_drive_arguments(args: argparse.Namespace) -> None:
         raise ValueError("--lockstep needs --sim (a real drive runs in real time)")
     if args.can_log is not None:
         check_can_log(args.can_log)
+
+
+def check_eds(path: str | None, drive_gain: float | None = None, *,
+              master: bool = True) -> None:
+    """--eds FILE: an EDS canopen reads and, for a `master`, one that offers what the torque
+    loop needs (`driver.profile`, the check the master repeats when it opens the drive), so a
+    drive the loop cannot run is refused before anything is sent to it. ValueError names the
+    option and every missing object."""
+    if path is None:
+        return
+    from driver.interface import ProfileError
+    from driver.profile import select_profile
+    from protocol.dictionary import load_dictionary
+
+    if not Path(path).is_file():
+        raise ValueError(f"--eds {path}: no such file")
+    try:
+        dictionary = load_dictionary(path)  # its error names the file
+    except ValueError as exc:
+        raise ValueError(f"--eds {exc}") from None
+    if master:
+        try:
+            select_profile(dictionary, drive_gain)
+        except ProfileError as exc:
+            raise ValueError(f"--eds {path}: {exc}") from None
 
 
 def bus_config(args: argparse.Namespace) -> dict:
@@ -529,8 +559,8 @@ def open_drive(args: argparse.Namespace, model: ActuatorModel, sim_model: Actuat
                 can_log.stop()
             raise DriveOpenError(f"cannot open bus {where}: {exc}") from exc
         try:
-            return Connection(CanOpenDrive(network, args.node_id, **timing), None, can_log,
-                              where)
+            return Connection(CanOpenDrive(network, args.node_id, eds=args.eds, **timing), None,
+                              can_log, where)
         except Exception as exc:
             network.disconnect()
             if can_log is not None:
@@ -541,15 +571,15 @@ def open_drive(args: argparse.Namespace, model: ActuatorModel, sim_model: Actuat
     from sim_bus.plant import SensorNoise
 
     sim = EmbeddedDrive(sim_model, payload, SensorNoise(seed=args.seed), args.node_id,
-                        lockstep=lockstep)
+                        lockstep=lockstep, eds_path=args.eds)
     if can_log is not None:
         sim.master_network.peers.append(_LinkTap(can_log, is_rx=False))
         sim.network.peers.append(_LinkTap(can_log, is_rx=True))
     for fault, seconds in schedule:
         sim.device.schedule(fault, seconds)
     try:
-        return Connection(CanOpenDrive(sim.master_network, args.node_id, **timing), sim,
-                          can_log, where)
+        return Connection(CanOpenDrive(sim.master_network, args.node_id, eds=args.eds,
+                                       **timing), sim, can_log, where)
     except Exception as exc:
         sim.close()
         if can_log is not None:

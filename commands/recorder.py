@@ -26,6 +26,7 @@ from commands.options import (
     add_virtual_drive_arguments,
     add_zenoh_arguments,
     check_drive_arguments,
+    check_eds,
     check_key_expr,
     check_output_file,
     check_payload,
@@ -130,10 +131,10 @@ def _robot_joint(args: argparse.Namespace):
         return None, None
     for option, key, default in (("--model", "model", None), ("--bus", "bus", None),
                                  ("-i", "interface", None), ("-c", "channel", None),
-                                 ("--node-id", "node_id", 2)):
+                                 ("--node-id", "node_id", 2), ("--eds", "eds", None)):
         if getattr(args, key, default) != default:
             raise ValueError(f"--robot and {option}: the robot file names the joint's bus, "
-                             "node id and model")
+                             "node id, EDS and model")
     robot = load_robot(args.robot)
     names = [j.name for j in robot.joints]
     if args.joint not in names:
@@ -168,6 +169,7 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
                                             args.velocity_min, args.velocity_max, args.steps)
             trajectory_range = (trajectory.position_low, trajectory.position_high)
         check_drive_arguments(args)
+        check_eds(args.eds, model.parameters.drive_gain)
         limits = model.limits
         if not (limits.position_min <= trajectory_range[0]
                 and trajectory_range[1] <= limits.position_max):

@@ -13,6 +13,7 @@ from commands.options import (
     add_virtual_drive_arguments,
     bus_config,
     check_drive_arguments,
+    check_eds,
     check_payload,
     configure_logging,
     describe_bus,
@@ -29,6 +30,7 @@ from commands.options import (
 from model.parameters import ModelFileError, load_model
 from protocol.bus_spec import BusSpecError
 from sim_bus.canopen_node import CanOpenNode
+from sim_bus.canopen_watchdogs import DEFAULT_SILENCE_TIMEOUT
 from sim_bus.device import Cia402Device
 from sim_bus.plant import SensorNoise
 
@@ -52,6 +54,11 @@ def build_parser() -> CommandParser:
     parser.add_argument("--torque-noise", type=non_negative_float,
                         default=SensorNoise.joint_torque, metavar="NM",
                         help="std of the torque-sensor reading (default: %(default)s N.m)")
+    parser.add_argument("--silence-timeout", type=non_negative_float,
+                        default=DEFAULT_SILENCE_TIMEOUT, metavar="S",
+                        help="SYNC and RPDO silence after which the master counts as lost and "
+                             "the drive quick-stops (0x6007), 0: off (default: %(default)s s; "
+                             "the consumer heartbeat 0x1016 is watched too)")
     add_virtual_drive_arguments(parser, prefix="")
     parser.add_argument("--robot", metavar="FILE",
                         help="every drive of a robot file, each on its bus at its node id, "
@@ -72,10 +79,10 @@ def _serve_robot(args) -> int:
 
     try:
         for option, key in (("--bus", "bus"), ("-i", "interface"), ("-c", "channel"),
-                            ("--model", "model"), ("--can-log", "can_log")):
+                            ("--model", "model"), ("--can-log", "can_log"), ("--eds", "eds")):
             if getattr(args, key, None) is not None:
-                raise ValueError(f"--robot and {option}: the robot file names each joint's bus "
-                                 "and model")
+                raise ValueError(f"--robot and {option}: the robot file names each joint's bus, "
+                                 "EDS and model")
         robot = load_robot(args.robot)
         ethercat = [bus for bus in robot.buses() if is_ethercat(bus)]
         if ethercat:
@@ -94,7 +101,8 @@ def _serve_robot(args) -> int:
                 noise = SensorNoise(current=args.current_noise, joint_torque=args.torque_noise,
                                     seed=args.seed + index)
                 nodes.append(power_on(networks[-1], joint.model, Payload(), noise,
-                                      joint.address, eds_path=joint.eds, commissioned=True))
+                                      joint.address, eds_path=joint.eds, commissioned=True,
+                                      silence_timeout=args.silence_timeout or None))
                 for name, fault, seconds in faults:
                     if name == joint.name:
                         nodes[-1].device.schedule(fault, seconds)
@@ -128,6 +136,7 @@ def main(argv: list[str] | None = None) -> int:
         return _serve_robot(args)
     try:
         check_drive_arguments(args)
+        check_eds(args.eds, master=False)
         nominal = load_model(args.model)
         model = with_truth_effects(nominal, args.truth_effect)
         payload = payload_from_args(args)
@@ -152,9 +161,10 @@ def main(argv: list[str] | None = None) -> int:
         return job_error(PROG, f"cannot open bus {where}: {exc}")
     noise = SensorNoise(current=args.current_noise, joint_torque=args.torque_noise,
                         seed=args.seed)
-    device = Cia402Device(model, payload, noise, initial_position=args.initial_position,
-                          node_id=args.node_id)
-    node = CanOpenNode(network, args.node_id, device)
+    device = Cia402Device(model, payload, noise, eds_path=args.eds,
+                          initial_position=args.initial_position, node_id=args.node_id)
+    node = CanOpenNode(network, args.node_id, device,
+                       silence_timeout=args.silence_timeout or None)
     for fault, seconds in schedule:
         device.schedule(fault, seconds)
     stop = threading.Event()

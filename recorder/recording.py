@@ -46,9 +46,13 @@ class Recording:
 
     def check(self) -> "Recording":
         """Refuse what no tool can use: NaN, too short, time not increasing or not in
-        seconds."""
+        seconds. A joint torque that is NaN throughout is a drive without a torque sensor (a
+        standard CiA 402 drive has none): readable, refused only by the tools that need it
+        (`with_joint_torque`)."""
         for name in ("t", "q", "current", "joint_torque"):
             column = getattr(self, name)
+            if name == "joint_torque" and not np.any(np.isfinite(column)):
+                continue
             if not np.all(np.isfinite(column)):
                 row = int(np.argmin(np.isfinite(column)))
                 raise RecordingError(f"{self.source}: column {name}: non-finite value at "
@@ -65,5 +69,13 @@ class Recording:
             raise RecordingError(f"{self.source}: column t: samples {period:g} apart; t is in "
                                  f"seconds and a recording is sampled every "
                                  f"{SLOWEST_SAMPLE_PERIOD:g} s or faster (time in ms?)")
+        return self
+
+    def with_joint_torque(self) -> "Recording":
+        """This recording, refused with one line if it has no joint-torque readings."""
+        if len(self.joint_torque) and not np.any(np.isfinite(self.joint_torque)):
+            raise RecordingError(f"{self.source}: no joint-torque readings (recorded from a "
+                                 "drive without a torque sensor); identification and "
+                                 "model-gap need them")
         return self
 

@@ -17,6 +17,7 @@ from driver.canopen_drive import CanOpenDrive
 from model.parameters import Payload, load_model
 from protocol import cia301, eds_path, objects
 from protocol.cia402 import State
+from recorder.reader import load_recording
 from sim_bus.embedded import EmbeddedDrive
 from sim_bus.plant import SensorNoise
 from tests.conftest import (
@@ -208,3 +209,53 @@ def test_without_an_echo_a_tpdo_from_before_the_sync_is_not_taken_for_its_answer
         sim.close()
     assert objects.position_to_increments(sample.position) != 12345
     assert any("outside the 1000 ms synchronous window" in w for w in drive.warnings())
+
+
+def test_actuatord_and_recorder_drive_a_standard_cst_sim_bus_from_its_eds(tmp_path):
+    """The commands as a user runs them on a drive with standard objects only: `sim-bus --eds`
+    serves it, `actuatord --eds` and `recorder --eds` drive it in cyclic synchronous torque."""
+    bus = udp_bus_spec()
+    eds = ["--eds", str(CST_STANDARD)]
+    with sim_bus_process(bus, "--node-id", "3", *eds):
+        controlled = subprocess.run(
+            [sys.executable, "-m", "commands.actuatord", "--bus", bus, "--node-id", "3", *eds,
+             "--duration", "2", "--no-multicast-scouting"],
+            capture_output=True, text=True, timeout=120)
+        assert controlled.returncode == 0, controlled.stderr
+        assert "2000 cycles" in controlled.stdout
+        recording = tmp_path / "sinusoid.mcap"
+        recorded = subprocess.run(
+            [sys.executable, "-m", "commands.recorder", "--bus", bus, "--node-id", "3", *eds,
+             "--sinusoid", "--duration", "2", "--no-progress", "-o", str(recording)],
+            capture_output=True, text=True, timeout=120)
+        assert recorded.returncode == 0, recorded.stderr
+    samples = load_recording(recording)
+    assert len(samples) >= 1900
+    assert np.ptp(samples.q) > 0.05  # the slow sinusoid moved the joint
+    assert np.all(np.isnan(samples.joint_torque))  # a standard drive has no torque sensor
+    # identification needs the sensor: one line, exit 2, no model written
+    identified = subprocess.run(
+        [sys.executable, "-m", "commands.identify", str(recording), str(recording),
+         "--payload-mass", "0", "-o", str(tmp_path / "m.toml")],
+        capture_output=True, text=True, timeout=60)
+    assert identified.returncode == 2
+    assert identified.stderr.count("\n") == 1 and "no joint-torque readings" in (
+        identified.stderr)
+    assert not (tmp_path / "m.toml").exists()
+
+
+@pytest.mark.parametrize("command", ["actuatord", "recorder"])
+def test_the_commands_refuse_a_drive_without_a_torque_mode_before_touching_it(command,
+                                                                               tmp_path):
+    """Refused from the EDS alone, before a bus is opened (none is given here: with --sim the
+    embedded drive would serve the same EDS)."""
+    extra = (["--no-multicast-scouting"] if command == "actuatord"
+             else ["--exciting-trajectory", "-o", str(tmp_path / "x.mcap")])
+    result = subprocess.run(
+        [sys.executable, "-m", f"commands.{command}", "--sim", "--eds",
+         str(POSITION_VELOCITY_ONLY), *extra], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert "0x6071" in lines[0] and "torque mode" in lines[0]
+    assert not (tmp_path / "x.mcap").exists()
