@@ -67,29 +67,35 @@ class LoopReport:
                 f"{self.reason}")
 
 
-class ControlLoop:
-    def __init__(self, drive: Drive, policy: Policy, options: LoopOptions,
-                 subscribers: Sequence[Subscriber] = (),
+class CycleLoop:
+    """The rhythm every control loop keeps, whatever it drives (one joint: `ControlLoop`; a
+    robot: `controller.robot_loop.RobotLoop`): wait for the period's deadline (real time) or
+    not (lock-step), report a stall, apply queued requests at the cycle start, run the cycle,
+    time the decision (the first, cold one apart, after which the deadlines start), publish
+    LoopStats every `stats_every` s of drive time, and end at the duration.
+
+    A subclass's `_cycle()` samples, decides and commands; it returns the decision's wall time
+    (s), or the report when the run ends there (`_finish`). `_published()` then sends the
+    cycle's messages, with `report.cycles` already counting this cycle."""
+
+    def __init__(self, options: LoopOptions, subscribers: Sequence[Subscriber] = (),
                  dropped: Callable[[], int] = lambda: 0, stop: threading.Event | None = None):
         """`dropped` counts the messages subscribers could not pass on (for LoopStats); `stop`,
         when given, is the caller's flag to end the run (a signal handler sets it)."""
-        self._drive = drive
-        self.policy = policy
         self.options = options
-        self._net = SafetyNet(policy)
         self._subscribers = tuple(subscribers)
         self._dropped = dropped
         # appended by other threads, drained by the loop: deque's append and popleft are atomic
         self._requests: collections.deque[Callable[[], None]] = collections.deque()
         self._stop = stop if stop is not None else threading.Event()
         self.report = LoopReport()
-        self.latest: Sample | None = None  # the last sample the loop took
+        self._t: float | None = None  # drive time of the last sample (None before the first)
 
     @property
     def time(self) -> float:
         """The drive time of the last sample (0 before the first)."""
-        latest = self.latest
-        return latest.t if latest is not None else 0.0
+        t = self._t
+        return t if t is not None else 0.0
 
     def request(self, change: Callable[[], None]) -> None:
         """Run `change()` at the start of the next cycle (thread-safe)."""
@@ -106,51 +112,25 @@ class ControlLoop:
         self.publish(messages.fault(t, source, cause, action))
 
     def run(self) -> LoopReport:
-        """Run until stopped, the duration is reached, the policy is done or the drive fails.
-        The caller owns the drive's life cycle (start before, close after: close always
-        disables it)."""
-        options, report, drive, net = self.options, self.report, self._drive, self._net
-        history = {key: [] for key in HISTORY_KEYS}
-        if options.keep_history:
-            report.history = history
+        """Run until stopped, the duration is reached, the policy is done or a drive fails.
+        The caller owns the drives' life cycle (start before, close after: close always
+        disables them)."""
+        options, report = self.options, self.report
         clock = report.clock = CycleClock(options.period, options.lockstep)
         next_stats = options.stats_every
         missed = 0
-        statusword, state = None, None
-        perf_counter = time.perf_counter
         while not self._stop.is_set():
             clock.wait()
-            if clock.missed_cycles - missed >= STALL_CYCLES and self.latest is not None:
-                self.fault(self.latest.t, "controller",
+            if clock.missed_cycles - missed >= STALL_CYCLES and self._t is not None:
+                self.fault(self._t, "controller",
                            f"loop stalled: {clock.missed_cycles - missed} cycles missed",
                            "continuing from the next sample")
             missed = clock.missed_cycles
             while self._requests:
                 self._requests.popleft()()
-            try:
-                sample = drive.sync()
-            except DriveError as exc:
-                return self._finish(1, f"drive failed: {exc}", "drive",
-                                    "stopped commanding; drive disabled on exit",
-                                    self.time + options.period if self.latest else 0.0)
-            self.latest = sample
-            for warning in drive.warnings():
-                self.fault(sample.t, "drive", warning, "continuing: the command does not use it")
-            if sample.statusword != statusword:
-                statusword, state = sample.statusword, cia402.state_from_statusword(
-                    sample.statusword)
-            if state is not cia402.State.OPERATION_ENABLED:
-                return self._finish(1, f"drive left operation enabled: {state.value}", "drive",
-                                    "stopped commanding; drive disabled on exit", sample.t)
-            start = perf_counter()
-            safe = net.decide(sample)
-            decide_time = perf_counter() - start
-            try:
-                drive.command_current(safe.current)
-            except (CommandRangeError, DriveError) as exc:
-                source = "controller" if isinstance(exc, CommandRangeError) else "drive"
-                return self._finish(1, f"command refused: {exc}", source,
-                                    "stopped commanding; drive disabled on exit", sample.t)
+            decide_time = self._cycle()
+            if isinstance(decide_time, LoopReport):
+                return decide_time
             if report.cycles == 0:
                 # the cold solve runs once before the rhythm starts: timed on its own, and the
                 # deadlines begin after it
@@ -160,41 +140,25 @@ class ControlLoop:
                 clock.check_overrun()
                 report.solve.add(decide_time * 1e6)
             report.cycles += 1
-            self._publish_cycle(sample, state, safe, decide_time)
-            if options.keep_history:
-                self._remember(history, sample, safe)
-            if sample.t >= next_stats:
+            self._published(decide_time)
+            t = self._t
+            if t >= next_stats:
                 next_stats += options.stats_every
-                self.publish(self._stats(sample.t))
-            if options.duration is not None and sample.t >= options.duration - 1e-9:
-                return self._finish(0, f"ran {options.duration} s", t=sample.t)
-            if safe.decision.finished:
-                return self._finish(0, "the policy finished", t=sample.t)
+                self.publish(self._stats(t))
+            if options.duration is not None and t >= options.duration - 1e-9:
+                return self._finish(0, f"ran {options.duration} s", t=t)
+            if self._done():
+                return self._finish(0, "the policy finished", t=t)
         return self._finish(0, "stop requested", t=self.time)
 
-    def _publish_cycle(self, sample: Sample, state: cia402.State, safe: SafeCommand,
-                       decide_time: float) -> None:
-        t = sample.t
-        publish = self.publish
-        publish(messages.state(sample, state.value))
-        publish(messages.command(t, safe, self._net.limits))
-        publish(messages.solver_stats(t, safe, decide_time))
-        if safe.fault is not None:
-            self.report.fallbacks += 1
-            self.fault(t, "controller", safe.fault,
-                       f"commanded {safe.current:.3f} A (safe command)")
-        if self.report.cycles % self.options.plan_every == 0:
-            snapshot = self.policy.plan(t)
-            if snapshot is not None:
-                publish(messages.plan(snapshot))
+    def _cycle(self) -> "float | LoopReport":
+        raise NotImplementedError
 
-    @staticmethod
-    def _remember(history: dict, sample: Sample, safe: SafeCommand) -> None:
-        for key, value in zip(HISTORY_KEYS, (
-                sample.t, sample.position, sample.velocity, safe.decision.reference_position,
-                safe.current, safe.decision.planned_current, sample.motor_current,
-                sample.joint_torque), strict=True):
-            history[key].append(value)
+    def _published(self, decide_time: float) -> None:
+        raise NotImplementedError
+
+    def _done(self) -> bool:
+        return False
 
     def _stats(self, t: float):
         report = self.report
@@ -211,3 +175,75 @@ class ControlLoop:
             self.fault(t, source, reason, action or "")
         self.publish(self._stats(t))
         return self.report
+
+
+class ControlLoop(CycleLoop):
+    """One joint: its sample, its policy behind the safety net, its command."""
+
+    def __init__(self, drive: Drive, policy: Policy, options: LoopOptions,
+                 subscribers: Sequence[Subscriber] = (),
+                 dropped: Callable[[], int] = lambda: 0, stop: threading.Event | None = None):
+        super().__init__(options, subscribers, dropped, stop)
+        self._drive = drive
+        self.policy = policy
+        self._net = SafetyNet(policy)
+        self.latest: Sample | None = None  # the last sample the loop took
+        self._statusword: int | None = None
+        self._state: cia402.State | None = None
+        self._safe: SafeCommand | None = None
+        self._history = {key: [] for key in HISTORY_KEYS}
+        if options.keep_history:
+            self.report.history = self._history
+
+    def _cycle(self) -> "float | LoopReport":
+        drive, period = self._drive, self.options.period
+        try:
+            sample = drive.sync()
+        except DriveError as exc:
+            return self._finish(1, f"drive failed: {exc}", "drive",
+                                "stopped commanding; drive disabled on exit",
+                                self.time + period if self.latest else 0.0)
+        self.latest, self._t = sample, sample.t
+        for warning in drive.warnings():
+            self.fault(sample.t, "drive", warning, "continuing: the command does not use it")
+        if sample.statusword != self._statusword:
+            self._statusword = sample.statusword
+            self._state = cia402.state_from_statusword(sample.statusword)
+        if self._state is not cia402.State.OPERATION_ENABLED:
+            return self._finish(1, f"drive left operation enabled: {self._state.value}",
+                                "drive", "stopped commanding; drive disabled on exit", sample.t)
+        start = time.perf_counter()
+        safe = self._safe = self._net.decide(sample)
+        decide_time = time.perf_counter() - start
+        try:
+            drive.command_current(safe.current)
+        except (CommandRangeError, DriveError) as exc:
+            source = "controller" if isinstance(exc, CommandRangeError) else "drive"
+            return self._finish(1, f"command refused: {exc}", source,
+                                "stopped commanding; drive disabled on exit", sample.t)
+        return decide_time
+
+    def _published(self, decide_time: float) -> None:
+        sample, safe = self.latest, self._safe
+        t = sample.t
+        publish = self.publish
+        publish(messages.state(sample, self._state.value))
+        publish(messages.command(t, safe, self._net.limits))
+        publish(messages.solver_stats(t, safe, decide_time))
+        if safe.fault is not None:
+            self.report.fallbacks += 1
+            self.fault(t, "controller", safe.fault,
+                       f"commanded {safe.current:.3f} A (safe command)")
+        if self.report.cycles % self.options.plan_every == 0:
+            snapshot = self.policy.plan(t)
+            if snapshot is not None:
+                publish(messages.plan(snapshot))
+        if self.options.keep_history:
+            for key, value in zip(HISTORY_KEYS, (
+                    t, sample.position, sample.velocity, safe.decision.reference_position,
+                    safe.current, safe.decision.planned_current, sample.motor_current,
+                    sample.joint_torque), strict=True):
+                self._history[key].append(value)
+
+    def _done(self) -> bool:
+        return self._safe.decision.finished

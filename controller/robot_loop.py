@@ -17,15 +17,16 @@ from typing import Protocol
 import numpy as np
 
 from controller import messages
-from controller.loop import STALL_CYCLES, LoopOptions, LoopReport
+from controller.loop import CycleLoop, LoopOptions, LoopReport
 from controller.messages import Subscriber
 from controller.mpc import BatchMpc
 from controller.policy import Decision, PlanSnapshot
 from controller.reference import reference_at
 from controller.safety import SafeCommand, SafetyNet
 from driver import DriveError, Sample
-from driver.clock import CycleClock
 from protocol import cia402
+
+QUICK_STOPPED = "every joint quick-stopped, then disabled"  # what the caller does on failure
 
 
 class Joints(Protocol):
@@ -64,7 +65,7 @@ class _JointPolicy:
         return self._batch.plan(self._batch.joints[self._index], t)
 
 
-class RobotLoop:
+class RobotLoop(CycleLoop):
     def __init__(self, joints: Joints, batch: BatchMpc, options: LoopOptions,
                  subscribers: Sequence[Subscriber] = (),
                  dropped: Callable[[], int] = lambda: 0, stop: threading.Event | None = None,
@@ -73,28 +74,19 @@ class RobotLoop:
         where a joint rests to its reference is not tracking)."""
         if len(batch) != len(joints.names):
             raise ValueError(f"{len(joints.names)} joints, {len(batch)} problems")
+        super().__init__(options, subscribers, dropped, stop)
         self._joints = joints
         self.batch = batch
-        self.options = options
         self.names = list(joints.names)
         self._nets = [SafetyNet(_JointPolicy(batch, j)) for j in range(len(batch))]
-        self._subscribers = tuple(subscribers)
-        self._dropped = dropped
-        self._stop = stop if stop is not None else threading.Event()
-        self.report = LoopReport()
         self.failed_joint: str | None = None  # the joint whose failure ended the run
         # per joint: sum of squared tracking errors and their count (for tracking_rms)
         self._squared_error = np.zeros(len(batch))
         self._tracked = 0
         self._settle = settle
         self.latest: list[Sample] | None = None
-
-    def stop(self) -> None:
-        self._stop.set()
-
-    def publish(self, message) -> None:
-        for subscriber in self._subscribers:
-            subscriber(message)
+        self._drive_states: list[str] = []
+        self._commands: list[SafeCommand] = []
 
     def tracking_rms(self) -> list[float]:
         """rad, each joint's RMS of position minus reference over the run (after `settle`)."""
@@ -102,103 +94,60 @@ class RobotLoop:
             return [math.nan] * len(self.names)
         return [float(v) for v in np.sqrt(self._squared_error / self._tracked)]
 
-    def run(self) -> LoopReport:
-        """Run until stopped, the duration is reached or a joint fails. The caller owns the
-        drives (start before; on failure quick-stop all; close after)."""
-        options, report, joints, batch = self.options, self.report, self._joints, self.batch
-        clock = report.clock = CycleClock(options.period, options.lockstep)
-        next_stats = options.stats_every
-        missed = 0
-        t = 0.0
-        perf_counter = time.perf_counter
-        count = len(self.names)
-        while not self._stop.is_set():
-            clock.wait()
-            if clock.missed_cycles - missed >= STALL_CYCLES:
-                self._fault(t, "controller",
-                            f"loop stalled: {clock.missed_cycles - missed} cycles missed",
-                            "continuing from the next sample")
-            missed = clock.missed_cycles
-            try:
-                samples = joints.sync()
-            except DriveError as exc:
-                return self._fail(exc, t + options.period)
-            self.latest = samples
-            t = samples[0].t
-            for warning in joints.warnings():
-                self._fault(t, "drive", warning, "continuing: the command does not use it")
-            drive_states = [cia402.state_from_statusword(s.statusword).value for s in samples]
-            for name, state in zip(self.names, drive_states, strict=True):
-                if state != cia402.State.OPERATION_ENABLED.value:
-                    self.failed_joint = name
-                    return self._finish(1, f"joint {name}: drive left operation enabled: "
-                                           f"{state}", "drive", t)
-            start = perf_counter()
-            commands: list[SafeCommand | None] = [None] * count
-            ticked = []
-            for j in range(count):
-                screened = self._nets[j].screen(samples[j])
-                if screened is None:
-                    sample = samples[j]
-                    batch.prepare(batch.joints[j], sample.position, sample.velocity)
-                    ticked.append(j)
-                else:
-                    commands[j] = screened
-            batch.run(t)
-            for j in ticked:
-                commands[j] = self._nets[j].check(samples[j], batch.decision(batch.joints[j]))
-            decide_time = perf_counter() - start
-            try:
-                joints.command_currents([c.current for c in commands])
-            except DriveError as exc:
-                return self._fail(exc, t)
-            if report.cycles == 0:
-                # the cold solves run once before the rhythm starts: timed on their own, and
-                # the deadlines begin after them
-                report.cold_solve_us = decide_time * 1e6
-                clock.restart()
+    def _cycle(self) -> "float | LoopReport":
+        joints, batch, count = self._joints, self.batch, len(self.names)
+        try:
+            samples = joints.sync()
+        except DriveError as exc:
+            return self._fail(exc, self.time + self.options.period)
+        self.latest = samples
+        t = self._t = samples[0].t
+        for warning in joints.warnings():
+            self.fault(t, "drive", warning, "continuing: the command does not use it")
+        drive_states = self._drive_states = [
+            cia402.state_from_statusword(s.statusword).value for s in samples]
+        for name, state in zip(self.names, drive_states, strict=True):
+            if state != cia402.State.OPERATION_ENABLED.value:
+                self.failed_joint = name
+                return self._finish(1, f"joint {name}: drive left operation enabled: {state}",
+                                    "drive", QUICK_STOPPED, t)
+        start = time.perf_counter()
+        commands: list[SafeCommand | None] = [None] * count
+        ticked = []
+        for j in range(count):
+            screened = self._nets[j].screen(samples[j])
+            if screened is None:
+                sample = samples[j]
+                batch.prepare(batch.joints[j], sample.position, sample.velocity)
+                ticked.append(j)
             else:
-                clock.check_overrun()
-                report.solve.add(decide_time * 1e6)
-            report.cycles += 1
-            self.publish(messages.joint_states(t, self.names, samples, drive_states, commands,
-                                               decide_time))
-            for name, command in zip(self.names, commands, strict=True):
-                if command.fault is not None:
-                    report.fallbacks += 1
-                    self._fault(t, "controller", f"joint {name}: {command.fault}",
-                                f"commanded {command.current:.3f} A (safe command)")
-            if t >= self._settle:
-                for j, (sample, command) in enumerate(zip(samples, commands, strict=True)):
-                    error = sample.position - command.decision.reference_position
-                    self._squared_error[j] += error * error
-                self._tracked += 1
-            if t >= next_stats:
-                next_stats += options.stats_every
-                self.publish(self._stats(t))
-            if options.duration is not None and t >= options.duration - 1e-9:
-                return self._finish(0, f"ran {options.duration} s", t=t)
-        return self._finish(0, "stop requested", t=t)
+                commands[j] = screened
+        batch.run(t)
+        for j in ticked:
+            commands[j] = self._nets[j].check(samples[j], batch.decision(batch.joints[j]))
+        decide_time = time.perf_counter() - start
+        self._commands = commands
+        try:
+            joints.command_currents([c.current for c in commands])
+        except DriveError as exc:
+            return self._fail(exc, t)
+        return decide_time
+
+    def _published(self, decide_time: float) -> None:
+        t, samples, commands = self._t, self.latest, self._commands
+        self.publish(messages.joint_states(t, self.names, samples, self._drive_states,
+                                           commands, decide_time))
+        for name, command in zip(self.names, commands, strict=True):
+            if command.fault is not None:
+                self.report.fallbacks += 1
+                self.fault(t, "controller", f"joint {name}: {command.fault}",
+                           f"commanded {command.current:.3f} A (safe command)")
+        if t >= self._settle:
+            for j, (sample, command) in enumerate(zip(samples, commands, strict=True)):
+                error = sample.position - command.decision.reference_position
+                self._squared_error[j] += error * error
+            self._tracked += 1
 
     def _fail(self, exc: DriveError, t: float) -> LoopReport:
         self.failed_joint = getattr(exc, "joint", None)
-        return self._finish(1, f"drive failed: {exc}", "drive", t)
-
-    def _fault(self, t: float, source: str, cause: str, action: str) -> None:
-        self.publish(messages.fault(t, source, cause, action))
-
-    def _stats(self, t: float):
-        report = self.report
-        return messages.loop_stats(
-            t, report.cycles, report.missed_cycles, report.jitter.percentile(99),
-            report.jitter.max, report.solve.percentile(50), report.solve.percentile(99),
-            report.solve.max, self._dropped())
-
-    def _finish(self, code: int, reason: str, source: str | None = None,
-                t: float = 0.0) -> LoopReport:
-        self.report.exit_code = code
-        self.report.reason = reason
-        if source is not None:
-            self._fault(t, source, reason, "every joint quick-stopped, then disabled")
-        self.publish(self._stats(t))
-        return self.report
+        return self._finish(1, f"drive failed: {exc}", "drive", QUICK_STOPPED, t)
