@@ -15,7 +15,6 @@ model-gap), so every user runs the same code. Parameters travel as one flat vect
 effect of the registry (`model.effects.PHYSICS`, in its order), then the joint side.
 """
 
-import hashlib
 import math
 from pathlib import Path
 
@@ -24,32 +23,12 @@ import numpy as np
 from numba.extending import register_jitable
 
 from model import effects
+from model.compiled_cache import drop_stale
 from model.effects import PHYSICS
 
-
-def _drop_stale_compiled_code() -> None:
-    """numba's on-disk cache checks only this file's timestamp, not the registry's: compiled
-    code that chained an older registry (other slots, other terms) would still load and
-    silently compute the wrong physics. Drop this module's cache when model/effects.py
-    differs from the one it was compiled with (numba compiles lazily, after this runs)."""
-    folder = Path(__file__).parent / "__pycache__"
-    stamp = folder / "dynamics.effects.sha256"
-    digest = hashlib.sha256(Path(effects.__file__).read_bytes()).hexdigest()
-    try:
-        if stamp.read_text() == digest:
-            return
-    except OSError:
-        pass
-    for path in folder.glob("dynamics.*.nb[ic]"):
-        path.unlink(missing_ok=True)
-    try:
-        folder.mkdir(exist_ok=True)
-        stamp.write_text(digest)
-    except OSError:
-        pass  # a read-only install: numba then caches elsewhere or not at all
-
-
-_drop_stale_compiled_code()
+# compiled code that chained an older registry (other slots, other terms) must not load
+drop_stale(Path(__file__).parent / "__pycache__", "dynamics.*.nb[ic]",
+           [Path(effects.__file__)], "dynamics.effects.sha256")
 
 # 50 us integration substeps at the 1 ms drive period: within one encoder count of 1000
 # substeps (tests/test_dynamics.py); every simulation of the joint uses it.
