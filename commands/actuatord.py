@@ -35,7 +35,7 @@ from commands.options import (
 )
 from controller.loop import ControlLoop, LoopOptions
 from controller.mpc import Mpc
-from controller.problem import OcpSettings, Weights
+from controller.problem import MAX_HORIZON, OcpSettings, ResolutionError, Weights
 from controller.reference import ReferenceError, Sinusoid, reference_from_dict
 from controller.requests import RequestHandler
 from model.parameters import ActuatorModel, ModelFileError, load_model
@@ -43,9 +43,6 @@ from protocol import telemetry
 from protocol.bus_spec import BusSpecError
 
 PROG = "actuatord"
-# The tick grows linearly with the horizon (bench: 17 us median at 100 steps on this 2-core
-# machine), so 1000 steps take about a fifth of a 1 ms period: more cannot keep the rhythm.
-MAX_HORIZON = 1000
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -105,21 +102,13 @@ def _settings(args: argparse.Namespace, model: ActuatorModel) -> OcpSettings:
 
 
 def _check_resolution(settings: OcpSettings, model: ActuatorModel, period_us: int) -> None:
-    """Refuse a step the controller cannot keep safe: at the velocity limit, one iLQR step or
-    one control period may move the joint at most half the position barrier's width 1/alpha
-    (over which the barrier grows by e), so the wall is felt at least two steps before it. A
-    coarser plan hops over the limit without the cost seeing it; a longer period leaves the
-    joint that far unwatched. At the defaults (1/alpha = 0.1 rad, 5 rad/s) 100 ms and 20 ms
-    steps drove the joint through the drive's position window (EMCY 0x8612); 10 ms held."""
-    alpha, velocity = settings.sharpness.position, model.limits.velocity_max
-    longest = 0.5 / (alpha * velocity)  # s
-    for option, step, shown in (("--dt", settings.dt, f"{settings.dt:g} s"),
-                                ("--period-us", period_us * 1e-6, f"{period_us} us")):
-        if step > longest:
-            raise ValueError(
-                f"{option} {shown}: at the velocity limit {velocity:g} rad/s the joint moves "
-                f"{velocity * step:.3g} rad per step, more than half the position barrier's "
-                f"width 1/alpha = {1 / alpha:g} rad; expected at most {longest * 1e3:g} ms")
+    """OcpSettings.check_resolution, its refusal naming the option."""
+    try:
+        settings.check_resolution(model.limits.velocity_max, period_us * 1e-6)
+    except ResolutionError as exc:
+        shown = (f"--dt {settings.dt:g} s" if exc.quantity == "dt"
+                 else f"--period-us {period_us} us")
+        raise ValueError(f"{shown}: {exc}") from None
 
 
 def _reference(text: str | None, model: ActuatorModel):

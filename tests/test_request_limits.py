@@ -178,11 +178,11 @@ def service():
     mpc = Mpc(MODEL)
     client = subprocess.Popen([sys.executable, "-c", CLIENT, endpoint], stdin=subprocess.PIPE,
                               stdout=subprocess.PIPE, text=True)
-    sim = EmbeddedDrive(MODEL, Payload(), SensorNoise())
-    # the heartbeat watchdog still runs on the wall clock: given 20 s here, so a busy machine
-    # does not end the loop while this test measures what requests cost it
-    drive = CanOpenDrive(sim.master_network, 2, response_timeout=1.0,
-                         heartbeat_timeout_factor=200.0)
+    # lock-step on both sides: every watchdog counts cycles, so a busy machine does not end
+    # the loop while this test measures what requests cost it
+    sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(), lockstep=True)
+    drive = CanOpenDrive(sim.master_network, 2, velocity_limit=MODEL.limits.velocity_max,
+                         lockstep=True, response_timeout=1.0)
     try:
         drive.start()
         loop = ControlLoop(drive, mpc, LoopOptions(lockstep=True), [publisher.publish])
