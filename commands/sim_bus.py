@@ -164,8 +164,8 @@ def _serve_robot(args) -> int:
     for line in lines:
         line.join()
     print("sim-bus: stopped; " + ", ".join(
-        f"{name} {device.cycle_count} cycles '{device.state.value}'"
-        for name, device in served), flush=True)
+        f"{name} {device.cycle_count} cycles '{device.state.value}' at "
+        f"{device.plant.position:.3f} rad" for name, device in served), flush=True)
     for node in nodes:
         node.close()
     for network in networks:
@@ -254,7 +254,7 @@ def _serve_line(args: argparse.Namespace, interface: str, model: ActuatorModel,
         states.append(f"slave {k} {report['cycles']} cycles, "
                       f"{ec.al_state_name(report['al_status'])}"
                       + (f" ({ec.al_status_name(code)})" if code else "")
-                      + f", drive '{device.state.value}'"
+                      + f", drive '{device.state.value}' at {report['position']:.3f} rad"
                       + (f", master lost: {report['master_loss']}"
                          if report["master_loss"] else ""))
     print(f"sim-bus: stopped after {segment.frames} frames; " + "; ".join(states), flush=True)
@@ -314,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
           f"payload {payload.mass} kg at ({payload.x}, {payload.y}) m)", flush=True)
     stop.wait()
     print(f"sim-bus: stopped after {device.cycle_count} SYNC cycles, drive state "
-          f"'{device.state.value}'", flush=True)
+          f"'{device.state.value}' at {device.plant.position:.3f} rad", flush=True)
     node.close()
     network.disconnect()
     if can_log is not None:
