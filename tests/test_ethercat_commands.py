@@ -50,9 +50,10 @@ def run(link: VirtualLink | None, module: str, *args: str) -> subprocess.Complet
 
 @contextmanager
 def sim_bus(link: VirtualLink, *extra: str):
-    """`sim-bus --bus ethercat:ecs0` in the namespace, up once it says ready."""
-    proc = subprocess.Popen(command(link, "sim_bus", "--bus", f"ethercat:{link.line_port}",
-                                    *extra),
+    """`sim-bus --bus ethercat:ecs0` in the namespace (`extra` starting with --robot: the
+    file's lines instead), up once it says ready."""
+    where = [] if extra[:1] == ("--robot",) else ["--bus", f"ethercat:{link.line_port}"]
+    proc = subprocess.Popen(command(link, "sim_bus", *where, *extra),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
     try:
         line = proc.stdout.readline()
@@ -153,36 +154,51 @@ def test_sim_bus_serves_slaves_that_soem_finds_and_reports_each_on_sigint(link):
     assert "slave 0 " in report and "slave 1 " in report, report
 
 
-def test_actuatord_runs_a_robot_of_two_joints_on_one_line_in_slave_order(link, tmp_path):
-    """The file lists the joints out of line order: each joint's setpoint must reach the drive
-    at its own slave position (the end positions sim-bus reports say which went where)."""
-    robot = tmp_path / "two.toml"
-    robot.write_text(f"""[robot]
+def two_joints(port: str) -> str:
+    """A robot file listing its two joints out of line order, each with its own setpoint."""
+    return f"""[robot]
 name = "two"
 
 [[joints]]
 name = "upper"
-bus = "ethercat:{link.master_port}"
+bus = "ethercat:{port}"
 slave = 1
 reference = {{ kind = "setpoint", position = -0.5 }}
 
 [[joints]]
 name = "lower"
-bus = "ethercat:{link.master_port}"
+bus = "ethercat:{port}"
 slave = 0
 reference = {{ kind = "setpoint", position = -1.5 }}
-""")
-    with sim_bus(link, "--slaves", "2") as slaves:
+"""
+
+
+def end_position(report: str, name: str) -> float:
+    """rad: where sim-bus's end report says the drive called `name` stopped."""
+    return float(report.split(f"{name} ")[1].split(" at ")[1].split(" rad")[0])
+
+
+@pytest.mark.parametrize("served_by", ["slaves", "robot file"])
+def test_actuatord_runs_a_robot_of_two_joints_on_one_line_in_slave_order(link, tmp_path,
+                                                                         served_by):
+    """Each joint's setpoint must reach the drive at its own slave position (the end positions
+    sim-bus reports say which went where), whether sim-bus serves `--slaves 2` or the same
+    robot file's line (commissioned drives, named by joint)."""
+    robot = tmp_path / "two.toml"
+    robot.write_text(two_joints(link.master_port))
+    line = tmp_path / "line.toml"
+    line.write_text(two_joints(link.line_port))
+    serve = ("--slaves", "2") if served_by == "slaves" else ("--robot", str(line))
+    with sim_bus(link, *serve) as slaves:
         result = run(link, "actuatord", "--robot", str(robot), "--lockstep", "--duration", "2",
                      ZENOH)
         report = stop(slaves)
     assert result.returncode == 0, result.stderr
     assert f"2 joints of two on ethercat:{link.master_port} enabled" in result.stdout
     assert "2000 cycles, 0 missed" in result.stdout
-    ends = {position: float(report.split(f"slave {position} ")[1].split(" at ")[1].split(" rad")[0])
-            for position in (0, 1)}
-    assert ends[0] == pytest.approx(-1.5, abs=0.05), report
-    assert ends[1] == pytest.approx(-0.5, abs=0.05), report
+    lower, upper = ("slave 0", "slave 1") if served_by == "slaves" else ("lower", "upper")
+    assert end_position(report, lower) == pytest.approx(-1.5, abs=0.05), report
+    assert end_position(report, upper) == pytest.approx(-0.5, abs=0.05), report
 
 
 def test_no_slave_on_the_line_is_a_failed_job_naming_the_bus(link):
