@@ -25,6 +25,7 @@ from commands.options import (
     fault_schedule,
     int_range,
     job_error,
+    load_esi_option,
     open_drive,
     open_session,
     parse_assignments,
@@ -77,8 +78,10 @@ def build_parser() -> argparse.ArgumentParser:
                              "--robot robots/NAME)")
     parser.add_argument("--robot", metavar="FILE",
                         help="every joint of a robot file (robots/*.toml) in one cycle: one "
-                             "SYNC per bus, one batched MPC call; --sim embeds every drive; "
-                             "--inject-fault then takes JOINT:NAME@SECONDS")
+                             "SYNC per CAN bus and one frame per EtherCAT line, one batched "
+                             "MPC call; --sim embeds every drive (an EtherCAT line's too, on "
+                             "an in-process CANopen link); --inject-fault then takes "
+                             "JOINT:NAME@SECONDS")
     parser.add_argument("--plot", metavar="DIR", help="save position and current figures here")
     add_virtual_drive_arguments(parser)
     add_zenoh_arguments(parser)
@@ -137,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
         payload = payload_from_args(args)
         check_payload(model, payload)
         check_drive_arguments(args)
-        check_eds(args.eds, model.parameters.drive_gain)
+        check_eds(args.eds, model.parameters.drive_gain, esi=load_esi_option(args))
         check_key_expr("--prefix", args.prefix, wildcards=False)
         settings = _settings(args, model)
         reference = _reference(args.reference, model)
@@ -178,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, lambda *_: loop.stop())
     try:
         drive.start()
-        print(f"actuatord: node {args.node_id} on {connection.where} enabled; "
+        print(f"actuatord: {connection.address} on {connection.where} enabled; "
               f"telemetry under {args.prefix}/", flush=True)
         report = loop.run()
     except DriveError as exc:
@@ -210,7 +213,8 @@ TRACKING_SETTLE = 1.0
 # options that name one joint's drive, model or reference; a robot file names each joint's
 _SINGLE_JOINT_OPTIONS = (("--model", "model", None), ("--bus", "bus", None),
                          ("-i", "interface", None), ("-c", "channel", None),
-                         ("--node-id", "node_id", 2), ("--eds", "eds", None),
+                         ("--node-id", "node_id", None), ("--slave", "slave", None),
+                         ("--eds", "eds", None), ("--esi", "esi", None),
                          ("--reference", "reference", None),
                          ("--plot", "plot", None), ("--can-log", "can_log", None),
                          ("--truth-effect", "truth_effect", []),
@@ -272,7 +276,7 @@ def _run_robot(args: argparse.Namespace) -> int:
         if args.period_us != robot.period_us:
             raise ValueError(f"--period-us {args.period_us}: the robot file {args.robot} sets "
                              f"period_us = {robot.period_us}")
-        check_drive_arguments(args)
+        check_drive_arguments(args, robot.buses())
         faults = [parse_joint_fault(text, [j.name for j in robot.joints])
                   for text in args.inject_fault]
         if faults and not args.sim:

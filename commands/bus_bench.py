@@ -1,11 +1,16 @@
 """`bus-bench`: how fast the master and the virtual drive run, in lock-step.
 
 Prints one JSON object: SYNC cycles per second with both in this process on python-can's
-`virtual` bus, and the SYNC -> TPDO sample latency and full SYNC -> TPDO -> RPDO cycle time with
-`sim-bus` in a second process over `udp_multicast`.
+`virtual` bus, the SYNC -> TPDO sample latency and full SYNC -> TPDO -> RPDO cycle time with
+`sim-bus` in a second process over `udp_multicast`, and, where this host can make a private
+veth in a network namespace (root), the EtherCAT line with 1 and then 4 virtual slaves in a
+second process: lock-step frames per second and the frame round trip at 1 kHz
+(`driver.ethercat_bench.measure_line`). The host's CPU count and load average come with the
+figures, which mean little without them.
 """
 
 import json
+import os
 import random
 import subprocess
 import sys
@@ -13,8 +18,16 @@ import time
 
 import numpy as np
 
-from commands.options import CommandParser, add_logging_argument, configure_logging, int_range
+from commands.options import (
+    CommandParser,
+    add_logging_argument,
+    configure_logging,
+    int_range,
+    job_error,
+)
 from driver.canopen_drive import CanOpenDrive, open_network
+
+ETHERCAT_LINES = (1, 4)  # slaves on the measured lines
 
 
 def _lockstep_in_process(cycles: int) -> float:
@@ -75,6 +88,28 @@ def _two_processes(cycles: int) -> dict:
             "cycles": cycles}
 
 
+def _ethercat(cycles: int) -> list[dict] | None:
+    """measure_line on a private veth for each line length in ETHERCAT_LINES, the slaves in
+    their own process (as sim-bus runs them); None, after one line on stderr saying why, when
+    this host cannot make the link (no root, no namespaces, no raw sockets)."""
+    from driver.ethercat_bench import measure_line
+    from model.parameters import load_model
+    from sim_bus.ethercat.netns import LinkUnavailable, SlaveProcess, VirtualLink
+
+    try:
+        link = VirtualLink()
+    except LinkUnavailable as exc:
+        print(f"bus-bench: EtherCAT part skipped: {exc} (a veth in a network namespace of "
+              "its own needs root)", file=sys.stderr, flush=True)
+        return None
+    results = []
+    with link:
+        for slaves in ETHERCAT_LINES:
+            with SlaveProcess(link, slaves, load_model()), link.entered():
+                results.append(measure_line(link.master_port, slaves, cycles))
+    return results
+
+
 def _velocity_limit() -> float:
     from model.parameters import load_model
 
@@ -83,12 +118,32 @@ def _velocity_limit() -> float:
 
 def main(argv: list[str] | None = None) -> int:
     parser = CommandParser(prog="bus-bench", description=__doc__.splitlines()[0])
-    parser.add_argument("--cycles", type=int_range(1, 10_000_000), default=5000)
+    parser.add_argument("--cycles", type=int_range(1, 10_000_000), default=5000,
+                        help="cycles per measurement (default: %(default)s; the EtherCAT round "
+                             "trips take that many ms of real time per line)")
+    which = parser.add_mutually_exclusive_group()
+    which.add_argument("--no-ethercat", action="store_true", help="the CAN figures only")
+    which.add_argument("--ethercat-only", action="store_true", help="the EtherCAT figures only")
     add_logging_argument(parser)
     args = parser.parse_args(argv)
     configure_logging(parser.prog, args.log_level)
-    result = {"in_process_lockstep_cycles_per_s": round(_lockstep_in_process(args.cycles)),
-              "udp_multicast_two_processes": _two_processes(args.cycles)}
+    from driver import DriveError
+
+    result: dict = {"cpus": os.cpu_count(),
+                    "load_average_1min": round(os.getloadavg()[0], 2)}
+    try:
+        if not args.ethercat_only:
+            result["in_process_lockstep_cycles_per_s"] = round(
+                _lockstep_in_process(args.cycles))
+            result["udp_multicast_two_processes"] = _two_processes(args.cycles)
+        if not args.no_ethercat:
+            lines = _ethercat(args.cycles)
+            if lines is None and args.ethercat_only:
+                return 1  # the one thing asked for cannot be measured here (said why)
+            if lines is not None:
+                result["ethercat_veth_two_processes"] = lines
+    except (DriveError, RuntimeError, OSError) as exc:
+        return job_error(parser.prog, f"measurement failed: {exc}")
     print(json.dumps(result))
     return 0
 

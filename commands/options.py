@@ -1,8 +1,9 @@
 """What the commands share: the parser with one-line errors, `--log-level`, the drive options
 (the bus as python-can spells it: `-i/--interface`, `-c/--channel`, `-b/--bitrate` and its own
-configuration files and environment, the short `--bus` spec, `--sim`, `--node-id`,
-`--lockstep`, `--can-log`, and the virtual drive's `--seed`, `--truth-effect`,
-`--inject-fault`), the one place a master drive is opened, the payload and `NAME=VALUE`
+configuration files and environment, the short `--bus` spec with `ethercat:IFACE` for an
+EtherCAT line, `--sim`, `--node-id` on CAN and `--slave`/`--esi` on EtherCAT, `--lockstep`,
+`--can-log`, and the virtual drive's `--seed`, `--truth-effect`, `--inject-fault`), the one
+place a master drive is opened (CANopen, EtherCAT or embedded), the payload and `NAME=VALUE`
 options, output paths checked before a run, Zenoh key expressions and the Zenoh session options
 (spelled like Zenoh's own tools: `--listen`, `--connect`, `--zenoh-config`,
 `--no-multicast-scouting`), and the one way a usage error is reported.
@@ -40,8 +41,9 @@ from sim_bus.faults import Fault
 
 if TYPE_CHECKING:  # imported when a drive is opened: the dashboard needs neither
     from commands.robot_file import JointSpec, RobotSpec
-    from driver.canopen_drive import CanOpenDrive
+    from driver.cia402_drive import Cia402Drive
     from driver.drive_group import DriveGroup
+    from protocol.esi import EsiDevice
     from sim_bus.device import Cia402Device
     from sim_bus.embedded import EmbeddedBus
 
@@ -118,6 +120,9 @@ def seed(text: str) -> int:
 
 
 NODE_ID = int_range(1, 127)  # CiA 301 node ids
+DEFAULT_NODE_ID = 2  # the elbow drive's
+SLAVE_POSITION = int_range(0, 65534)  # 0-based positions on a line (SOEM counts to 65535)
+LINE_SLAVES = int_range(1, 64)  # virtual slaves one sim-bus serves on a line (robot files: 64)
 TCP_PORT = int_range(1, 65535)
 
 
@@ -237,24 +242,30 @@ _PYTHON_CAN_KEYS = ("interface", "channel", "bitrate", "fd", "data_bitrate", "ti
 
 def add_bus_arguments(parser: argparse.ArgumentParser, sim: bool = True) -> None:
     """python-can's own bus options (`-i`, `-c`, `-b`, `--fd`, `--data-bitrate`, `--timing`,
-    `--bus-kwargs`), the short `--bus` spec, `--node-id`, `--can-log`; with `sim`, also `--sim`
-    and `--lockstep`."""
+    `--bus-kwargs`), the short `--bus` spec, `--node-id`, `--eds`, `--can-log`, the EtherCAT
+    options; with `sim` (a master: actuatord, recorder), also `--sim`, `--lockstep` and the
+    slave position `--slave`, without it (sim-bus serves a line) `--slaves`."""
     can.cli.add_bus_arguments(parser, group_title="CAN bus (python-can's options)")
     group = parser.add_argument_group(
         "drive", "Without --bus or -i/-c the bus is python-can's configuration (CAN_INTERFACE, "
                  "CAN_CHANNEL, CAN_BITRATE, CAN_CONFIG, ~/.canrc), else vcan0.")
     group.add_argument("--bus", metavar="SPEC",
                        help="short bus spec: vcan0 (SocketCAN), virtual:NAME, "
-                            "udp_multicast:GROUP[:PORT], or INTERFACE:CHANNEL for any "
+                            "udp_multicast:GROUP[:PORT], INTERFACE:CHANNEL for any "
                             "python-can interface (pcan:PCAN_USBBUS1, kvaser:0, "
-                            "slcan:/dev/ttyACM0, ...)")
+                            "slcan:/dev/ttyACM0, ...), or ethercat:IFACE for an EtherCAT "
+                            "line on that network interface (raw socket: root or "
+                            "CAP_NET_RAW)")
     if sim:
         group.add_argument("--sim", action="store_true",
                            help="embedded virtual drive in this process (no bus needed)")
         group.add_argument("--lockstep", action="store_true",
-                           help="with --sim: run as fast as the virtual drive answers")
-    group.add_argument("--node-id", type=NODE_ID, default=2,
-                       help="CANopen node id, 1..127 (default: 2)")
+                           help="with --sim or an EtherCAT bus: run as fast as the drive "
+                                "answers (over EtherCAT the slaves' watchdog is switched off "
+                                "and the virtual slave advances one period per frame; a CAN "
+                                "drive on a bus runs in real time)")
+    group.add_argument("--node-id", type=NODE_ID,
+                       help=f"CANopen node id, 1..127 (default: {DEFAULT_NODE_ID}; CAN only)")
     group.add_argument("--eds", metavar="FILE",
                        help="the drive's EDS: standard CiA 402 objects unless it offers the "
                             "manufacturer current mode (default: the shipped elbow drive, "
@@ -262,7 +273,21 @@ def add_bus_arguments(parser: argparse.ArgumentParser, sim: bool = True) -> None
                                                            "serves it too" if sim else ""))
     group.add_argument("--can-log", metavar="FILE",
                        help="log every CAN frame sent and received with python-can's writer "
-                            "for the suffix: .log (candump), .asc, .blf, ...")
+                            "for the suffix: .log (candump), .asc, .blf, ... (CAN only)")
+    line = parser.add_argument_group("EtherCAT (with --bus ethercat:IFACE)")
+    if sim:
+        line.add_argument("--slave", type=SLAVE_POSITION, metavar="N",
+                          help="the drive's position on the line, 0-based in frame order "
+                               "(default: 0)")
+    else:
+        line.add_argument("--slaves", type=LINE_SLAVES, metavar="N",
+                          help="virtual drives on the line, 1..64 (default: 1); each its own "
+                               "physics, noise seeded --seed + its position")
+    line.add_argument("--esi", metavar="FILE",
+                      help="the slave's ESI (EtherCAT slave information XML): identity, sync "
+                           "managers and PDOs (default: the shipped elbow drive, "
+                           "protocol/elbow_drive.xml)" + ("" if sim else "; the slaves' SII "
+                                                          "is built from it"))
 
 
 def add_virtual_drive_arguments(parser: argparse.ArgumentParser, faults: bool = True,
@@ -284,47 +309,117 @@ def add_virtual_drive_arguments(parser: argparse.ArgumentParser, faults: bool = 
                                  + "; at run time, write its code to SDO 0x2010")
 
 
-def check_drive_arguments(args: argparse.Namespace) -> None:
-    """Refuse a drive choice that cannot work, before anything is opened. Raises BusSpecError
-    or ValueError naming the option."""
+# python-can's options (argparse keys as can.cli names them), absent unless given
+_CAN_ONLY = (("-i", "interface"), ("-c", "channel"), ("-b", "bitrate"), ("--fd", "fd"),
+             ("--data-bitrate", "data_bitrate"), ("--timing", "timing"),
+             ("--bus-kwargs", "bus_kwargs"), ("--can-log", "can_log"))
+
+
+def ethercat_interface(args: argparse.Namespace) -> str | None:
+    """The network interface of `--bus ethercat:IFACE`; None for a CAN bus or --sim. Raises
+    BusSpecError for an ethercat spec without a usable interface name."""
+    bus = getattr(args, "bus", None)
+    if bus is None or not is_ethercat(bus):
+        return None
+    return parse_bus_spec(bus)["channel"]
+
+
+def check_drive_arguments(args: argparse.Namespace,
+                          robot_buses: Iterable[str] | None = None) -> None:
+    """Refuse a drive choice that cannot work, before anything is opened, and settle the
+    defaults that depend on the bus (`--node-id` 2 on CAN, `--slave` 0 on EtherCAT).
+    `robot_buses`: with --robot, the file's buses (lock-step needs every one to be EtherCAT
+    when not --sim). Raises BusSpecError or ValueError naming the option."""
     sim = getattr(args, "sim", False)
+    interface = ethercat_interface(args)
     if sim:
         named = [option for option, key in (("--bus", "bus"), ("-i", "interface"),
                                             ("-c", "channel"), ("-b", "bitrate"))
                  if getattr(args, key, None) is not None]
         if named:
             raise ValueError(f"--sim and {named[0]}: the embedded drive needs no bus")
-    else:
+    elif interface is None:
         bus_config(args)
+    if interface is not None:
+        for option, key in (*_CAN_ONLY, ("--node-id", "node_id")):
+            if getattr(args, key, None) is not None:
+                raise ValueError(f"--bus {args.bus} and {option}: {option} is for a CAN bus"
+                                 + ("; an EtherCAT drive is found by --slave (0-based)"
+                                    if key == "node_id" else ""))
+        if getattr(args, "slave", None) is None and "slave" in args:
+            args.slave = 0
+        if getattr(args, "slaves", None) is None and "slaves" in args:
+            args.slaves = 1
+        load_esi_option(args)
+    else:
+        for option, key in (("--slave", "slave"), ("--slaves", "slaves"), ("--esi", "esi")):
+            if getattr(args, key, None) is not None:
+                raise ValueError(f"{option} is for an EtherCAT bus (--bus ethercat:IFACE)"
+                                 + ("; a CAN drive is found by --node-id" if key == "slave"
+                                    else ""))
+        if args.node_id is None:
+            args.node_id = DEFAULT_NODE_ID
     if getattr(args, "lockstep", False) and not sim:
-        raise ValueError("--lockstep needs --sim (a real drive runs in real time)")
+        # a virtual EtherCAT slave advances one period per frame and its watchdog is off in
+        # lock-step; a CAN drive on a bus keeps its own clock (heartbeats, SYNC silence)
+        if robot_buses is None and interface is None:
+            raise ValueError("--lockstep needs --sim or an EtherCAT bus: a CAN drive on a bus "
+                             "runs in real time")
+        for bus in robot_buses or ():
+            if not is_ethercat(bus):
+                raise ValueError(f"--lockstep needs --sim or EtherCAT buses only: bus {bus} is "
+                                 "CAN, whose drives run in real time")
     if args.can_log is not None:
         check_can_log(args.can_log)
 
 
+def load_esi_option(args: argparse.Namespace) -> EsiDevice | None:
+    """The ESI an EtherCAT bus is read with: `--esi FILE` or the shipped one; None for a CAN
+    bus or --sim. ValueError names the option and what is wrong in the file."""
+    if ethercat_interface(args) is None:
+        return None
+    from protocol import esi_path
+    from protocol.esi import EsiError, load_esi
+
+    path = args.esi
+    if path is not None and not Path(path).is_file():
+        raise ValueError(f"--esi {path}: no such file")
+    try:
+        return load_esi(path if path is not None else esi_path())
+    except EsiError as exc:
+        raise ValueError(f"--esi {exc}") from None
+
+
 def check_eds(path: str | None, drive_gain: float | None = None, *,
-              master: bool = True) -> None:
+              master: bool = True, esi: EsiDevice | None = None) -> None:
     """--eds FILE: an EDS canopen reads and, for a `master`, one that offers what the torque
     loop needs (`driver.profile`, the check the master repeats when it opens the drive), so a
-    drive the loop cannot run is refused before anything is sent to it. ValueError names the
-    option and every missing object."""
-    if path is None:
+    drive the loop cannot run is refused before anything is sent to it. Over EtherCAT (`esi`)
+    the loop gets only what the ESI's PDOs carry, so the check is on the EDS seen through it,
+    the shipped EDS included. ValueError names the option and every missing object."""
+    if path is None and (esi is None or not master):
         return
     from driver.interface import ProfileError
     from driver.profile import select_profile
+    from protocol import eds_path
     from protocol.dictionary import load_dictionary
+    from protocol.esi import ethercat_dictionary
 
-    if not Path(path).is_file():
+    if path is not None and not Path(path).is_file():
         raise ValueError(f"--eds {path}: no such file")
     try:
-        dictionary = load_dictionary(path)  # its error names the file
-    except ValueError as exc:
+        dictionary = load_dictionary(path if path is not None else eds_path())
+    except ValueError as exc:  # its error names the file
         raise ValueError(f"--eds {exc}") from None
     if master:
+        shown = f"--eds {path}" if path is not None else f"the shipped EDS {eds_path().name}"
+        if esi is not None:
+            dictionary = ethercat_dictionary(dictionary, esi)
+            shown += f" through the ESI's PDOs ({esi.name})"
         try:
             select_profile(dictionary, drive_gain)
         except ProfileError as exc:
-            raise ValueError(f"--eds {path}: {exc}") from None
+            raise ValueError(f"{shown}: {exc}") from None
 
 
 def bus_config(args: argparse.Namespace) -> dict:
@@ -510,13 +605,15 @@ class DriveOpenError(Exception):
 
 @dataclass
 class Connection:
-    """The master drive, the embedded virtual drive (`--sim`, else None) and the CAN log
-    (`--can-log`, else None), closed together in that order."""
+    """The master drive (CANopen or EtherCAT: the loop only sees the CiA 402 layer), the
+    embedded virtual drive (`--sim`, else None) and the CAN log (`--can-log`, else None),
+    closed together in that order."""
 
-    drive: CanOpenDrive
+    drive: Cia402Drive
     sim: EmbeddedBus | None
     can_log: CanLog | None
     where: str  # the bus, as the user reads it
+    address: str = ""  # the drive on it, as the user reads it: "node 2", "slave 0"
 
     def close(self) -> None:
         try:
@@ -544,6 +641,14 @@ def open_drive(args: argparse.Namespace, model: ActuatorModel, sim_model: Actuat
     timing = {"lockstep": lockstep, "velocity_limit": model.limits.velocity_max,
               "drive_gain": model.parameters.drive_gain, **timing}
 
+    interface = None if args.sim else ethercat_interface(args)
+    if interface is not None:
+        from driver.ethercat_drive import JointOnLine
+
+        joint = JointOnLine(args.slave, timing.pop("velocity_limit"), timing.pop("drive_gain"))
+        drive = _open_on_line(args.bus, interface, [joint], esi=load_esi_option(args),
+                              eds=args.eds, **timing)[0]
+        return Connection(drive, None, None, args.bus, f"slave {args.slave}")
     where = "--sim" if args.sim else describe_bus(bus_config(args))
     can_log = None
     if args.can_log is not None:
@@ -560,7 +665,7 @@ def open_drive(args: argparse.Namespace, model: ActuatorModel, sim_model: Actuat
             raise DriveOpenError(f"cannot open bus {where}: {exc}") from exc
         try:
             return Connection(CanOpenDrive(network, args.node_id, eds=args.eds, **timing), None,
-                              can_log, where)
+                              can_log, where, f"node {args.node_id}")
         except Exception as exc:
             network.disconnect()
             if can_log is not None:
@@ -579,12 +684,36 @@ def open_drive(args: argparse.Namespace, model: ActuatorModel, sim_model: Actuat
         sim.device.schedule(fault, seconds)
     try:
         return Connection(CanOpenDrive(sim.master_network, args.node_id, eds=args.eds,
-                                       **timing), sim, can_log, where)
+                                       **timing), sim, can_log, where, f"node {args.node_id}")
     except Exception as exc:
         sim.close()
         if can_log is not None:
             can_log.stop()
         raise DriveOpenError(f"cannot open the embedded drive: {exc}") from exc
+
+
+def _open_on_line(bus: str, interface: str, joints: list, **options) -> list[Cia402Drive]:
+    """The drives of `joints` (driver.ethercat_drive.JointOnLine) on the EtherCAT line at
+    `interface`, the line scanned: the interface opened, every slave's identity checked
+    against the ESI, each joint's slave found, the line in PRE-OP. So a missing interface, no
+    raw socket, a line that does not answer or a position past its end fails here, naming the
+    bus, before the controller is built; the drives start (and the line goes to OP) later.
+    `options` go to `open_ethercat_drives`. Raises DriveOpenError (exit code 1)."""
+    from driver.cia402_drive import BOOT_TIMEOUT
+    from driver.ethercat_drive import open_ethercat_drives
+
+    try:
+        drives = open_ethercat_drives(interface, joints, **options)
+    except Exception as exc:  # ProfileError, EsiError, OSError: the line was not touched
+        raise DriveOpenError(f"cannot use bus {bus}: {exc}") from exc
+    try:
+        for drive in drives:
+            drive.transport.boot(BOOT_TIMEOUT)  # the first scans the line for all of them
+    except Exception as exc:
+        for drive in drives:
+            drive.close()  # not started: only the line is released
+        raise DriveOpenError(f"cannot open bus {bus}: {exc}") from exc
+    return drives
 
 
 # --- a robot: every joint's drive, on its bus or embedded ---------------------------------------
@@ -621,23 +750,38 @@ class RobotConnection:
 def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period: float,
                response_timeout: float,
                faults: Iterable[tuple[str, Fault, float]] = ()) -> RobotConnection:
-    """Every joint's drive, grouped by bus (one SYNC per bus a cycle, `driver.drive_group`).
-    With `sim`, each CAN bus is an in-process network carrying one virtual drive per joint,
-    commissioned for the joint's model (`sim_bus.commissioning`), its physics the joint's
-    model, its noise seeded `seed` + the joint's index. Raises DriveOpenError (exit 1)."""
+    """Every joint's drive, grouped by bus: one SYNC per CAN bus and one frame per EtherCAT
+    line a cycle (`driver.drive_group`; a line's joints opened in slave order, the group
+    keeps the file's joint order). With `sim`, each bus, CAN or EtherCAT, is an in-process
+    CANopen link carrying one virtual drive per joint, commissioned for the joint's model
+    (`sim_bus.commissioning`), its physics the joint's model, its noise seeded `seed` + the
+    joint's index. An EtherCAT line has no in-process equivalent (its slaves answer on a raw
+    interface), and the physics behind either bus is the same `Cia402Device`: what --sim does
+    not exercise for those joints is the EtherCAT transport (cyclic synchronous torque through
+    the ESI instead of the EDS's current mode). Raises DriveOpenError (exit 1)."""
     from driver.canopen_transport import CanOpenTransport, open_network
     from driver.cia402_drive import Cia402Drive
-    from driver.drive_group import CanOpenBus, DriveGroup
+    from driver.drive_group import CanOpenBus, DriveGroup, Segment
+    from driver.ethercat_drive import JointOnLine
 
-    ethercat = [bus for bus in robot.buses() if is_ethercat(bus)]
-    if ethercat:
-        # the seam: driver.drive_group.Segment over open_ethercat_drives (branch ethercat)
-        raise DriveOpenError(f"{robot.source}: bus {ethercat[0]}: EtherCAT joints are driven "
-                             "by driver.ethercat_drive, not in this build")
     faults = list(faults)
     segments, embedded, devices = [], [], {}
     try:
         for bus, joints in robot.buses().items():
+            if is_ethercat(bus) and not sim:
+                on_line = sorted(joints, key=lambda joint: joint.address)
+                segments.append(Segment(bus, []))
+                drives = _open_on_line(bus, parse_bus_spec(bus)["channel"], [
+                    JointOnLine(j.address, j.model.limits.velocity_max,
+                                j.model.parameters.drive_gain, j.eds) for j in on_line],
+                    period=period, lockstep=lockstep, response_timeout=response_timeout)
+                segments[-1].joints = [(j.name, drive)
+                                       for j, drive in zip(on_line, drives, strict=True)]
+                continue
+            # an embedded EtherCAT line: its joints at node ids 1.. in slave order
+            addresses = ({j.name: k for k, j in enumerate(
+                sorted(joints, key=lambda joint: joint.address), start=1)}
+                if is_ethercat(bus) else {j.name: j.address for j in joints})
             if sim:
                 from sim_bus.embedded import EmbeddedBus
                 from sim_bus.plant import SensorNoise
@@ -647,8 +791,8 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
                 for joint in joints:
                     index = robot.joints.index(joint)
                     devices[joint.name] = device = link.add_drive(
-                        joint.model, Payload(), SensorNoise(seed=seed + index), joint.address,
-                        eds_path=joint.eds, commissioned=True)
+                        joint.model, Payload(), SensorNoise(seed=seed + index),
+                        addresses[joint.name], eds_path=joint.eds, commissioned=True)
                     for name, fault, seconds in faults:
                         if name == joint.name:
                             device.schedule(fault, seconds)
@@ -657,7 +801,7 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
                 network = open_network(bus, robot.bitrates.get(bus))
             segments.append(CanOpenBus(bus, network, []))
             for joint in joints:
-                transport = CanOpenTransport(network, joint.address, eds=joint.eds,
+                transport = CanOpenTransport(network, addresses[joint.name], eds=joint.eds,
                                              lockstep=lockstep,
                                              response_timeout=response_timeout,
                                              owns_network=False)
@@ -673,6 +817,8 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
             segment.close()
         for link in embedded:
             link.close()
+        if isinstance(exc, DriveOpenError):
+            raise DriveOpenError(f"{robot.source}: {exc}") from exc
         raise DriveOpenError(f"cannot open the drives of {robot.source}: {exc}") from exc
 
 
@@ -680,31 +826,40 @@ def open_joint(robot: RobotSpec, joint: JointSpec, sim_model: ActuatorModel,
                payload: Payload, *, sim: bool, lockstep: bool, seed: int,
                **timing) -> Connection:
     """One joint of a robot file alone, the others not started (their drives stay as they
-    powered up: switch on disabled, brake engaged): its drive on its bus at its node id, or
-    with `sim` a virtual drive commissioned for it, its physics `sim_model`. Raises
-    DriveOpenError (exit 1)."""
+    powered up: switch on disabled, brake engaged; on an EtherCAT line they follow it to OP,
+    with a zero controlword): its drive on its bus at its node id or slave position, or with
+    `sim` a virtual drive commissioned for it on an in-process CANopen link (an EtherCAT
+    joint's too, see `open_robot`), its physics `sim_model`. Raises DriveOpenError (exit
+    1)."""
     from driver.canopen_drive import CanOpenDrive
 
     timing = {"lockstep": lockstep, "velocity_limit": joint.model.limits.velocity_max,
               "drive_gain": joint.model.parameters.drive_gain, "eds": joint.eds, **timing}
-    if joint.on_ethercat:
-        raise DriveOpenError(f"{robot.source}: joint {joint.name} is on {joint.bus}: EtherCAT "
-                             "joints are driven by driver.ethercat_drive, not in this build")
+    kind = "slave" if joint.on_ethercat else "node"
+    if not sim and joint.on_ethercat:
+        from driver.ethercat_drive import JointOnLine
+
+        on_line = JointOnLine(joint.address, timing.pop("velocity_limit"),
+                              timing.pop("drive_gain"), timing.pop("eds"))
+        drive = _open_on_line(joint.bus, parse_bus_spec(joint.bus)["channel"], [on_line],
+                              **timing)[0]
+        return Connection(drive, None, None, joint.bus, f"slave {joint.address}")
     if not sim:
         try:
             return Connection(CanOpenDrive.open(joint.bus, joint.address, **timing), None, None,
-                              joint.bus)
+                              joint.bus, f"node {joint.address}")
         except Exception as exc:
             raise DriveOpenError(f"cannot use bus {joint.bus}: {exc}") from exc
     from sim_bus.embedded import EmbeddedBus
     from sim_bus.plant import SensorNoise
 
+    node_id = 1 if joint.on_ethercat else joint.address
     link = EmbeddedBus(lockstep=lockstep)
     try:
-        link.add_drive(sim_model, payload, SensorNoise(seed=seed), joint.address,
+        link.add_drive(sim_model, payload, SensorNoise(seed=seed), node_id,
                        eds_path=joint.eds, commissioned=True)
-        return Connection(CanOpenDrive(link.master_network, joint.address, **timing), link,
-                          None, "--sim")
+        return Connection(CanOpenDrive(link.master_network, node_id, **timing), link,
+                          None, "--sim", f"{kind} {joint.address}")
     except Exception as exc:
         link.close()
         raise DriveOpenError(f"cannot open the embedded drive of {joint.name}: {exc}") from exc

@@ -34,6 +34,7 @@ from commands.options import (
     finite_float,
     int_range,
     job_error,
+    load_esi_option,
     open_drive,
     open_joint,
     open_session,
@@ -131,10 +132,11 @@ def _robot_joint(args: argparse.Namespace):
         return None, None
     for option, key, default in (("--model", "model", None), ("--bus", "bus", None),
                                  ("-i", "interface", None), ("-c", "channel", None),
-                                 ("--node-id", "node_id", 2), ("--eds", "eds", None)):
+                                 ("--node-id", "node_id", None), ("--slave", "slave", None),
+                                 ("--eds", "eds", None), ("--esi", "esi", None)):
         if getattr(args, key, default) != default:
             raise ValueError(f"--robot and {option}: the robot file names the joint's bus, "
-                             "node id, EDS and model")
+                             "node id or slave position, EDS and model")
     robot = load_robot(args.robot)
     names = [j.name for j in robot.joints]
     if args.joint not in names:
@@ -168,8 +170,8 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
             trajectory = ExcitingTrajectory(args.position_low, args.position_high,
                                             args.velocity_min, args.velocity_max, args.steps)
             trajectory_range = (trajectory.position_low, trajectory.position_high)
-        check_drive_arguments(args)
-        check_eds(args.eds, model.parameters.drive_gain)
+        check_drive_arguments(args, None if robot is None else [joint.bus])
+        check_eds(args.eds, model.parameters.drive_gain, esi=load_esi_option(args))
         limits = model.limits
         if not (limits.position_min <= trajectory_range[0]
                 and trajectory_range[1] <= limits.position_max):
@@ -196,7 +198,8 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         "experiment": "sinusoid" if args.sinusoid else "exciting_trajectory",
         "trajectory": repr(trajectory), "truth_effects": ";".join(args.truth_effect),
         "model": model.source, "bus": "sim" if args.sim else connection.where,
-        "node_id": args.node_id if joint is None else joint.address, "period_s": 1e-3,
+        # "node 2" / "slave 0": a CAN drive keeps its node_id key, a slave gets its own
+        **_address_metadata(connection.address), "period_s": 1e-3,
         "robot": "" if robot is None else str(robot.source),
         "joint": "" if joint is None else joint.name,
         "recorded_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
@@ -238,6 +241,13 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     print(f"recorder: {samples} samples ({samples / 1000:.1f} s of drive time) in {elapsed:.1f} s "
           f"(real-time factor {samples / 1000 / elapsed:.2f}) -> {output}", flush=True)
     return code
+
+
+def _address_metadata(address: str) -> dict[str, str | int]:
+    """{'node_id': 2, 'slave': ''} for "node 2", {'node_id': '', 'slave': 0} for "slave 0"."""
+    kind, _, number = address.partition(" ")
+    return {"node_id": int(number) if kind == "node" else "",
+            "slave": int(number) if kind == "slave" else ""}
 
 
 def _progress(disabled: bool, total: float):

@@ -1,8 +1,11 @@
-"""`sim-bus`: run the virtual elbow drive on a CAN bus until SIGINT/SIGTERM."""
+"""`sim-bus`: run the virtual elbow drive on a CAN bus, or a line of them as EtherCAT slaves,
+until SIGINT/SIGTERM."""
 
+import argparse
 import signal
 import sys
 import threading
+from collections.abc import Sequence
 
 from commands.options import (
     CommandParser,
@@ -17,21 +20,24 @@ from commands.options import (
     check_payload,
     configure_logging,
     describe_bus,
+    ethercat_interface,
     fault_schedule,
     finite_float,
     job_error,
     non_negative_float,
     open_bus_network,
     open_can_log,
+    parse_fault,
     payload_from_args,
     usage_error,
     with_truth_effects,
 )
-from model.parameters import ModelFileError, load_model
-from protocol.bus_spec import BusSpecError
+from model.parameters import ActuatorModel, ModelFileError, Payload, load_model
+from protocol.bus_spec import BusSpecError, is_ethercat, parse_bus_spec
 from sim_bus.canopen_node import CanOpenNode
 from sim_bus.canopen_watchdogs import DEFAULT_SILENCE_TIMEOUT
 from sim_bus.device import Cia402Device
+from sim_bus.faults import Fault
 from sim_bus.plant import SensorNoise
 
 PROG = "sim-bus"
@@ -40,9 +46,12 @@ PROG = "sim-bus"
 def build_parser() -> CommandParser:
     parser = CommandParser(
         prog=PROG,
-        description="A virtual CiA 402 drive for the TALOS elbow on a CAN bus, its physics from "
-                    "the actuator model. Each SYNC advances the physics one communication cycle "
-                    "period (0x1006), so a master that waits for the TPDOs runs it in lock-step.")
+        description="A virtual CiA 402 drive for the TALOS elbow on a CAN bus, or a line of "
+                    "them as EtherCAT slaves (--bus ethercat:IFACE --slaves N), its physics "
+                    "from the actuator model. Each SYNC (each EtherCAT frame that writes the "
+                    "slave's outputs) advances the physics one communication cycle period "
+                    "(0x1006), so a master that waits for the answer runs it in lock-step. "
+                    "SIGINT/SIGTERM stop it and print each drive's end state.")
     add_bus_arguments(parser, sim=False)
     add_model_argument(parser)
     add_payload_arguments(parser)
@@ -54,47 +63,68 @@ def build_parser() -> CommandParser:
     parser.add_argument("--torque-noise", type=non_negative_float,
                         default=SensorNoise.joint_torque, metavar="NM",
                         help="std of the torque-sensor reading (default: %(default)s N.m)")
-    parser.add_argument("--silence-timeout", type=non_negative_float,
-                        default=DEFAULT_SILENCE_TIMEOUT, metavar="S",
-                        help="SYNC and RPDO silence after which the master counts as lost and "
-                             "the drive quick-stops (0x6007), 0: off (default: %(default)s s; "
-                             "the consumer heartbeat 0x1016 is watched too)")
+    parser.add_argument("--silence-timeout", type=non_negative_float, metavar="S",
+                        help="CAN: SYNC and RPDO silence after which the master counts as lost "
+                             "and the drive quick-stops (0x6007), 0: off (default: "
+                             f"{DEFAULT_SILENCE_TIMEOUT:g} s; the consumer heartbeat 0x1016 is "
+                             "watched too). EtherCAT slaves watch their master with the sync "
+                             "manager watchdog the master sets (100 ms; off in lock-step)")
     add_virtual_drive_arguments(parser, prefix="")
     parser.add_argument("--robot", metavar="FILE",
-                        help="every drive of a robot file, each on its bus at its node id, "
-                             "commissioned for its joint (--inject-fault then takes "
-                             "JOINT:NAME@SECONDS)")
+                        help="every drive of a robot file, commissioned for its joint: each CAN "
+                             "drive on its bus at its node id, each EtherCAT line on its "
+                             "interface with its joints in slave order (positions 0..N-1); "
+                             "--inject-fault then takes JOINT:NAME@SECONDS")
     add_logging_argument(parser)
     return parser
 
 
 def _serve_robot(args) -> int:
-    """`sim-bus --robot FILE`: all the file's CAN drives in this process until a signal."""
+    """`sim-bus --robot FILE`: all the file's drives in this process until a signal, CAN
+    drives on their buses, every EtherCAT line on its interface."""
     from commands.options import parse_joint_fault
     from commands.robot_file import RobotFileError, load_robot
     from driver.canopen_transport import open_network
-    from model.parameters import Payload
-    from protocol.bus_spec import is_ethercat
-    from sim_bus.embedded import power_on
+    from sim_bus.embedded import make_device, power_on
 
     try:
         for option, key in (("--bus", "bus"), ("-i", "interface"), ("-c", "channel"),
-                            ("--model", "model"), ("--can-log", "can_log"), ("--eds", "eds")):
+                            ("--model", "model"), ("--can-log", "can_log"), ("--eds", "eds"),
+                            ("--node-id", "node_id"), ("--slaves", "slaves"), ("--esi", "esi")):
             if getattr(args, key, None) is not None:
                 raise ValueError(f"--robot and {option}: the robot file names each joint's bus, "
-                                 "EDS and model")
+                                 "address, EDS and model")
         robot = load_robot(args.robot)
-        ethercat = [bus for bus in robot.buses() if is_ethercat(bus)]
-        if ethercat:
-            raise ValueError(f"--robot {args.robot}: bus {ethercat[0]}: EtherCAT slaves are "
-                             "not served by this build")
+        for bus, joints in robot.buses().items():
+            positions = sorted(joint.address for joint in joints)
+            if is_ethercat(bus) and positions != list(range(len(joints))):
+                raise ValueError(f"--robot {args.robot}: bus {bus}: slave positions "
+                                 f"{positions}; sim-bus serves a line of consecutive slaves "
+                                 f"0..{len(joints) - 1}")
         faults = [parse_joint_fault(text, [j.name for j in robot.joints])
                   for text in args.inject_fault]
     except (RobotFileError, BusSpecError, ValueError) as exc:
         return usage_error(PROG, str(exc))
-    networks, nodes = [], []
+
+    def device_of(joint):
+        index = robot.joints.index(joint)
+        return make_device(joint.model, Payload(), SensorNoise(
+            current=args.current_noise, joint_torque=args.torque_noise,
+            seed=args.seed + index), eds_path=joint.eds, commissioned=True)
+
+    silence = DEFAULT_SILENCE_TIMEOUT if args.silence_timeout is None else args.silence_timeout
+    networks, nodes, lines = [], [], []
+    served: list[tuple[str, Cia402Device]] = []  # (joint, its drive), bus by bus
+    stop = threading.Event()
     try:
         for bus, joints in robot.buses().items():
+            if is_ethercat(bus):
+                on_line = sorted(joints, key=lambda joint: joint.address)
+                devices = [device_of(joint) for joint in on_line]
+                served += [(joint.name, device) for joint, device in zip(on_line, devices,
+                                                                         strict=True)]
+                lines.append(_LineThread(bus, parse_bus_spec(bus)["channel"], devices, stop))
+                continue
             networks.append(open_network(bus, robot.bitrates.get(bus)))
             for joint in joints:
                 index = robot.joints.index(joint)
@@ -102,30 +132,132 @@ def _serve_robot(args) -> int:
                                     seed=args.seed + index)
                 nodes.append(power_on(networks[-1], joint.model, Payload(), noise,
                                       joint.address, eds_path=joint.eds, commissioned=True,
-                                      silence_timeout=args.silence_timeout or None))
-                for name, fault, seconds in faults:
-                    if name == joint.name:
-                        nodes[-1].device.schedule(fault, seconds)
+                                      silence_timeout=silence or None))
+                served.append((joint.name, nodes[-1].device))
+        if lines:
+            from sim_bus.ethercat.segment import prefer_this_process
+
+            prefer_this_process()  # before the lines' threads, which inherit it
+        for line in lines:
+            line.start()
+        for line in lines:
+            line.wait_ready()
     except Exception as exc:  # python-can raises per interface: CanError, OSError, ImportError
+        stop.set()
+        for line in lines:
+            line.join()
         for node in nodes:
             node.close()
         for network in networks:
             network.disconnect()
         return job_error(PROG, f"cannot serve {args.robot}: {exc}")
-    stop = threading.Event()
+    devices = dict(served)
+    for name, fault, seconds in faults:
+        devices[name].schedule(fault, seconds)
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    print(f"sim-bus: {len(nodes)} drives of {robot.name} on {', '.join(robot.buses())} ready",
+    print(f"sim-bus: {len(served)} drives of {robot.name} on {', '.join(robot.buses())} ready",
           flush=True)
-    stop.wait()
+    while not stop.is_set() and not any(line.failure for line in lines):
+        stop.wait(0.1)
+    stop.set()
+    for line in lines:
+        line.join()
     print("sim-bus: stopped; " + ", ".join(
-        f"{joint.name} {node.device.cycle_count} cycles '{node.device.state.value}'"
-        for joint, node in zip([j for js in robot.buses().values() for j in js], nodes,
-                               strict=True)), flush=True)
+        f"{name} {device.cycle_count} cycles '{device.state.value}' at "
+        f"{device.plant.position:.3f} rad" for name, device in served), flush=True)
     for node in nodes:
         node.close()
     for network in networks:
         network.disconnect()
+    failed = [line for line in lines if line.failure]
+    if failed:
+        return job_error(PROG, f"line {failed[0].bus} failed: {failed[0].failure}")
+    return 0
+
+
+class _LineThread(threading.Thread):
+    """One EtherCAT line of virtual slaves answering on its interface until `stop`."""
+
+    def __init__(self, bus: str, interface: str, devices: Sequence[Cia402Device],
+                 stop: threading.Event):
+        super().__init__(daemon=True, name=f"line-{interface}")
+        self.bus, self.interface, self.devices, self.stop = bus, interface, devices, stop
+        self.ready = threading.Event()
+        self.failure: Exception | None = None
+
+    def run(self) -> None:
+        from sim_bus.ethercat.segment import serve
+
+        try:
+            serve(self.interface, self.devices, self.stop, on_ready=lambda _: self.ready.set())
+        except Exception as exc:  # OSError: no such interface, no raw socket
+            self.failure = exc
+        finally:
+            self.ready.set()
+
+    def wait_ready(self) -> None:
+        """Return once the line answers; raise why it cannot."""
+        self.ready.wait()
+        if self.failure is not None:
+            raise OSError(f"bus {self.bus}: {self.failure}")
+
+
+def _line_faults(texts: Sequence[str], slaves: int) -> list[tuple[int | None, Fault, float]]:
+    """`--inject-fault [SLAVE:]NAME@SECONDS` on a line: (position, or None for every slave,
+    fault, s of drive time). ValueError names the option."""
+    out = []
+    for text in texts:
+        position, sep, rest = text.rpartition(":")
+        if sep and not (position.isdigit() and int(position) < slaves):
+            raise ValueError(f"--inject-fault {text}: expected [SLAVE:]NAME@SECONDS with SLAVE "
+                             f"a position 0..{slaves - 1}")
+        fault, seconds = parse_fault(rest)
+        out.append((int(position) if sep else None, fault, seconds))
+    return out
+
+
+def _serve_line(args: argparse.Namespace, interface: str, model: ActuatorModel,
+                payload: Payload, faults: list[tuple[int | None, Fault, float]]) -> int:
+    """`sim-bus --bus ethercat:IFACE`: --slaves virtual drives as a line on the interface,
+    answering in this thread until a signal; then each slave's end state."""
+    from protocol import ethercat as ec
+    from sim_bus.embedded import make_device
+    from sim_bus.ethercat.segment import prefer_this_process, serve
+
+    devices = [make_device(model, payload, SensorNoise(
+        current=args.current_noise, joint_torque=args.torque_noise, seed=args.seed + k),
+        eds_path=args.eds, initial_position=args.initial_position)
+        for k in range(args.slaves)]
+    for position, fault, seconds in faults:
+        for k, device in enumerate(devices):
+            if position is None or position == k:
+                device.schedule(fault, seconds)
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    prefer_this_process()
+    count = f"{args.slaves} slave{'s' if args.slaves > 1 else ''}"
+
+    def ready(_) -> None:
+        print(f"sim-bus: {count} on {args.bus} ready ({model.name or model.source}, payload "
+              f"{payload.mass} kg at ({payload.x}, {payload.y}) m)", flush=True)
+
+    try:
+        segment = serve(interface, devices, stop, esi_path=args.esi, on_ready=ready)
+    except OSError as exc:
+        return job_error(PROG, f"cannot open bus {args.bus}: {exc.strerror or exc} (a raw "
+                               "socket on an existing interface needs root or CAP_NET_RAW)")
+    states = []
+    for k, (device, report) in enumerate(zip(devices, segment.report(), strict=True)):
+        code = report["al_status_code"]
+        states.append(f"slave {k} {report['cycles']} cycles, "
+                      f"{ec.al_state_name(report['al_status'])}"
+                      + (f" ({ec.al_status_name(code)})" if code else "")
+                      + f", drive '{device.state.value}' at {report['position']:.3f} rad"
+                      + (f", master lost: {report['master_loss']}"
+                         if report["master_loss"] else ""))
+    print(f"sim-bus: stopped after {segment.frames} frames; " + "; ".join(states), flush=True)
     return 0
 
 
@@ -136,12 +268,17 @@ def main(argv: list[str] | None = None) -> int:
         return _serve_robot(args)
     try:
         check_drive_arguments(args)
+        interface = ethercat_interface(args)
+        if interface is not None and args.silence_timeout is not None:
+            raise ValueError(f"--bus {args.bus} and --silence-timeout: EtherCAT slaves watch "
+                             "their master with the sync manager watchdog the master sets")
         check_eds(args.eds, master=False)
         nominal = load_model(args.model)
         model = with_truth_effects(nominal, args.truth_effect)
         payload = payload_from_args(args)
         check_payload(nominal, payload)
-        schedule = fault_schedule(args)
+        schedule = (fault_schedule(args) if interface is None
+                    else _line_faults(args.inject_fault, args.slaves))
         limits = nominal.limits
         if args.initial_position is not None and not (
                 limits.position_min <= args.initial_position <= limits.position_max):
@@ -150,6 +287,8 @@ def main(argv: list[str] | None = None) -> int:
                              f"{limits.position_max:g}] rad")
     except (BusSpecError, ModelFileError, ValueError) as exc:
         return usage_error(PROG, str(exc))
+    if interface is not None:
+        return _serve_line(args, interface, model, payload, schedule)
 
     where = describe_bus(bus_config(args))
     can_log = open_can_log(args) if args.can_log else None
@@ -163,8 +302,8 @@ def main(argv: list[str] | None = None) -> int:
                         seed=args.seed)
     device = Cia402Device(model, payload, noise, eds_path=args.eds,
                           initial_position=args.initial_position, node_id=args.node_id)
-    node = CanOpenNode(network, args.node_id, device,
-                       silence_timeout=args.silence_timeout or None)
+    silence = DEFAULT_SILENCE_TIMEOUT if args.silence_timeout is None else args.silence_timeout
+    node = CanOpenNode(network, args.node_id, device, silence_timeout=silence or None)
     for fault, seconds in schedule:
         device.schedule(fault, seconds)
     stop = threading.Event()
@@ -175,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
           f"payload {payload.mass} kg at ({payload.x}, {payload.y}) m)", flush=True)
     stop.wait()
     print(f"sim-bus: stopped after {device.cycle_count} SYNC cycles, drive state "
-          f"'{device.state.value}'", flush=True)
+          f"'{device.state.value}' at {device.plant.position:.3f} rad", flush=True)
     node.close()
     network.disconnect()
     if can_log is not None:

@@ -14,12 +14,14 @@ from protocol.esi import EsiDevice
 @dataclass(frozen=True)
 class JointOnLine:
     """One joint's drive on the line: its slave position (0-based, in line order), its
-    velocity limit (rad/s, for the sample guard) and its model's drive gain (N.m/A, to command
-    current through target torque 0x6071)."""
+    velocity limit (rad/s, for the sample guard), its model's drive gain (N.m/A, to command
+    current through target torque 0x6071) and, where a robot file names one, its own EDS
+    (else the line's `eds`)."""
 
     position: int
     velocity_limit: float
     drive_gain: float
+    eds: str | Path | None = None
 
 
 def open_ethercat_drives(interface: str, joints: Sequence[JointOnLine], *,
@@ -33,7 +35,8 @@ def open_ethercat_drives(interface: str, joints: Sequence[JointOnLine], *,
     then command each). `lockstep`: the slaves' watchdog is off and a cycle may take any wall
     time; `watchdog` (s) sets it in real time (default the ESC's 100 ms)."""
     transports = open_ethercat_transports(
-        interface, [j.position for j in joints], lockstep=lockstep, esi=esi, eds=eds,
+        interface, [j.position for j in joints], lockstep=lockstep, esi=esi,
+        eds=[j.eds if j.eds is not None else eds for j in joints],
         response_timeout=response_timeout, watchdog=watchdog)
     drives = []
     try:

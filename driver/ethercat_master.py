@@ -13,6 +13,7 @@ state and AL status code, as read right after the failed frame.
 """
 
 import logging
+import socket
 import time
 from collections.abc import Callable
 
@@ -107,8 +108,8 @@ class EthercatMaster:
         try:
             master.open(self.interface)
         except ConnectionError as exc:
-            raise DriveLost(f"EtherCAT {self.interface}: cannot open the interface ({exc}; "
-                            "needs root or CAP_NET_RAW)") from None
+            raise DriveLost(f"EtherCAT {self.interface}: cannot open the interface "
+                            f"({_why_not_open(self.interface, exc)})") from None
         self.master = master
         if master.config_init() <= 0:
             return DriveLost(f"EtherCAT {self.interface}: no slave answers (line unplugged or "
@@ -224,9 +225,12 @@ class EthercatMaster:
 
     def _diagnose(self, wkc: int) -> str:
         if wkc < 0:
+            # nothing answers, so no state can be read: every slave in the cycle is lost
+            lost = [str(p) for p in range(len(self.slaves)) if p not in self._released]
             return (f"EtherCAT {self.interface}: no frame came back within "
-                    f"{self.response_timeout_us / 1e3:.0f} ms (cycle {self.frames}): the line "
-                    "is broken or its slaves are off")
+                    f"{self.response_timeout_us / 1e3:.0f} ms (cycle {self.frames}): "
+                    f"slave{'s' if len(lost) > 1 else ''} {', '.join(lost)} lost, the line is "
+                    "broken or its slaves are off")
         text = (f"EtherCAT {self.interface}: working counter {wkc}, expected "
                 f"{self._expected_wkc} (cycle {self.frames})")
         try:
@@ -265,6 +269,16 @@ class EthercatMaster:
             self.master = None
             self.slaves = []
             self.operational = self.mapped = False
+
+
+def _why_not_open(interface: str, exc: Exception) -> str:
+    """SOEM says only that it could not open the interface: tell a missing interface (looked
+    up in this thread's network namespace) from a raw socket refused."""
+    try:
+        socket.if_nametoindex(interface)
+    except OSError:
+        return "no such network interface here"
+    return f"{exc}; a raw socket needs root or CAP_NET_RAW"
 
 
 def _errors(error_list: list) -> str:

@@ -239,13 +239,17 @@ def _mappable(dictionary, obj: MappedObject) -> bool:
 
 def open_ethercat_transports(interface: str, positions: Sequence[int], *,
                              lockstep: bool = False, esi: str | Path | EsiDevice | None = None,
-                             eds: str | Path | None = None,
+                             eds: str | Path | Sequence[str | Path | None] | None = None,
                              response_timeout: float | None = None,
                              watchdog: float | None = None) -> list[EthercatTransport]:
     """One transport per slave position on the line at `interface`, sharing its master (one
-    frame per cycle for all of them). `esi` defaults to the shipped elbow drive ESI."""
+    frame per cycle for all of them). `esi` defaults to the shipped elbow drive ESI; `eds` is
+    every slave's EDS, or a list with one per position (drives of different joints differ)."""
     if not isinstance(esi, EsiDevice):
         esi = load_esi(esi if esi is not None else shipped_esi_path())
+    if eds is None or isinstance(eds, str | Path):
+        eds = [eds] * len(positions)
     line = EthercatMaster(interface, esi, lockstep=lockstep, response_timeout=response_timeout,
                           watchdog=watchdog)
-    return [EthercatTransport(line, position, eds=eds) for position in positions]
+    return [EthercatTransport(line, position, eds=path)
+            for position, path in zip(positions, eds, strict=True)]

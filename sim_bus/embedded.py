@@ -118,16 +118,27 @@ def power_on(network: canopen.Network, model: ActuatorModel, payload: Payload,
     (`sim_bus.commissioning`) instead of the EDS's elbow values, and the joint starts inside
     its limits (at rest if gravity lets it hang there, else at the middle of its range).
     `silence_timeout`: see `CanOpenNode`."""
+    device = make_device(model, payload, noise, node_id=node_id, eds_path=eds_path,
+                         initial_position=initial_position, commissioned=commissioned)
+    node = CanOpenNode(network, node_id, device, lockstep=lockstep,
+                       silence_timeout=silence_timeout)
+    node.boot()
+    return node
+
+
+def make_device(model: ActuatorModel, payload: Payload, noise: SensorNoise, *,
+                node_id: int | None = None, eds_path: str | Path | None = None,
+                initial_position: float | None = None,
+                commissioned: bool = False) -> Cia402Device:
+    """A powered-on virtual drive, for any bus (see `power_on` for `commissioned`): the
+    same drive whether a CANopen node or an EtherCAT slave exposes it."""
     if commissioned and initial_position is None:
         initial_position = _start_position(model, payload)
     device = Cia402Device(model, payload, noise, eds_path=eds_path,
                           initial_position=initial_position, node_id=node_id)
     if commissioned:
         device.store(drive_settings(model.limits, device.increments_per_rad))
-    node = CanOpenNode(network, node_id, device, lockstep=lockstep,
-                       silence_timeout=silence_timeout)
-    node.boot()
-    return node
+    return device
 
 
 def _start_position(model: ActuatorModel, payload: Payload) -> float:

@@ -203,11 +203,12 @@ class Esc:
 
     def post_mailbox(self, number: int, message: bytes) -> bool:
         """PDI writes a message into the mailbox-in buffer (padded to its length); False when
-        the buffer is still full or too short."""
+        the buffer is still full, too short, or placed by the master past the end of the
+        ESC's memory (writing there would resize the memory under the frame's views)."""
         start, length, _, activate = self.sync_manager(number)
         if not activate & ec.SM_ACTIVATE_ENABLE or not self.mailbox_in_empty(number):
             return False
-        if len(message) > length:
+        if len(message) > length or start + length > len(self.memory):
             return False
         self.memory[start:start + length] = message + bytes(length - len(message))
         self.memory[ec.REG_SM0 + number * ec.SM_SIZE + ec.SM_OFFSET_STATUS] |= (

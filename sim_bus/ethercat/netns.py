@@ -26,7 +26,6 @@ from sim_bus.plant import SensorNoise
 MASTER_PORT, LINE_PORT = "ecm0", "ecs0"
 CLONE_NEWNET = 0x40000000
 START_TIMEOUT = 60.0  # s for the slave process to import, build its drives and open the port
-SLAVE_PRIORITY = 10  # SCHED_RR priority of the slave process (1..99; it blocks on its socket)
 _setns_lock = threading.Lock()
 
 
@@ -146,17 +145,11 @@ def _serve_line(namespace: str, port: str, count: int, model: ActuatorModel, pay
                 noise: SensorNoise, pipe) -> None:
     """The slave process: into the namespace, the drives on the port until SIGTERM, then the
     end state of every slave down the pipe."""
-    from protocol import ethercat as ec
-    from sim_bus.ethercat.segment import serve
+    from sim_bus.ethercat.segment import prefer_this_process, serve
 
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    try:
-        # an ESC answers within microseconds and SOEM allows a register access 2 ms: on a
-        # busy host the slaves' process needs the scheduler's preference to keep that
-        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(SLAVE_PRIORITY))
-    except (OSError, AttributeError):
-        pass  # not permitted here: the line still works, with SOEM retrying more often
+    prefer_this_process()  # not permitted: the line still works, SOEM retrying more often
     try:
         libc = ctypes.CDLL(None, use_errno=True)
         with open(f"/run/netns/{namespace}") as target:
@@ -170,13 +163,4 @@ def _serve_line(namespace: str, port: str, count: int, model: ActuatorModel, pay
     except Exception as exc:  # the parent raises it with the reason
         pipe.send(f"{type(exc).__name__}: {exc}")
         return
-    pipe.send([{
-        "al_status": esc.al_status,
-        "al_status_code": esc.memory[ec.REG_AL_STATUS_CODE]
-        | esc.memory[ec.REG_AL_STATUS_CODE + 1] << 8,
-        "state": firmware.device.state.name,
-        "brake_engaged": firmware.device.brake_engaged,
-        "master_loss": firmware.device.master_loss,
-        "cycles": firmware.cycles,
-        "position": firmware.device.plant.position,
-    } for esc, firmware in zip(segment.escs, segment.firmwares, strict=True)])
+    pipe.send(segment.report())
