@@ -337,18 +337,21 @@ def _export(argv: list[str]) -> int:
 
 
 def _repair(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(
+    parser = CommandParser(
         prog=f"{PROG} repair",
         description="rewrite a killed, truncated or damaged MCAP recording as a complete one "
                     "(summary, indexes, statistics) keeping every sound chunk")
     parser.add_argument("recording", metavar="FILE.mcap")
     parser.add_argument("-o", "--output", required=True, metavar="REPAIRED.mcap")
+    add_logging_argument(parser)
     args = parser.parse_args(argv)
+    configure_logging(PROG, args.log_level)
     from recorder.repair import repair_recording
 
     try:
+        check_output_file("-o", args.output)
         report = repair_recording(args.recording, args.output)
-    except RecordingError as exc:
+    except (RecordingError, ValueError) as exc:
         return usage_error(PROG, str(exc))
     except OSError as exc:
         return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")

@@ -115,7 +115,7 @@ def write(tmp_path: Path, name: str, text: str) -> Path:
 
 
 def sine_csv(tmp_path, name, seconds=10.0, amplitude=0.8, header="t,q,current,joint_torque",
-             nan_row=None, payload=None, triangle=False):
+             nan_row=None, payload=None, triangle=False, current_bias=-2.0):
     t = np.arange(0, seconds, 1e-3)
     wave = signal.sawtooth(2 * np.pi * 0.25 * t, 0.5) if triangle else np.sin(
         2 * np.pi * 0.3 * t)
@@ -123,7 +123,7 @@ def sine_csv(tmp_path, name, seconds=10.0, amplitude=0.8, header="t,q,current,jo
     lines = [f"# payload_mass={payload}", "# payload_position=0,0.1"] if payload else []
     lines.append(header)
     for k, tk in enumerate(t):
-        current = "nan" if k == nan_row else f"{-2 + np.sin(tk):.4f}"
+        current = "nan" if k == nan_row else f"{current_bias + np.sin(tk):.4f}"
         lines.append(f"{tk:.3f},{q[k]:.6f},{current},{-9 + np.cos(tk):.4f}")
     return write(tmp_path, name, "\n".join(lines) + "\n")
 
@@ -192,7 +192,9 @@ def test_ill_conditioned_regressor_is_reported_with_its_condition_number(tmp_pat
     # back and forth at constant speed over a small range: viscous and dry friction are
     # collinear and the inertias barely excited
     still = sine_csv(tmp_path, "a.csv", amplitude=0.3, triangle=True)
-    loaded = sine_csv(tmp_path, "b.csv", amplitude=0.3, payload=5, triangle=True)
+    # the payload's torque shows in the current, so the two are not one experiment twice
+    loaded = sine_csv(tmp_path, "b.csv", amplitude=0.3, payload=5, triangle=True,
+                      current_bias=-3.0)
     proc = identify(str(still), str(loaded), "-o", str(tmp_path / "out.toml"))
     assert proc.returncode == 2
     assert "ill-conditioned (condition number" in proc.stderr, proc.stderr

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
+from protocol import telemetry
 from recorder.reader import load_recording
 
 
@@ -79,7 +80,8 @@ def test_twenty_kills_at_random_moments_leave_twenty_readable_files(tmp_path):
         recording = load_recording(path)
         contiguous(recording)
         with open(path, "rb") as fh:  # the standard reader finds the same samples
-            assert len(recording) == sum(1 for _ in make_reader(fh).iter_messages("state"))
+            assert len(recording) == sum(1 for _ in make_reader(fh).iter_messages(
+                [telemetry.key_expr(telemetry.DEFAULT_PREFIX, "state")]))
         return len(recording), recording.t[-1]
 
     with ThreadPoolExecutor(2) as pool:

@@ -309,7 +309,7 @@ def test_recorder_repair_command(tmp_path):
     for args, needle in [((str(csv), "-o", str(repaired)), "not an MCAP file"),
                          ((str(killed), "-o", str(killed)), "is the file being repaired"),
                          ((str(killed), "-o", str(tmp_path / "no" / "x.mcap")),
-                          "cannot write")]:
+                          "does not exist")]:
         proc = repair_cli(*args)
         lines = proc.stderr.strip().splitlines()
         assert proc.returncode == 2 and len(lines) == 1 and needle in lines[0], proc.stderr
@@ -327,8 +327,8 @@ def test_a_recording_that_fails_before_its_first_sample_leaves_no_file(tmp_path)
                            "--sim", "-o", str(tmp_path / "missing" / "run.mcap")],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
-        f"recorder: error: -o {tmp_path / 'missing' / 'run.mcap'}: cannot write: No such file "
-        "or directory"]
+        f"recorder: error: -o {tmp_path / 'missing' / 'run.mcap'}: folder "
+        f"{tmp_path / 'missing'} does not exist"]
 
 
 def test_experiment_recordings_log_wall_clock_time_and_publish_drive_time(tmp_path):
@@ -345,14 +345,14 @@ def test_experiment_recordings_log_wall_clock_time_and_publish_drive_time(tmp_pa
     assert abs(first.log_time - started) < 60e9  # not 1970 (drive time from 1 ms)
     assert all(started <= message.log_time <= time.time_ns() for _, message in messages)
     for topic, message in messages:
-        t = telemetry.decode("State" if topic == "state" else "Command", message.data).t
+        t = telemetry.decode(telemetry.TOPICS[topic.rsplit("/", 1)[1]], message.data).t
         assert message.publish_time == round(t * 1e9)
 
 
 @pytest.mark.parametrize("case,needle", [
     ("binary", "not UTF-8 text"),
     ("directory", "is a directory"),
-    ("unwritable", "cannot write"),
+    ("missing_folder", "does not exist"),
 ])
 def test_recorder_export_refuses_in_one_line(tmp_path, case, needle):
     source, output = tmp_path / "run.mcap", tmp_path / "run.csv"
