@@ -344,7 +344,7 @@ def _run_robot(args: argparse.Namespace) -> int:
     print(f"actuatord: {report.summary()}", flush=True)
     rms = loop.tracking_rms()
     print(f"actuatord: RMS tracking error after {TRACKING_SETTLE:g} s (mrad): " + ", ".join(
-        f"{name} {1e3 * value:.1f}" for name, value in zip(loop.names, rms,
+        f"{name} {1e3 * value:.2g}" for name, value in zip(loop.names, rms,
                                                            strict=True)), flush=True)
     return report.exit_code
 
