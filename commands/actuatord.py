@@ -149,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ModelFileError, BusSpecError, ReferenceError, ValueError) as exc:
         return usage_error(PROG, str(exc))
 
-    from driver import DriveError
+    from driver import DriveError, ProfileError
 
     period = args.period_us * 1e-6
     try:
@@ -184,6 +184,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"actuatord: {connection.address} on {connection.where} enabled; "
               f"telemetry under {args.prefix}/", flush=True)
         report = loop.run()
+    except ProfileError as exc:  # the drive does not fit the model: refused before enabling
+        usage_error(PROG, str(exc))
+        report = loop.report
+        report.exit_code, report.reason = 2, str(exc)
     except DriveError as exc:
         loop.fault(0.0, "drive", str(exc), "drive disabled")
         job_error(PROG, str(exc))
@@ -290,7 +294,7 @@ def _run_robot(args: argparse.Namespace) -> int:
     from controller.mpc import BatchMpc
     from controller.robot_loop import RobotLoop
     from controller.telemetry import TelemetryPublisher
-    from driver import DriveError
+    from driver import DriveError, ProfileError
 
     period = robot.period_us * 1e-6
     try:
@@ -327,7 +331,9 @@ def _run_robot(args: argparse.Namespace) -> int:
             failure = report.reason
     except DriveError as exc:
         report = loop.report
-        report.exit_code, report.reason = 1, str(exc)
+        # a drive that does not fit its joint's model is refused before any drive is enabled
+        unfit = isinstance(exc.__cause__, ProfileError)
+        report.exit_code, report.reason = 2 if unfit else 1, str(exc)
         failure = str(exc)
     try:
         if failure is not None:
@@ -340,7 +346,7 @@ def _run_robot(args: argparse.Namespace) -> int:
         publisher.close()
         session.close()
     if failure is not None:
-        job_error(PROG, failure)
+        (usage_error if report.exit_code == 2 else job_error)(PROG, failure)
     print(f"actuatord: {report.summary()}", flush=True)
     rms = loop.tracking_rms()
     print(f"actuatord: RMS tracking error after {TRACKING_SETTLE:g} s (mrad): " + ", ".join(

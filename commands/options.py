@@ -639,13 +639,15 @@ def open_drive(args: argparse.Namespace, model: ActuatorModel, sim_model: Actuat
 
     lockstep = getattr(args, "lockstep", False)
     timing = {"lockstep": lockstep, "velocity_limit": model.limits.velocity_max,
-              "drive_gain": model.parameters.drive_gain, **timing}
+              "drive_gain": model.parameters.drive_gain,
+              "current_max": model.limits.current_max, **timing}
 
     interface = None if args.sim else ethercat_interface(args)
     if interface is not None:
         from driver.ethercat_drive import JointOnLine
 
-        joint = JointOnLine(args.slave, timing.pop("velocity_limit"), timing.pop("drive_gain"))
+        joint = JointOnLine(args.slave, timing.pop("velocity_limit"), timing.pop("drive_gain"),
+                            current_max=timing.pop("current_max"))
         drive = _open_on_line(args.bus, interface, [joint], esi=load_esi_option(args),
                               eds=args.eds, **timing)[0]
         return Connection(drive, None, None, args.bus, f"slave {args.slave}")
@@ -773,7 +775,8 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
                 segments.append(Segment(bus, []))
                 drives = _open_on_line(bus, parse_bus_spec(bus)["channel"], [
                     JointOnLine(j.address, j.model.limits.velocity_max,
-                                j.model.parameters.drive_gain, j.eds) for j in on_line],
+                                j.model.parameters.drive_gain, j.eds,
+                                j.model.limits.current_max) for j in on_line],
                     period=period, lockstep=lockstep, response_timeout=response_timeout)
                 segments[-1].joints = [(j.name, drive)
                                        for j, drive in zip(on_line, drives, strict=True)]
@@ -807,7 +810,8 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
                                              owns_network=False)
                 segments[-1].joints.append((joint.name, Cia402Drive(
                     transport, velocity_limit=joint.model.limits.velocity_max, period=period,
-                    drive_gain=joint.model.parameters.drive_gain)))
+                    drive_gain=joint.model.parameters.drive_gain,
+                    current_max=joint.model.limits.current_max)))
         return RobotConnection(DriveGroup([j.name for j in robot.joints], segments), embedded,
                                devices)
     except Exception as exc:
@@ -834,13 +838,15 @@ def open_joint(robot: RobotSpec, joint: JointSpec, sim_model: ActuatorModel,
     from driver.canopen_drive import CanOpenDrive
 
     timing = {"lockstep": lockstep, "velocity_limit": joint.model.limits.velocity_max,
-              "drive_gain": joint.model.parameters.drive_gain, "eds": joint.eds, **timing}
+              "drive_gain": joint.model.parameters.drive_gain, "eds": joint.eds,
+              "current_max": joint.model.limits.current_max, **timing}
     kind = "slave" if joint.on_ethercat else "node"
     if not sim and joint.on_ethercat:
         from driver.ethercat_drive import JointOnLine
 
         on_line = JointOnLine(joint.address, timing.pop("velocity_limit"),
-                              timing.pop("drive_gain"), timing.pop("eds"))
+                              timing.pop("drive_gain"), timing.pop("eds"),
+                              timing.pop("current_max"))
         drive = _open_on_line(joint.bus, parse_bus_spec(joint.bus)["channel"], [on_line],
                               **timing)[0]
         return Connection(drive, None, None, joint.bus, f"slave {joint.address}")

@@ -181,7 +181,7 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     except (ModelFileError, BusSpecError, ValueError) as exc:
         return usage_error(PROG, str(exc))
 
-    from driver import DriveError
+    from driver import DriveError, ProfileError
     from recorder.experiment import run_trajectory
     from recorder.mcap_io import McapRecorder
     from recorder.tracking import TrackingLaw
@@ -225,6 +225,8 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
                   file=sys.stderr)
         elif report.exit_code != 0:
             code = job_error(PROG, report.reason)
+    except ProfileError as exc:  # the drive does not fit the model: refused before enabling
+        code = usage_error(PROG, str(exc))
     except DriveError as exc:
         code = job_error(PROG, str(exc))
     finally:

@@ -22,6 +22,7 @@ class CanOpenDrive(Cia402Drive):
 
     def __init__(self, network: canopen.Network, node_id: int = 2, *, velocity_limit: float,
                  period: float = 1e-3, drive_gain: float | None = None,
+                 current_max: float | None = None,
                  eds: str | Path | None = None, lockstep: bool = False,
                  response_timeout: float = 1.0, heartbeat_ms: int = DEFAULT_HEARTBEAT_MS):
         transport = CanOpenTransport(network, node_id, eds=eds, lockstep=lockstep,
@@ -29,7 +30,7 @@ class CanOpenDrive(Cia402Drive):
                                      heartbeat_ms=heartbeat_ms)
         try:
             super().__init__(transport, velocity_limit=velocity_limit, period=period,
-                             drive_gain=drive_gain)
+                             drive_gain=drive_gain, current_max=current_max)
         except Exception:
             transport.close()
             raise

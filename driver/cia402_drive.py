@@ -22,6 +22,7 @@ from driver.interface import (
     DriveFault,
     DriveTimeout,
     EncoderGlitch,
+    ProfileError,
     Sample,
 )
 from driver.profile import Profile, Scaling, read_scaling, select_profile
@@ -52,19 +53,22 @@ class Cia402Drive(Drive):
     """A CiA 402 torque drive for one joint, through `transport`.
 
     `velocity_limit` (rad/s) is the joint's, for the sample guard; `drive_gain` (N.m/A) is
-    the model's, needed when the drive is commanded in torque (0x6071). The profile is chosen
+    the model's, needed when the drive is commanded in torque (0x6071); `current_max` (A) is
+    the most the controller will command: a drive that accepts less is refused at start,
+    before it is enabled (ProfileError). The profile is chosen
     from the transport's dictionary here, before any traffic: ProfileError if the drive lacks
     what the loop needs.
     """
 
     def __init__(self, transport: Transport, *, velocity_limit: float, period: float = 1e-3,
-                 drive_gain: float | None = None):
+                 drive_gain: float | None = None, current_max: float | None = None):
         if not 50e-6 <= period <= 1.0:
             raise ValueError(f"period {period} s outside 50 us .. 1 s")
         self.transport = transport
         self.name = transport.name
         self.period = period
         self.drive_gain = drive_gain
+        self.current_max = current_max
         self.profile: Profile = select_profile(transport.dictionary, drive_gain)
         self.guard = SampleGuard(velocity_limit, period)
         self.scaling: Scaling | None = None
@@ -81,15 +85,28 @@ class Cia402Drive(Drive):
 
     # --- bring-up ---------------------------------------------------------------------------
 
-    def start(self) -> None:
+    def configure(self) -> None:
+        """Everything before the power stage: boot, scaling, the current check, the mode and
+        the process data, cyclic exchange running. Split from `enable` so that a group can
+        refuse any of its drives before it enables one."""
         t = self.transport
         t.boot(BOOT_TIMEOUT)
         self._booted = True  # from here on the drive is ours to leave disabled
         self.scaling = read_scaling(self.profile, t.read, t.dictionary, self.drive_gain)
         self.current_limit = self.scaling.current_limit
+        if self.current_max is not None and self.current_max > self.current_limit * (1 + 1e-9):
+            # refused before the power stage is on: the controller would plan with currents
+            # the drive refuses, and the first such command would end the run enabled
+            raise ProfileError(
+                f"{self.name}: the model's current_max {self.current_max:g} A is more than the "
+                f"drive accepts, {self.current_limit:g} A (its max current); lower current_max "
+                "in the model file or raise the drive's limit")
         t.write(objects.MODES_OF_OPERATION, 0, self.profile.mode)
         t.map_process_data(self.profile.outputs, self.profile.inputs)
         t.start(self.period)
+
+    def start(self) -> None:
+        self.configure()
         self.enable()
 
     # --- CiA 402 ----------------------------------------------------------------------------

@@ -128,13 +128,15 @@ class DriveGroup:
         return len(self.names)
 
     def start(self) -> None:
-        """Bring every drive up and enable it, in joint order; a failure names the joint (the
-        caller closes the group, which disables those already enabled)."""
-        for name, drive in zip(self.names, self.drives, strict=True):
-            try:
-                drive.start()
-            except DriveError as exc:
-                raise JointFailure(name, exc) from exc
+        """Configure every drive, then enable every one, in joint order: a drive that does not
+        fit its joint is refused before any is enabled. A failure names the joint (the caller
+        closes the group, which disables those already enabled)."""
+        for step in ("configure", "enable"):
+            for name, drive in zip(self.names, self.drives, strict=True):
+                try:
+                    getattr(drive, step)()
+                except DriveError as exc:
+                    raise JointFailure(name, exc) from exc
         for segment in self.segments:
             segment.started()
 

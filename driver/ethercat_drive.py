@@ -15,13 +15,14 @@ from protocol.esi import EsiDevice
 class JointOnLine:
     """One joint's drive on the line: its slave position (0-based, in line order), its
     velocity limit (rad/s, for the sample guard), its model's drive gain (N.m/A, to command
-    current through target torque 0x6071) and, where a robot file names one, its own EDS
-    (else the line's `eds`)."""
+    current through target torque 0x6071), where a robot file names one, its own EDS (else
+    the line's `eds`), and the most current its controller commands (A, checked at start)."""
 
     position: int
     velocity_limit: float
     drive_gain: float
     eds: str | Path | None = None
+    current_max: float | None = None
 
 
 def open_ethercat_drives(interface: str, joints: Sequence[JointOnLine], *,
@@ -42,6 +43,7 @@ def open_ethercat_drives(interface: str, joints: Sequence[JointOnLine], *,
     try:
         for joint, transport in zip(joints, transports, strict=True):
             drives.append(Cia402Drive(transport, velocity_limit=joint.velocity_limit,
+                                      current_max=joint.current_max,
                                       period=period, drive_gain=joint.drive_gain))
     except Exception:
         for transport in transports:

@@ -259,3 +259,24 @@ def test_the_commands_refuse_a_drive_without_a_torque_mode_before_touching_it(co
     assert len(lines) == 1, result.stderr
     assert "0x6071" in lines[0] and "torque mode" in lines[0]
     assert not (tmp_path / "x.mcap").exists()
+
+
+def test_a_model_asking_more_current_than_the_drive_accepts_is_refused_before_enabling(
+        tmp_path):
+    """The drive's limit is its own (0x6073 x 0x6075, read at start): a model whose
+    current_max is above it is refused before the power stage is on, not at its first big
+    command."""
+    text = eds_path().parent.parent.joinpath("model", "elbow_default.toml").read_text()
+    lines = text.splitlines()
+    first = next(k for k, line in enumerate(lines) if line.startswith("current_max ="))
+    lines[first] = "current_max = 100.0"
+    greedy = tmp_path / "greedy.toml"
+    greedy.write_text("\n".join(lines) + "\n")
+    result = subprocess.run(
+        [sys.executable, "-m", "commands.actuatord", "--sim", "--lockstep", "--duration", "1",
+         "--model", str(greedy), "--no-multicast-scouting"],
+        capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "current_max 100 A" in lines[0], result.stderr
+    assert "enabled" not in result.stdout
