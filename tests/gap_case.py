@@ -1,9 +1,15 @@
-"""One model-gap case in one process (python -m tests.gap_case DIR SEED [TRUTH ...]): two short
-exciting trajectories recorded in lock-step on the virtual drive carrying the hidden truth
-(without and with 5 kg at (0, 0.1) m), a baseline identified from them, and model-gap's report
-on them in DIR/gap.json. One process per case pays the imports and the compiled code once."""
+"""model-gap cases, one after the other in one process (python -m tests.gap_case CASES.json,
+a list of [DIR, SEED, [TRUTH, ...]]): per case, two short exciting trajectories recorded in
+lock-step on the virtual drive carrying the hidden truth (without and with 5 kg at
+(0, 0.1) m), a baseline identified from them, and model-gap's report on them in DIR/gap.json
+(or what went wrong in DIR/error.txt). One process for many cases pays the imports and the
+compiled code once."""
 
+import contextlib
+import io
+import json
 import sys
+import traceback
 from pathlib import Path
 
 from commands import identify, model_gap
@@ -14,8 +20,19 @@ TRAJECTORY = ["--velocity-min", "1.0", "--velocity-max", "2.4", "--steps", "2"]
 
 
 def main(argv: list[str]) -> int:
-    folder, seed, *truths = argv
-    folder = Path(folder)
+    for folder, seed, truths in json.loads(Path(argv[0]).read_text()):
+        errors = io.StringIO()
+        try:
+            with contextlib.redirect_stderr(errors):
+                code = run_case(Path(folder), seed, truths)
+        except Exception:
+            code, errors = 1, io.StringIO(traceback.format_exc())
+        if code:
+            Path(folder, "error.txt").write_text(f"exit {code}: {errors.getvalue()}")
+    return 0
+
+
+def run_case(folder: Path, seed: int, truths: list[str]) -> int:
     hidden = [arg for truth in truths for arg in ("--truth-effect", truth)]
     files = {name: str(folder / f"{name}.mcap") for name in ("noload", "load")}
     common = ["--exciting-trajectory", "--sim", "--lockstep", "--no-progress", *TRAJECTORY,

@@ -29,32 +29,36 @@ def run(module: str, *args: str) -> subprocess.CompletedProcess:
                           text=True, timeout=600)
 
 
-def record(folder: Path, truth: str | None) -> dict[str, Path]:
+def recording_jobs(folder: Path, truth: str | None) -> tuple[dict[str, Path], list[list[str]]]:
     """Two identification runs and a slow sinusoid, with 19-bit encoder and sensor noise, in
-    closed loop on the virtual drive; then the baseline identified without any effect."""
+    closed loop on the virtual drive (then the baseline is identified without any effect)."""
     effect = ["--truth-effect", truth] if truth else []
     common = ["--sim", "--lockstep", "--no-progress", *effect]
     files = {k: folder / f"{k}.mcap" for k in ("noload", "load", "sinusoid")}
-    jobs = [["--exciting-trajectory", *common, *SHORT, "-o", str(files["noload"])],
-            ["--exciting-trajectory", *common, *SHORT, "--seed", "1", "--payload-mass", "5",
-             "--payload-position", "0,0.1", "-o", str(files["load"])],
-            ["--sinusoid", *common, "--duration", "20", "--seed", "2", "-o",
-             str(files["sinusoid"])]]
-    with ThreadPoolExecutor(2) as pool:
-        for proc in pool.map(lambda job: run("commands.recorder", *job), jobs):
-            assert proc.returncode == 0, proc.stderr
     files["baseline"] = folder / "baseline.toml"
-    proc = run("commands.identify", str(files["noload"]), str(files["load"]), "-o",
-               str(files["baseline"]))
-    assert proc.returncode == 0, proc.stderr
-    return files
+    return files, [
+        ["--exciting-trajectory", *common, *SHORT, "-o", str(files["noload"])],
+        ["--exciting-trajectory", *common, *SHORT, "--seed", "1", "--payload-mass", "5",
+         "--payload-position", "0,0.1", "-o", str(files["load"])],
+        ["--sinusoid", *common, "--duration", "20", "--seed", "2", "-o",
+         str(files["sinusoid"])]]
 
 
 @pytest.fixture(scope="module")
 def scenarios(tmp_path_factory) -> dict[str, dict[str, Path]]:
-    out = {}
+    """Every scenario's recordings, two at a time (two cores), then each baseline."""
+    out, jobs = {}, []
     for name, truth in HIDDEN.items():
-        out[name] = record(tmp_path_factory.mktemp(name), truth)
+        out[name], more = recording_jobs(tmp_path_factory.mktemp(name), truth)
+        jobs += more
+    with ThreadPoolExecutor(2) as pool:
+        for proc in pool.map(lambda job: run("commands.recorder", *job), jobs):
+            assert proc.returncode == 0, proc.stderr
+        identified = pool.map(lambda files: run(
+            "commands.identify", str(files["noload"]), str(files["load"]), "-o",
+            str(files["baseline"])), out.values())
+        for proc in identified:
+            assert proc.returncode == 0, proc.stderr
     return out
 
 
