@@ -5,6 +5,7 @@ a test regenerates it and compares.
 
     python3 -m dashboard.layout                          # rewrite dashboard/elbow_layout.json
     python3 -m dashboard.layout --prefix actuators/elbow --prefix actuators/wrist -o arm.json
+    python3 -m dashboard.layout --robot robots/talos_arm.toml -o talos_arm.json
 
 Topics are the Zenoh key expressions themselves (`actuators/elbow/state`): the bridge
 forwards each key under its own name and both kinds of recording name their channels the same
@@ -148,6 +149,59 @@ def build_layout(prefixes: list[str] | None = None) -> fl.Layout:
     return fl.Layout(content=fl.TabContainer(tabs=views))
 
 
+# one colour per joint, repeating past ten joints (matplotlib's tab10, as the other plots)
+JOINT_COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2",
+                "#7f7f7f", "#bcbd22", "#17becf")
+
+
+def robot_layout(prefix: str, names: list[str]) -> fl.Layout:
+    """The layout for `actuatord --robot`: its one JointStates message a cycle under
+    `{prefix}/joints` holds every joint as arrays in the robot file's order, so joint i is
+    `joints.position[i]`. A tab with every joint together (positions, currents, drive states)
+    and a tab per joint (position against its reference; measured, commanded and planned
+    current). The message carries no limits: the limit lines of a one-joint view are left out."""
+    joints = telemetry.key_expr(prefix, "joints")
+
+    def path(field: str, i: int) -> str:
+        return f"{joints}.{field}[{i}]"
+
+    def color(i: int) -> str:
+        return JOINT_COLORS[i % len(JOINT_COLORS)]
+
+    positions = _plot("every joint's position", "rad", [
+        _series(path("position", i), name, color(i)) for i, name in enumerate(names)])
+    currents = _plot("every joint's measured current", "A", [
+        _series(path("motor_current", i), name, color(i)) for i, name in enumerate(names)])
+    states = fl.StateTransitionsPanel(title="drive states", config=fl.StateTransitionsConfig(
+        paths=[fl.StateTransitionsSeries(value=path("drive_state", i), label=name)
+               for i, name in enumerate(names)],
+        show_legend=True, time_window_mode="sliding", x_axis_range=WINDOW_S))
+    stats = telemetry.key_expr(prefix, "loop_stats")
+    timing = _plot("batched MPC tick and loop jitter", "us", [
+        _series(f"{joints}.solve_time_us", "MPC tick (all joints)", "#17becf"),
+        _series(f"{stats}.period_jitter_p99_us", "period jitter p99 (1 s)", "#e377c2")])
+    faults = fl.RawMessagesPanel(title="last fault", config=fl.RawMessagesConfig(
+        topic_path=telemetry.key_expr(prefix, "fault"), expansion="all"))
+    overview = fl.SplitContainer(direction="column", items=[
+        fl.SplitItem(proportion=3, content=fl.SplitContainer(direction="row", items=[
+            fl.SplitItem(content=positions), fl.SplitItem(content=currents)])),
+        fl.SplitItem(proportion=2, content=fl.SplitContainer(direction="row", items=[
+            fl.SplitItem(content=states), fl.SplitItem(content=timing),
+            fl.SplitItem(content=faults)]))])
+    tabs = [fl.TabItem(title="all joints", content=overview)]
+    for i, name in enumerate(names):
+        tabs.append(fl.TabItem(title=name, content=fl.SplitContainer(direction="row", items=[
+            fl.SplitItem(content=_plot("position vs reference", "rad", [
+                _series(path("position", i), "measured position", "#1f77b4", width=2),
+                _series(path("reference_position", i), "reference", "#7f7f7f", "dashed")])),
+            fl.SplitItem(content=_plot("motor current", "A", [
+                _series(path("motor_current", i), "measured current", "#ff7f0e", width=2),
+                _series(path("current", i), "commanded current", "#2ca02c"),
+                _series(path("planned_current", i), "solver current", "#9467bd",
+                        "dashed")]))])))
+    return fl.Layout(content=fl.TabContainer(tabs=tabs))
+
+
 def layout_json(layout: fl.Layout) -> str:
     """The layout as the file holds it: the SDK's JSON, indented so reviews can diff it."""
     return json.dumps(json.loads(layout.to_json()), indent=2) + "\n"
@@ -157,19 +211,43 @@ def shipped_path() -> Path:
     return Path(str(files("dashboard") / SHIPPED))
 
 
+def _robot_names(path: str) -> tuple[str, list[str]] | None:
+    """The robot's name and its joints' names, in order, from a robot file (read as TOML
+    here: the dashboard layer does not import the commands that check robot files whole)."""
+    import tomllib
+
+    try:
+        data = tomllib.loads(Path(path).read_text())
+        return data["robot"]["name"], [joint["name"] for joint in data["joints"]]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python3 -m dashboard.layout",
                                      description="write the Foxglove layout")
     parser.add_argument("--prefix", action="append", default=[],
                         help=f"an actuatord's key prefix, repeatable (default: "
                              f"{telemetry.DEFAULT_PREFIX})")
+    parser.add_argument("--robot", metavar="FILE",
+                        help="the layout for actuatord --robot FILE (its prefix robots/NAME "
+                             "unless --prefix gives one)")
     parser.add_argument("-o", "--output", type=Path, default=None,
                         help=f"default: the shipped dashboard/{SHIPPED}")
     args = parser.parse_args(argv)
-    if args.prefix and args.output is None:
-        parser.error("--prefix needs -o FILE: the shipped layout is the default prefix's")
+    if (args.prefix or args.robot) and args.output is None:
+        parser.error("--prefix/--robot need -o FILE: the shipped layout is the elbow's")
     output = args.output or shipped_path()
-    output.write_text(layout_json(build_layout(args.prefix)))
+    if args.robot:
+        robot = _robot_names(args.robot)
+        if robot is None:
+            parser.error(f"--robot {args.robot}: not a robot file ([robot] name and "
+                         "[[joints]] names)")
+        name, names = robot
+        layout = robot_layout(args.prefix[0] if args.prefix else f"robots/{name}", names)
+    else:
+        layout = build_layout(args.prefix)
+    output.write_text(layout_json(layout))
     print(f"wrote {output}")
     return 0
 

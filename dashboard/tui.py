@@ -30,7 +30,9 @@ READOUT_EVERY = 4  # 5 Hz
 STALE_S = 0.5  # no state for this long (500 cycles at 1 kHz) and the values are marked stale
 HISTORY = 200  # points in the scrolling plots: 10 s at REFRESH_HZ
 BAR_WIDTH = 40
-LATEST_ONLY = ("state", "command", "solver", "loop_stats")  # not the large plan
+# not the large plan; `joints` is actuatord --robot's one message with every joint
+LATEST_ONLY = ("state", "command", "solver", "loop_stats", "joints")
+CLASSES = {**telemetry.TOPICS, **telemetry.ROBOT_TOPICS}
 FAULTS_KEPT = 1000  # faults waiting for the next frame; a fault storm drops the oldest
 
 
@@ -71,8 +73,8 @@ class Feed:
 
 @dataclass(frozen=True)
 class JointRow:
-    """One joint as the table shows it. Today a row comes from one actuatord's State and
-    Command; the many-joint message gives one per joint from its arrays."""
+    """One joint as the table shows it: from one actuatord's State and Command, or one per
+    joint from a robot's JointStates arrays."""
 
     name: str
     position: float
@@ -93,6 +95,13 @@ def joint_row(name: str, state, command) -> JointRow:
     return JointRow(name, state.position, command.reference_position if command else nan,
                     state.velocity, state.motor_current, command.current if command else nan,
                     state.joint_torque, state.drive_state)
+
+
+def joint_rows_of(states) -> list[JointRow]:
+    """A robot's JointStates as one row per joint, in the robot file's order."""
+    return [JointRow(*values) for values in zip(
+        states.name, states.position, states.reference_position, states.velocity,
+        states.motor_current, states.current, states.effort, states.drive_state, strict=True)]
 
 
 def row_cells(row: JointRow) -> tuple[str, ...]:
@@ -150,6 +159,7 @@ class ElbowDashboard(App):
         self.positions: deque[float] = deque(maxlen=HISTORY)
         self.currents: deque[float] = deque(maxlen=HISTORY)
         self.state = None
+        self.joints = None  # JointStates, when the publisher is actuatord --robot
         self.command = None
         self.solver = None
         self.loop_stats = None
@@ -157,13 +167,14 @@ class ElbowDashboard(App):
         self.faults = 0
         self._frame = 0
         self._new_state = False  # a state came since the plots were last drawn
-        self._message_classes = {topic: telemetry.message_class(telemetry.TOPICS[topic])
-                         for topic in (*LATEST_ONLY, "fault")}
+        self._message_classes = {topic: telemetry.message_class(CLASSES[topic])
+                                 for topic in (*LATEST_ONLY, "fault")}
 
     @property
     def clock(self) -> float | None:
         """Drive time of the state on screen: how far the dashboard has got."""
-        return self.state.t if self.state is not None else None
+        latest = self.state if self.state is not None else self.joints
+        return latest.t if latest is not None else None
 
     def compose(self) -> ComposeResult:
         yield Header()
@@ -202,7 +213,7 @@ class ElbowDashboard(App):
             message = self._message_classes["fault"]()
             message.ParseFromString(data)
             self.ingest("fault", message)
-        self._new_state = self._new_state or "state" in latest
+        self._new_state = self._new_state or "state" in latest or "joints" in latest
         self._draw_status()
         if self._frame % PLOT_EVERY == 0 and self._new_state:
             self._draw_plots()
@@ -219,6 +230,13 @@ class ElbowDashboard(App):
             self.state_received = time.monotonic()  # within a frame of its arrival
             self.positions.append(message.position)
             self.currents.append(message.motor_current)
+        elif topic == "joints":
+            # the plots follow the robot file's first joint; the table shows them all
+            self.joints = message
+            self.state_received = time.monotonic()
+            if message.position:
+                self.positions.append(message.position[0])
+                self.currents.append(message.motor_current[0])
         elif topic == "command":
             self.command = message
         elif topic == "solver":
@@ -231,6 +249,8 @@ class ElbowDashboard(App):
                 f"t={message.t:9.3f} s [{message.source}] {message.cause} -> {message.action}")
 
     def joint_rows(self) -> list[JointRow]:
+        if self.joints is not None:
+            return joint_rows_of(self.joints)
         return [joint_row(self.joint_name, self.state, self.command)] if self.state else []
 
     def refresh_view(self) -> None:

@@ -23,6 +23,7 @@ import websockets
 from protocol import telemetry
 from tests.conftest import free_port
 from tests.test_actuatord_zenoh import PREFIX, dashboard_session, start_actuatord
+from tests.test_robot_loop import ARM
 
 FOXGLOVE_SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
 
@@ -214,15 +215,16 @@ def schema_fields(schema_name: str, descriptor_set: bytes) -> set[str]:
             if m.name == name for f in m.field}
 
 
-def layout_references() -> tuple[dict[str, set[str]], set[str]]:
-    """(topic -> fields, service names) the shipped layout uses, read from the
-    `foxglove.layouts` objects (0.30 builds and writes layouts; it has no reader)."""
+def layout_references(layout=None) -> tuple[dict[str, set[str]], set[str]]:
+    """(topic -> fields, service names) a layout uses (default: the shipped one), read from
+    the `foxglove.layouts` objects (0.30 builds and writes layouts; it has no reader)."""
     import foxglove.layouts as fl
 
     from dashboard.layout import build_layout, layout_json, shipped_path
 
-    layout = build_layout()
-    assert shipped_path().read_text() == layout_json(layout)  # the file is this layout
+    if layout is None:
+        layout = build_layout()
+        assert shipped_path().read_text() == layout_json(layout)  # the file is this layout
     fields: dict[str, set[str]] = {}
     services: set[str] = set()
 
@@ -276,6 +278,28 @@ def recorded_fields(path) -> dict[str, set[str]]:
     return {c.topic: schema_fields(summary.schemas[c.schema_id].name,
                                    summary.schemas[c.schema_id].data)
             for c in summary.channels.values()}
+
+
+def test_robot_layout_plots_every_joint_from_fields_the_robot_publishes():
+    """`python3 -m dashboard.layout --robot FILE`: every joint of the file, each path a field
+    of the message actuatord --robot publishes on that topic, every index a joint."""
+    from commands.robot_file import load_robot
+    from dashboard.layout import robot_layout
+
+    robot = load_robot(ARM)
+    prefix = f"robots/{robot.name}"
+    names = [joint.name for joint in robot.joints]
+    wanted, services = layout_references(robot_layout(prefix, names))
+    assert set(wanted) == {telemetry.key_expr(prefix, topic) for topic in telemetry.ROBOT_TOPICS}
+    indices = set()
+    for topic, fields in wanted.items():
+        message = telemetry.message_class(telemetry.ROBOT_TOPICS[topic.rsplit("/", 1)[1]])
+        for field in fields:
+            name, _, index = field.partition("[")
+            assert name in message.DESCRIPTOR.fields_by_name, (topic, field)
+            if index:
+                indices.add(int(index.rstrip("]")))
+    assert indices == set(range(len(names)))
 
 
 def test_layout_topics_and_fields_exist_on_the_bridge_and_in_both_recordings(tmp_path):
@@ -413,6 +437,33 @@ def test_terminal_dashboard_renders_live_values_limits_and_faults():
         assert needle in text, needle
     assert app.clock == pytest.approx(0.98) and list(app.positions) == [-2.30]
     assert app.faults == 2
+
+
+def test_terminal_dashboard_shows_every_joint_of_a_robot():
+    """actuatord --robot publishes one JointStates a cycle: a row per joint, in its order."""
+    from dashboard.tui import ElbowDashboard
+
+    names = [f"arm_left_{k}_joint" for k in range(1, 8)]
+    needles = (*names, "+0.6000", "switch on disabled")
+
+    async def scenario(session, feed) -> tuple[str, ElbowDashboard]:
+        app = ElbowDashboard(feed, PREFIX)
+        async with app.run_test(size=(130, 40)) as pilot:
+            publish(session, "joints", "JointStates", t=2.5, name=names,
+                    position=[0.1 * k for k in range(7)], velocity=[0.0] * 7,
+                    effort=[1.0] * 7, motor_current=[0.5] * 7, current=[0.5] * 7,
+                    planned_current=[0.5] * 7, reference_position=[0.0] * 7,
+                    drive_state=["operation enabled"] * 6 + ["switch on disabled"],
+                    solver_status=["converged"] * 7, iterations=[1] * 7,
+                    fallback=[False] * 7, solve_time_us=140.0)
+            return await screen_showing(app, pilot, *needles), app
+
+    with local_feed() as (session, feed):
+        text, app = asyncio.run(scenario(session, feed))
+    for needle in needles:
+        assert needle in text, needle
+    assert [row.name for row in app.joint_rows()] == names
+    assert app.clock == pytest.approx(2.5)
 
 
 def test_terminal_dashboard_marks_stale_data_and_a_vanished_actuatord():
