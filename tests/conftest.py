@@ -14,6 +14,7 @@ from driver.canopen_drive import CanOpenDrive
 from model.parameters import Payload, load_model
 from protocol.bus_spec import parse_bus_spec
 from sim_bus.embedded import EmbeddedDrive
+from sim_bus.ethercat.netns import LinkUnavailable, VirtualLink
 from sim_bus.plant import SensorNoise
 
 
@@ -115,3 +116,16 @@ def can_semantics_network(bus_spec: str) -> canopen.Network:
     kwargs = parse_bus_spec(bus_spec)
     bus = CanSemanticsBus(channel=kwargs["channel"], port=kwargs["port"])
     return canopen.Network(bus).connect()
+
+
+@pytest.fixture
+def link():
+    """A virtual EtherCAT cable of the test's own (a network namespace with a veth pair,
+    removed afterwards); the test is skipped, saying why, where the kernel or the privileges
+    cannot make one."""
+    try:
+        virtual = VirtualLink()
+    except LinkUnavailable as exc:
+        pytest.skip(str(exc))
+    with virtual:
+        yield virtual

@@ -20,21 +20,11 @@ import pytest
 from protocol import esi_path
 from protocol.esi import load_esi
 from recorder.reader import load_recording
-from sim_bus.ethercat.netns import LinkUnavailable, VirtualLink
+from sim_bus.ethercat.netns import VirtualLink
 
 REPO = Path(__file__).resolve().parent.parent
 ZENOH = "--no-multicast-scouting"
 STOP_WITHIN = 2.0  # s from SIGTERM/SIGINT to sim-bus's end report
-
-
-@pytest.fixture
-def link():
-    try:
-        virtual = VirtualLink()
-    except LinkUnavailable as exc:
-        pytest.skip(str(exc))
-    with virtual:
-        yield virtual
 
 
 def command(link: VirtualLink | None, module: str, *args: str) -> list[str]:

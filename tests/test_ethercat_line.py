@@ -19,7 +19,7 @@ from protocol import esi_path, objects
 from protocol import ethercat as ec
 from protocol.dictionary import mapped_object, variable
 from protocol.esi import load_esi
-from sim_bus.ethercat.netns import LinkUnavailable, SlaveProcess, VirtualLink
+from sim_bus.ethercat.netns import SlaveProcess
 
 ESI = load_esi(esi_path())
 MODEL = load_model()
@@ -28,16 +28,6 @@ CONTROLWORD_ENABLE = 0x0F
 
 def joint(position: int) -> JointOnLine:
     return JointOnLine(position, MODEL.limits.velocity_max, MODEL.parameters.drive_gain)
-
-
-@pytest.fixture
-def link():
-    try:
-        virtual = VirtualLink()
-    except LinkUnavailable as exc:
-        pytest.skip(str(exc))
-    with virtual:
-        yield virtual
 
 
 def slaves(link, count):

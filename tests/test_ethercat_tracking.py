@@ -21,7 +21,7 @@ from recorder.experiment import run_trajectory
 from recorder.recording import Recording
 from recorder.tracking import TrackingLaw
 from sim_bus.embedded import EmbeddedDrive
-from sim_bus.ethercat.netns import LinkUnavailable, SlaveProcess, VirtualLink
+from sim_bus.ethercat.netns import SlaveProcess, VirtualLink
 from sim_bus.plant import SensorNoise
 
 MODEL = load_model()
@@ -51,16 +51,6 @@ def can_drive(sim: EmbeddedDrive) -> CanOpenDrive:
 def ethercat_drive(link: VirtualLink):
     return open_ethercat_drive(link.master_port, JointOnLine(
         0, MODEL.limits.velocity_max, MODEL.parameters.drive_gain), lockstep=True)
-
-
-@pytest.fixture
-def link():
-    try:
-        virtual = VirtualLink()
-    except LinkUnavailable as exc:
-        pytest.skip(str(exc))
-    with virtual:
-        yield virtual
 
 
 def test_mpc_over_ethercat_tracks_within_ten_percent_of_can(link):
