@@ -14,8 +14,10 @@ from commands.options import (
     add_logging_argument,
     add_model_argument,
     add_payload_arguments,
+    add_real_time_argument,
     add_virtual_drive_arguments,
     add_zenoh_arguments,
+    apply_real_time,
     check_drive_arguments,
     check_eds,
     check_key_expr,
@@ -84,6 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "JOINT:NAME@SECONDS")
     parser.add_argument("--plot", metavar="DIR", help="save position and current figures here")
     add_virtual_drive_arguments(parser)
+    add_real_time_argument(parser)
     add_zenoh_arguments(parser)
     add_logging_argument(parser)
     return parser
@@ -152,6 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     from driver import DriveError, ProfileError
 
     period = args.period_us * 1e-6
+    apply_real_time(args, PROG)  # before any thread starts: they inherit it
     try:
         session = open_session(args)
     except ValueError as exc:
@@ -297,6 +301,7 @@ def _run_robot(args: argparse.Namespace) -> int:
     from driver import DriveError, ProfileError
 
     period = robot.period_us * 1e-6
+    apply_real_time(args, PROG)  # before any thread starts: they inherit it
     try:
         session = open_session(args)
     except ValueError as exc:

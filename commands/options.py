@@ -290,6 +290,31 @@ def add_bus_arguments(parser: argparse.ArgumentParser, sim: bool = True) -> None
                                                           "is built from it"))
 
 
+def add_real_time_argument(parser: argparse.ArgumentParser) -> None:
+    from driver.clock import REAL_TIME_PRIORITY
+
+    parser.add_argument("--rt-priority", type=int_range(0, 99), default=REAL_TIME_PRIORITY,
+                        metavar="N",
+                        help="SCHED_RR priority of the real-time loop, 1..99, 0: normal "
+                             "scheduling (default: %(default)s; needs root or CAP_SYS_NICE, "
+                             "else a warning; not used with --lockstep)")
+
+
+def apply_real_time(args: argparse.Namespace, prog: str) -> None:
+    """Real time only: the process (and the threads it starts from now on) at the asked
+    SCHED_RR priority, so CPU-bound work beside it does not delay a cycle; a refusal is one
+    warning and the run goes on at normal priority."""
+    if getattr(args, "lockstep", False) or not args.rt_priority:
+        return
+    from driver.clock import prefer_real_time
+
+    refused = prefer_real_time(args.rt_priority)
+    if refused is not None:
+        logging.getLogger(prog).warning(
+            "real-time priority %d refused (%s): running at normal priority, a busy host "
+            "may delay cycles", args.rt_priority, refused)
+
+
 def add_virtual_drive_arguments(parser: argparse.ArgumentParser, faults: bool = True,
                                 prefix: str = "--sim: ") -> None:
     """The virtual drive's own options: noise seed, hidden effects and, with `faults`,

@@ -23,8 +23,10 @@ from commands.options import (
     add_logging_argument,
     add_model_argument,
     add_payload_arguments,
+    add_real_time_argument,
     add_virtual_drive_arguments,
     add_zenoh_arguments,
+    apply_real_time,
     check_drive_arguments,
     check_eds,
     check_key_expr,
@@ -82,6 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--steps", type=int_range(1, 1000), default=defaults.steps,
                         help="cruise velocities from min to max (default: %(default)s)")
     add_virtual_drive_arguments(parser, faults=False)
+    add_real_time_argument(parser)
     parser.add_argument("--duration", type=positive_float, metavar="S",
                         help="--zenoh: stop after S seconds; --sinusoid: its length")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -186,6 +189,7 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     from recorder.mcap_io import McapRecorder
     from recorder.tracking import TrackingLaw
 
+    apply_real_time(args, PROG)  # before the drive's threads start: they inherit it
     try:
         connection = (open_drive(args, model, sim_model, payload) if joint is None else
                       open_joint(robot, joint, sim_model, payload, sim=args.sim,

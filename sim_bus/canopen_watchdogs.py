@@ -68,7 +68,13 @@ class HeartbeatProducer:
             self._beat()
 
     def _beat(self) -> None:
-        self._send(self._cob_id, bytes([self._nmt_state()]))
+        state = self._nmt_state()
+        # a beat never carries 0: that is the boot-up message, sent once by the reset itself.
+        # A beat that read the state while a reset ran (this thread preempted on a busy host
+        # between the read and the send) would reach the master as a second boot-up, and a
+        # master that is already driving takes that for a reboot
+        if state != cia301.NMT_BOOT_UP:
+            self._send(self._cob_id, bytes([state]))
 
 
 class MasterWatch:
