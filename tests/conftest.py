@@ -129,3 +129,30 @@ def link():
         pytest.skip(str(exc))
     with virtual:
         yield virtual
+
+
+_exit_status: list[int] = []
+
+
+def pytest_sessionfinish(session, exitstatus) -> None:
+    _exit_status.append(int(exitstatus))
+
+
+def pytest_unconfigure(config) -> None:
+    """A thread that is not a daemon (an unclosed Zenoh session's callback thread, say) would
+    keep this process alive after the summary, and CI would wait for it until its time limit.
+    Such threads are named on stderr and the process ends with the session's own status."""
+    import os
+    import threading
+
+    stray = [t for t in threading.enumerate()
+             if t is not threading.main_thread() and not t.daemon and t.is_alive()]
+    for thread in stray:
+        thread.join(2.0)
+    stray = [t for t in stray if t.is_alive()]
+    if stray:
+        sys.stderr.write("tests left threads that would keep the process alive: "
+                         + ", ".join(t.name for t in stray) + "\n")
+        sys.stderr.flush()
+        sys.stdout.flush()
+        os._exit(_exit_status[-1] if _exit_status else 1)

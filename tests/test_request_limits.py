@@ -2,6 +2,7 @@
 JSON is refused before the parser follows it, internal errors become one refused request, and
 every request leaves an audit line of at most 1 KiB."""
 
+import contextlib
 import json
 import logging
 import subprocess
@@ -170,20 +171,28 @@ def service():
     config = zenoh.Config()
     config.insert_json5("listen/endpoints", json.dumps([endpoint]))
     config.insert_json5("scouting/multicast/enabled", "false")
-    server = zenoh.open(config)
-    publisher = TelemetryPublisher(server, PREFIX)
-    audit: list[bytes] = []
-    server.declare_subscriber(telemetry.key_expr(PREFIX, telemetry.AUDIT),
-                              lambda sample: audit.append(sample.payload.to_bytes()))
-    mpc = Mpc(MODEL)
-    client = subprocess.Popen([sys.executable, "-c", CLIENT, endpoint], stdin=subprocess.PIPE,
-                              stdout=subprocess.PIPE, text=True)
-    # lock-step on both sides: every watchdog counts cycles, so a busy machine does not end
-    # the loop while this test measures what requests cost it
-    sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(), lockstep=True)
-    drive = CanOpenDrive(sim.master_network, 2, velocity_limit=MODEL.limits.velocity_max,
-                         lockstep=True, response_timeout=1.0)
-    try:
+    # each part closed however the set-up ends (an unclosed Zenoh session's callback thread
+    # would keep the test process alive after the suite)
+    with contextlib.ExitStack() as cleanup:
+        server = zenoh.open(config)
+        cleanup.callback(server.close)
+        publisher = TelemetryPublisher(server, PREFIX)
+        cleanup.callback(publisher.close)
+        audit: list[bytes] = []
+        server.declare_subscriber(telemetry.key_expr(PREFIX, telemetry.AUDIT),
+                                  lambda sample: audit.append(sample.payload.to_bytes()))
+        mpc = Mpc(MODEL)
+        client = subprocess.Popen([sys.executable, "-c", CLIENT, endpoint],
+                                  stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        cleanup.callback(client.wait, 30)
+        cleanup.callback(client.stdin.close)
+        # lock-step on both sides: every watchdog counts cycles, so a busy machine does not
+        # end the loop while this test measures what requests cost it
+        sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(), lockstep=True)
+        cleanup.callback(sim.close)
+        drive = CanOpenDrive(sim.master_network, 2, velocity_limit=MODEL.limits.velocity_max,
+                             lockstep=True, response_timeout=1.0)
+        cleanup.callback(drive.close)
         drive.start()
         loop = ControlLoop(drive, mpc, LoopOptions(lockstep=True), [publisher.publish])
         handler = RequestHandler(loop, mpc, MODEL, Payload(), publisher.publish_audit)
@@ -191,6 +200,8 @@ def service():
         publisher.serve_json(telemetry.REFERENCE, handler.set_reference)
         runner = threading.Thread(target=loop.run, daemon=True)
         runner.start()
+        cleanup.callback(runner.join, 10)
+        cleanup.callback(loop.stop)
         assert client.stdout.readline().strip() == "ready"
         time.sleep(1.0)
 
@@ -200,15 +211,6 @@ def service():
             return json.loads(client.stdout.readline())
 
         yield request, BlockedTime(loop), audit, loop
-    finally:
-        loop.stop()
-        runner.join(10)
-        drive.close()
-        sim.close()
-        client.stdin.close()
-        client.wait(30)
-        publisher.close()
-        server.close()
 
 
 def extra_missed_cycles(blocked: BlockedTime, loop: ControlLoop, query) -> tuple[int, list]:
