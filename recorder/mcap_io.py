@@ -6,7 +6,9 @@ and reaches the file about every 0.12 s. SIGINT/SIGTERM finish the file properly
 lost). After every flushed chunk the file ends in a provisional DataEnd (with the data-section
 CRC so far), an empty Footer and the magic, which the next chunk overwrites: a file whose writer
 was SIGKILLed is still a valid MCAP without summary, which any MCAP reader opens and this
-reader checks; `recorder repair` adds the summary and indexes.
+reader checks; `recorder repair` adds the summary and indexes. (A SIGKILL inside a chunk's
+write can stop it between pages: that chunk is then cut short, the file refused naming the cut,
+and `recorder repair` keeps every complete chunk.)
 
 Times: `log_time` is the wall clock (ns since the Unix epoch) when the recorder wrote the message,
 as MCAP viewers expect; `publish_time` is the time the message speaks for (drive time for
