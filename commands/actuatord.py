@@ -188,6 +188,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"actuatord: {connection.address} on {connection.where} enabled; "
               f"telemetry under {args.prefix}/", flush=True)
         report = loop.run()
+        if report.exit_code == 1:  # the loop ended on a fault: one line on stderr too
+            job_error(PROG, report.reason)
     except ProfileError as exc:  # the drive does not fit the model: refused before enabling
         usage_error(PROG, str(exc))
         report = loop.report

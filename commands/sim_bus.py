@@ -113,7 +113,6 @@ def _serve_robot(args) -> int:
             seed=args.seed + index), eds_path=joint.eds, commissioned=True)
 
     silence = DEFAULT_SILENCE_TIMEOUT if args.silence_timeout is None else args.silence_timeout
-    _answer_in_time()
     networks, nodes, lines = [], [], []
     served: list[tuple[str, Cia402Device]] = []  # (joint, its drive), bus by bus
     stop = threading.Event()
@@ -262,19 +261,6 @@ def _serve_line(args: argparse.Namespace, interface: str, model: ActuatorModel,
     return 0
 
 
-def _answer_in_time() -> None:
-    """A virtual drive stands in for hardware, which answers within the period whatever else
-    the host runs: ask for real-time priority before any thread starts (they inherit it).
-    Best effort: refused, the drive runs at normal priority and says so at --log-level info."""
-    import logging
-
-    from driver.clock import prefer_real_time
-
-    refused = prefer_real_time()
-    if refused is not None:
-        logging.getLogger(PROG).info("real-time priority refused (%s)", refused)
-
-
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)
@@ -304,7 +290,6 @@ def main(argv: list[str] | None = None) -> int:
     if interface is not None:
         return _serve_line(args, interface, model, payload, schedule)
 
-    _answer_in_time()
     where = describe_bus(bus_config(args))
     can_log = open_can_log(args) if args.can_log else None
     try:
