@@ -106,13 +106,14 @@ def _serve_robot(args) -> int:
     except (RobotFileError, BusSpecError, ValueError) as exc:
         return usage_error(PROG, str(exc))
 
-    def device_of(joint):
-        index = robot.joints.index(joint)
-        return make_device(joint.model, Payload(), SensorNoise(
-            current=args.current_noise, joint_torque=args.torque_noise,
-            seed=args.seed + index), eds_path=joint.eds, commissioned=True)
+    def noise_of(joint) -> SensorNoise:
+        return SensorNoise(current=args.current_noise, joint_torque=args.torque_noise,
+                           seed=args.seed + robot.joints.index(joint))
 
-    silence = DEFAULT_SILENCE_TIMEOUT if args.silence_timeout is None else args.silence_timeout
+    def device_of(joint):
+        return make_device(joint.model, Payload(), noise_of(joint), eds_path=joint.eds,
+                           commissioned=True)
+
     networks, nodes, lines = [], [], []
     served: list[tuple[str, Cia402Device]] = []  # (joint, its drive), bus by bus
     stop = threading.Event()
@@ -127,12 +128,9 @@ def _serve_robot(args) -> int:
                 continue
             networks.append(open_network(bus, robot.bitrates.get(bus)))
             for joint in joints:
-                index = robot.joints.index(joint)
-                noise = SensorNoise(current=args.current_noise, joint_torque=args.torque_noise,
-                                    seed=args.seed + index)
-                nodes.append(power_on(networks[-1], joint.model, Payload(), noise,
+                nodes.append(power_on(networks[-1], joint.model, Payload(), noise_of(joint),
                                       joint.address, eds_path=joint.eds, commissioned=True,
-                                      silence_timeout=silence or None))
+                                      silence_timeout=_silence_timeout(args)))
                 served.append((joint.name, nodes[-1].device))
         if lines:
             from sim_bus.ethercat.segment import prefer_this_process
@@ -261,6 +259,13 @@ def _serve_line(args: argparse.Namespace, interface: str, model: ActuatorModel,
     return 0
 
 
+def _silence_timeout(args) -> float | None:
+    """The CAN drive's master-silence time (s, None: off): --silence-timeout (left None when
+    not given, so that giving it with EtherCAT can be refused), else the default."""
+    given = args.silence_timeout
+    return (DEFAULT_SILENCE_TIMEOUT if given is None else given) or None
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)
@@ -302,8 +307,7 @@ def main(argv: list[str] | None = None) -> int:
                         seed=args.seed)
     device = Cia402Device(model, payload, noise, eds_path=args.eds,
                           initial_position=args.initial_position, node_id=args.node_id)
-    silence = DEFAULT_SILENCE_TIMEOUT if args.silence_timeout is None else args.silence_timeout
-    node = CanOpenNode(network, args.node_id, device, silence_timeout=silence or None)
+    node = CanOpenNode(network, args.node_id, device, silence_timeout=_silence_timeout(args))
     for fault, seconds in schedule:
         device.schedule(fault, seconds)
     stop = threading.Event()
