@@ -133,17 +133,25 @@ def test_a_second_master_is_refused_naming_what_it_saw():
         first = CanOpenDrive.open(bus, 2, velocity_limit=LIMITS.velocity_max,
                                   response_timeout=0.5)
         stop = threading.Event()
+        cycling = threading.Event()
 
         def cycle():
+            cycles = 0
             while not stop.is_set():
                 first.sync()
                 first.command_current(0.0)
+                cycles += 1
+                if cycles == 5:
+                    cycling.set()
                 time.sleep(0.002)
 
         try:
             first.start()
             runner = threading.Thread(target=cycle, daemon=True)
             runner.start()
+            # the second master listens for 100 ms: the first must already be cycling (on a
+            # busy host its thread may not have sent a SYNC yet when the second starts)
+            assert cycling.wait(10), "the first master never completed five cycles"
             second = CanOpenDrive.open(bus, 2, velocity_limit=LIMITS.velocity_max)
             try:
                 with pytest.raises(ForeignMaster, match=r"another master is driving it: \d+ x "
