@@ -64,7 +64,10 @@ class SyncCycle:
         self._window: float | None = None
         self._open = False
         self._sync_stamp = 0.0
-        self._arrived = threading.Condition(threading.Lock())
+        # the frame handlers take the bare lock (a Condition's own `with` costs two Python
+        # calls per frame); only the wait for the last TPDO needs the condition
+        self._lock = threading.Lock()
+        self._arrived = threading.Condition(self._lock)
 
     def configure(self, rpdos: Sequence[PlannedPdo], tpdos: Sequence[PlannedPdo],
                   inputs: int, counting: bool, window: float | None) -> None:
@@ -107,7 +110,7 @@ class SyncCycle:
         each."""
         if self.failure is not None:
             raise self.failure
-        with self._arrived:
+        with self._lock:
             self._pending = set(self._all_tpdos)
             if self._counting:
                 self._counter = self._counter % cia301.SYNC_COUNTER_MAX + 1
@@ -140,7 +143,7 @@ class SyncCycle:
                                  f"{codec.size} expected")
             return
         values = codec.unpack(data)
-        with self._arrived:
+        with self._lock:
             if echo:
                 # the first TPDO names its SYNC; the others follow it in order on the bus
                 self._open = values[-1] == self._counter

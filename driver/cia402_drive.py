@@ -183,14 +183,10 @@ class Cia402Drive(Drive):
                 self._warnings.append(f"joint torque sensor reading saturated ({reading} mN.m)")
             else:
                 joint_torque = reading * scaling.joint_torque_per_unit
-        sample = Sample(
-            t=self.cycle * self.period,
-            position=values[1] * scaling.rad_per_increment,
-            velocity=values[2] * scaling.rad_per_increment,
-            motor_current=values[3] * scaling.amps_per_feedback_unit,
-            joint_torque=joint_torque,
-            statusword=values[0],
-        )
+        # positional: t, position, velocity, motor_current, joint_torque, statusword
+        sample = Sample(self.cycle * self.period, values[1] * scaling.rad_per_increment,
+                        values[2] * scaling.rad_per_increment,
+                        values[3] * scaling.amps_per_feedback_unit, joint_torque, values[0])
         previous, self._latest = self._latest, sample
         if previous is not None:
             try:

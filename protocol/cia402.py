@@ -104,7 +104,9 @@ def next_state(state: State, command: Command | None) -> State:
     if command is Command.DISABLE_VOLTAGE:
         return State.SWITCH_ON_DISABLED
     if command is Command.QUICK_STOP:
-        if state is State.OPERATION_ENABLED:
+        if state is State.OPERATION_ENABLED or state is State.QUICK_STOP_ACTIVE:
+            # held, the quick stop runs on: it ends in switch on disabled when the motor
+            # stands still (option 0x605A) or on disable voltage, not on its own repetition
             return State.QUICK_STOP_ACTIVE
         return State.SWITCH_ON_DISABLED
     if state is State.QUICK_STOP_ACTIVE:

@@ -11,6 +11,7 @@ deterministically. SYNC silence has no lock-step form: without SYNC the drive's 
 still, so there is nothing to count; a lock-step link has its master in the same process anyway.
 """
 
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -98,6 +99,7 @@ class MasterWatch:
         self._subscribed: set[int] = set()
         self._last_activity: float | None = None
         self._cycle = 0
+        self._first_due = 0.0  # lock-step: no beat can be late before this cycle
         self._period = 1e-3
         self._lost = False
         self._stop = threading.Event()
@@ -118,6 +120,7 @@ class MasterWatch:
             self._consumers = consumers
             self._beats = {node: when for node, when in self._beats.items() if node in consumers}
             self._period = cycle_period
+            self._first_due = 0
         for node in consumers:
             if node not in self._subscribed:
                 self._subscribed.add(node)
@@ -142,14 +145,21 @@ class MasterWatch:
         node = can_id - cia301.HEARTBEAT_BASE
         with self._lock:
             if node in self._consumers:
+                if node not in self._beats:
+                    self._first_due = 0  # a newly watched beat: look at the next cycle
                 self._beats[node] = self._cycle if self._lockstep else time.monotonic()
 
     def count_cycle(self) -> None:
-        """Lock-step: one cycle of drive time passed."""
+        """Lock-step: one cycle of drive time passed. The beats are looked at only from the
+        first cycle at which one of them could be late (a beat only moves that later)."""
         with self._lock:
             self._cycle += 1
+            if self._cycle < self._first_due:
+                return
             late = [(node, self._cycle - last) for node, last in self._beats.items()
                     if (self._cycle - last) * self._period > self._consumers[node]]
+            self._first_due = min((last + self._consumers[node] / self._period
+                                   for node, last in self._beats.items()), default=math.inf)
         if late:
             node, cycles = late[0]
             self._lose(f"master heartbeat (node {node}) missing for {cycles} cycles "

@@ -57,6 +57,7 @@ _VELOCITY_ACTUAL = (objects.VELOCITY_ACTUAL, 0)
 _MOTOR_CURRENT_ACTUAL = (objects.MOTOR_CURRENT_ACTUAL, 0)
 _CURRENT_ACTUAL = (objects.CURRENT_ACTUAL, 0)
 _TORQUE_ACTUAL = (objects.TORQUE_ACTUAL, 0)
+_STATUSWORDS = {state: cia402.statusword_for(state) for state in State}
 _WRITABLE = frozenset(("rw", "wo", "rww", "rwr"))
 _READABLE = frozenset(("rw", "ro", "const", "rww", "rwr"))
 
@@ -175,6 +176,7 @@ class Cia402Device:
 
     def _after_reset(self) -> None:
         self._controlword = 0
+        self._commanded_state: State | None = None  # what the controlword last led to
         self._target_current = 0.0
         self._target_torque_permille = 0
         self.applied_current = 0.0
@@ -335,6 +337,11 @@ class Cia402Device:
     # --- CiA 402 ----------------------------------------------------------------------------
 
     def _apply_controlword(self, controlword: int) -> None:
+        if controlword == self._controlword and self._state is self._commanded_state:
+            # the master repeats its controlword every cycle: no rising edge (no fault reset),
+            # and a command applied again to the state it led to leaves it there
+            # (cia402.next_state is idempotent), so the state machine has nothing to do
+            return
         command = cia402.command_from_controlword(controlword, self._controlword)
         self._controlword = controlword
         new_state = cia402.next_state(self._state, command)
@@ -342,6 +349,7 @@ class Cia402Device:
             self._error(cia301.EMCY_NO_ERROR, 0)
             self._emit(cia301.EMCY_NO_ERROR, 0)
         self._set_state(new_state)
+        self._commanded_state = new_state
 
     def _commanded_current(self) -> float:
         if self._state is not State.OPERATION_ENABLED:
@@ -434,18 +442,19 @@ class Cia402Device:
         process data carries them: latched here, so a fault due later in the same cycle shows
         in the next sample (its emergency goes out at once)."""
         v = self._values
-        v[_STATUSWORD] = cia402.statusword_for(self._state)
+        v[_STATUSWORD] = _STATUSWORDS[self._state]
+        # round() of a float is already an int
         per_rad = self.increments_per_rad
-        v[_POSITION_ACTUAL] = int(round(m.position * per_rad))
-        v[_VELOCITY_ACTUAL] = int(round(m.velocity * per_rad))
-        v[_MOTOR_CURRENT_ACTUAL] = objects.amps_to_milliamps(m.motor_current)
-        v[_JOINT_TORQUE_SENSOR] = int(round(m.joint_torque_reading * objects.MILLI))
+        current = m.motor_current
+        v[_POSITION_ACTUAL] = round(m.position * per_rad)
+        v[_VELOCITY_ACTUAL] = round(m.velocity * per_rad)
+        v[_MOTOR_CURRENT_ACTUAL] = round(current * objects.MILLI)
+        v[_JOINT_TORQUE_SENSOR] = round(m.joint_torque_reading * objects.MILLI)
         if self.rated_current > 0:
-            v[_CURRENT_ACTUAL] = int(round(
-                m.motor_current / self.rated_current * objects.MILLI))
+            v[_CURRENT_ACTUAL] = round(current / self.rated_current * objects.MILLI)
         if self.rated_torque > 0:
-            v[_TORQUE_ACTUAL] = int(round(
-                self.drive_gain * m.motor_current / self.rated_torque * objects.MILLI))
+            v[_TORQUE_ACTUAL] = round(
+                self.drive_gain * current / self.rated_torque * objects.MILLI)
 
     # --- faults -----------------------------------------------------------------------------
 

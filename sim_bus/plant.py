@@ -3,6 +3,7 @@ brake, seen through realistic sensors (noisy current and torque readings; the en
 quantisation is the drive's unit conversion, `sim_bus.device`)."""
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -25,8 +26,9 @@ class SensorNoise:
     seed: int | None = 0
 
 
-@dataclass(frozen=True)
-class Measurement:
+class Measurement(NamedTuple):
+    """One cycle's sensor readings (a named tuple: one is made per cycle)."""
+
     position: float  # rad, the encoder's shaft (the drive quantises it)
     velocity: float  # rad/s
     motor_current: float  # A, as read by the drive's current sensor
@@ -103,9 +105,4 @@ class Plant:
         current = self._current + self.noise.current * self._standard_normal()
         reading = (self.joint_torque() / self.parameters.torque_sensor_gain
                    + self.noise.joint_torque * self._standard_normal())
-        return Measurement(
-            position=self.position,
-            velocity=self.velocity,
-            motor_current=float(current),
-            joint_torque_reading=float(reading),
-        )
+        return Measurement(self.position, self.velocity, current, reading)

@@ -41,3 +41,14 @@ def test_quick_stop_and_disable_voltage():
 def test_unknown_statusword_is_refused():
     with pytest.raises(ValueError, match="0x0001"):
         cia402.state_from_statusword(0x0001)
+
+
+def test_a_held_command_leaves_the_state_it_led_to():
+    """The virtual drive skips a repeated controlword on that ground (sim_bus.device)."""
+    for state in State:
+        for controlword in range(0x100):
+            command = cia402.command_from_controlword(controlword, controlword)
+            reached = cia402.next_state(state, command)
+            assert cia402.next_state(reached, command) is reached, (state, hex(controlword))
+    assert cia402.next_state(State.QUICK_STOP_ACTIVE, Command.QUICK_STOP) is (
+        State.QUICK_STOP_ACTIVE)
