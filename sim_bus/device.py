@@ -448,7 +448,7 @@ class Cia402Device:
         current = m.motor_current
         v[_POSITION_ACTUAL] = round(m.position * per_rad)
         v[_VELOCITY_ACTUAL] = round(m.velocity * per_rad)
-        v[_MOTOR_CURRENT_ACTUAL] = round(current * objects.MILLI)
+        v[_MOTOR_CURRENT_ACTUAL] = objects.amps_to_milliamps(current)
         v[_JOINT_TORQUE_SENSOR] = round(m.joint_torque_reading * objects.MILLI)
         if self.rated_current > 0:
             v[_CURRENT_ACTUAL] = round(current / self.rated_current * objects.MILLI)
