@@ -130,8 +130,12 @@ def test_the_drive_stops_the_joint_when_its_master_dies_and_a_new_master_starts_
 def test_a_second_master_is_refused_naming_what_it_saw():
     bus = udp_bus_spec()
     with virtual_drive_process(bus, 2):
+        # the first master's own heartbeat watch is not under test: at 1 s producer period it
+        # tolerates a drive process starved for a second on a busy host (at the default
+        # 100 ms, 276 ms of starvation beside two CPU hogs ended its cycle before the second
+        # master listened, and the second then heard no SYNC)
         first = CanOpenDrive.open(bus, 2, velocity_limit=LIMITS.velocity_max,
-                                  response_timeout=0.5)
+                                  response_timeout=0.5, heartbeat_ms=1000)
         stop = threading.Event()
         cycling = threading.Event()
 
