@@ -153,6 +153,7 @@ def main(argv: list[str] | None = None) -> int:
         return usage_error(PROG, str(exc))
 
     from driver import DriveError, ProfileError
+    from driver.clock import collector_off_the_cycle
 
     period = args.period_us * 1e-6
     apply_real_time(args, PROG)  # before any thread starts: they inherit it
@@ -187,7 +188,8 @@ def main(argv: list[str] | None = None) -> int:
         drive.start()
         print(f"actuatord: {connection.address} on {connection.where} enabled; "
               f"telemetry under {args.prefix}/", flush=True)
-        report = loop.run()
+        with collector_off_the_cycle():
+            report = loop.run()
         if report.exit_code == 1:  # the loop ended on a fault: one line on stderr too
             job_error(PROG, report.reason)
     except ProfileError as exc:  # the drive does not fit the model: refused before enabling
@@ -301,6 +303,7 @@ def _run_robot(args: argparse.Namespace) -> int:
     from controller.robot_loop import RobotLoop
     from controller.telemetry import TelemetryPublisher
     from driver import DriveError, ProfileError
+    from driver.clock import collector_off_the_cycle
 
     period = robot.period_us * 1e-6
     apply_real_time(args, PROG)  # before any thread starts: they inherit it
@@ -333,7 +336,8 @@ def _run_robot(args: argparse.Namespace) -> int:
         print(f"actuatord: {len(group)} joints of {robot.name} on "
               f"{', '.join(robot.buses())}{' (--sim)' if args.sim else ''} enabled; telemetry "
               f"under {args.prefix}/", flush=True)
-        report = loop.run()
+        with collector_off_the_cycle():
+            report = loop.run()
         if report.exit_code != 0:
             failure = report.reason
     except DriveError as exc:

@@ -185,6 +185,7 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         return usage_error(PROG, str(exc))
 
     from driver import DriveError, ProfileError
+    from driver.clock import collector_off_the_cycle
     from recorder.experiment import run_trajectory
     from recorder.mcap_io import McapRecorder
     from recorder.tracking import TrackingLaw
@@ -221,8 +222,9 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     code = 0
     try:
         drive.start()
-        report = run_trajectory(drive, trajectory, law, model.limits, [record], args.lockstep,
-                                bar, stop)
+        with collector_off_the_cycle():
+            report = run_trajectory(drive, trajectory, law, model.limits, [record],
+                                    args.lockstep, bar, stop)
         if stop.is_set():
             code = 1
             print(f"{PROG}: interrupted after {writer.messages_on(state_channel)} samples",

@@ -43,6 +43,10 @@ class PlannedPdo:
     echo: bool = False
 
 
+# the SYNC's data for each counter value (a bytes object made once, not one per cycle)
+_SYNC_DATA = tuple(bytes([counter]) for counter in range(cia301.SYNC_COUNTER_MAX + 1))
+
+
 class SyncCycle:
     def __init__(self, network: canopen.Network, name: str, *, lockstep: bool,
                  response_timeout: float, warnings: list[str]):
@@ -68,6 +72,9 @@ class SyncCycle:
         # calls per frame); only the wait for the last TPDO needs the condition
         self._lock = threading.Lock()
         self._arrived = threading.Condition(self._lock)
+        # collect() is waiting: only then does the last TPDO notify (embedded in lock-step the
+        # TPDOs arrive inside the SYNC's send, and a Condition's notify costs 5 Python calls)
+        self._waiting = False
 
     def configure(self, rpdos: Sequence[PlannedPdo], tpdos: Sequence[PlannedPdo],
                   inputs: int, counting: bool, window: float | None) -> None:
@@ -117,14 +124,18 @@ class SyncCycle:
             # without an echo every TPDO after this SYNC answers it (within the window)
             self._open = not self._has_echo
             self._sync_stamp = time.time()  # the clock python-can stamps frames with
-        return bytes([self._counter]) if self._counting else b""
+        return _SYNC_DATA[self._counter] if self._counting else b""
 
     def collect(self) -> tuple[int, ...]:
         """The inputs answering the armed SYNC, waiting up to the response timeout."""
-        with self._arrived:
+        with self._lock:  # the condition's lock (its own `with` costs two Python calls)
             if self._pending and self.failure is None:
-                self._arrived.wait_for(lambda: not self._pending or self.failure is not None,
-                                       self.response_timeout)
+                self._waiting = True
+                try:
+                    self._arrived.wait_for(lambda: not self._pending or self.failure is not None,
+                                           self.response_timeout)
+                finally:
+                    self._waiting = False
             if self._pending:
                 if self.failure is not None:
                     raise self.failure  # a reboot or a lost heartbeat ended the wait
@@ -160,7 +171,7 @@ class SyncCycle:
                 return
             self._inputs[start:stop] = values[:stop - start]
             self._pending.discard(can_id)
-            if not self._pending:
+            if not self._pending and self._waiting:
                 self._arrived.notify_all()
 
     def close(self) -> None:

@@ -35,6 +35,7 @@ log = logging.getLogger(__name__)
 
 ENABLE_STEP_TIMEOUT = 0.5  # s for the drive to show each CiA 402 transition
 BOOT_TIMEOUT = 5.0  # s for the drive to answer the reset at bring-up
+_NUMBER = (int, float)  # a command's accepted types (`int | float` would build a union per call)
 
 
 @dataclass(frozen=True)
@@ -70,6 +71,7 @@ class Cia402Drive(Drive):
         self.drive_gain = drive_gain
         self.current_max = current_max
         self.profile: Profile = select_profile(transport.dictionary, drive_gain)
+        self._has_joint_torque = self.profile.has_joint_torque  # looked at every sample
         self.guard = SampleGuard(velocity_limit, period)
         self.scaling: Scaling | None = None
         self.current_limit = 0.0
@@ -177,7 +179,7 @@ class Cia402Drive(Drive):
         self.cycle += 1
         scaling = self.scaling
         joint_torque = math.nan
-        if self.profile.has_joint_torque:
+        if self._has_joint_torque:
             reading = values[4]
             if self.guard.saturated(reading):
                 self._warnings.append(f"joint torque sensor reading saturated ({reading} mN.m)")
@@ -208,7 +210,7 @@ class Cia402Drive(Drive):
         return out + self.transport.warnings()
 
     def command_current(self, current: float) -> None:
-        if not isinstance(current, int | float) or not math.isfinite(current):
+        if not isinstance(current, _NUMBER) or not math.isfinite(current):
             raise CommandRangeError(f"motor current command {current!r} is not a finite number")
         if abs(current) > self.current_limit:
             raise CommandRangeError(f"motor current command {current:.3f} A outside the drive's "

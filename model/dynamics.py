@@ -178,6 +178,23 @@ def step(q: float, qd: float, current: float, p: np.ndarray, dt: float,
 
 
 @numba.njit(cache=True, error_model="numpy")
+def step_sensed(q: float, qd: float, current: float, p_motion: np.ndarray, p: np.ndarray,
+                dt: float, substeps: int) -> tuple:
+    """`step` under `p_motion` (the joint's parameters, or with a holding brake's friction
+    added), then the joint torque of its last substep under `p` (the inverse dynamics' joint
+    side): what a drive's cycle needs, in one compiled call instead of two. Sliding, the
+    joint carries its own Coulomb part (Fsj); stuck, its share of the holding friction (the
+    direction is the share of the level in use).
+
+    Returns q, qd, the dry-friction torque and its level (the next call's state), and the
+    joint torque."""
+    q, qd, qdd, dry, level = step(q, qd, current, p_motion, dt, substeps)
+    direction = dry / level if level > 0 else 0.0
+    _, joint = inverse_dynamics(q, qd, qdd, direction, p)
+    return q, qd, dry, level, joint
+
+
+@numba.njit(cache=True, error_model="numpy")
 def simulate(q0: float, qd0: float, currents: np.ndarray, p: np.ndarray, dt: float,
              substeps: int) -> np.ndarray:
     """States after each period for a current held constant over each period; row k is the

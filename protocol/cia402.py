@@ -1,6 +1,7 @@
 """CiA 402 power state machine as pure functions, shared by the drive (decode controlword,
 next state) and the master (decode statusword, next controlword toward a goal)."""
 
+import functools
 from enum import Enum
 
 
@@ -54,6 +55,7 @@ STATUSWORD_INTERNAL_LIMIT = 0x0800
 CONTROLWORD_FAULT_RESET_BIT = 0x0080
 
 
+@functools.cache  # a master decodes every sample's statusword; a drive reports a handful
 def state_from_statusword(statusword: int) -> State:
     for mask, value, state in _STATUSWORD_PATTERNS:
         if statusword & mask == value:

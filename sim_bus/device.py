@@ -141,6 +141,7 @@ class Cia402Device:
 
     def _set_state(self, state: State) -> None:
         self._state = state
+        self._statusword = _STATUSWORDS[state]  # sampled every cycle, changes with the state
 
     # --- resets -----------------------------------------------------------------------------
 
@@ -442,7 +443,7 @@ class Cia402Device:
         process data carries them: latched here, so a fault due later in the same cycle shows
         in the next sample (its emergency goes out at once)."""
         v = self._values
-        v[_STATUSWORD] = _STATUSWORDS[self._state]
+        v[_STATUSWORD] = self._statusword
         # round() of a float is already an int
         per_rad = self.increments_per_rad
         current = m.motor_current

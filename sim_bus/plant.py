@@ -55,10 +55,12 @@ class Plant:
                          else initial_position)
         self.velocity = 0.0
         self.time = 0.0
-        self._acceleration = 0.0
         self._dry = 0.0
         self._dry_level = parameters.dry_friction
         self._current = 0.0
+        # at rest, before the first period (a drive samples its sensors at power-on)
+        self._joint_torque = float(dynamics.inverse_dynamics(self.position, 0.0, 0.0, 0.0,
+                                                             self._packed)[1])
 
     def set_payload(self, payload: Payload) -> None:
         self.payload = payload
@@ -71,26 +73,20 @@ class Plant:
         """Compile (or load) the integrator now, on a throwaway state: the first SYNC must be
         answered within one period, not after a 0.3-0.5 s compilation (seconds on a busy
         host, far longer than a master waits for its first sample). The results are unused."""
-        dynamics.step(self.position, 0.0, 0.0, self._packed, 1e-3, dynamics.SUBSTEPS)
-        self.joint_torque()
+        dynamics.step_sensed(self.position, 0.0, 0.0, self._packed, self._packed, 1e-3,
+                             dynamics.SUBSTEPS)
 
     def advance(self, current: float, dt: float, braked: bool = False) -> None:
-        (self.position, self.velocity, self._acceleration, self._dry,
-         self._dry_level) = dynamics.step(self.position, self.velocity, current,
-                                          self._packed_braked if braked else self._packed,
-                                          dt, dynamics.SUBSTEPS)
+        """One period under `current`. The holding brake sits in the transmission with the
+        other effects, on the motor side of the torque sensor: the joint torque is the
+        unbraked inverse dynamics' joint side, so the sensor does not see the brake."""
+        (self.position, self.velocity, self._dry, self._dry_level,
+         self._joint_torque) = dynamics.step_sensed(
+            self.position, self.velocity, current,
+            self._packed_braked if braked else self._packed, self._packed, dt,
+            dynamics.SUBSTEPS)
         self._current = current
         self.time += dt
-
-    def joint_torque(self) -> float:
-        """What the link side transmits (the inverse dynamics' joint side) in the last substep:
-        sliding, the joint carries its own Coulomb part (Fsj); stuck, its share of the holding
-        friction (the direction is the share of the level in use). The effects sit in the
-        transmission, on the motor side of the sensor, so the sensor does not see them."""
-        direction = self._dry / self._dry_level if self._dry_level > 0 else 0.0
-        _, joint = dynamics.sample_inverse_dynamics(self.position, self.velocity,
-                                                    self._acceleration, direction, self._packed)
-        return float(joint)
 
     def _standard_normal(self) -> float:
         """The generator's next N(0, 1) draw, taken in batches (one numpy call per draw cost
@@ -103,6 +99,6 @@ class Plant:
 
     def measure(self) -> Measurement:
         current = self._current + self.noise.current * self._standard_normal()
-        reading = (self.joint_torque() / self.parameters.torque_sensor_gain
+        reading = (self._joint_torque / self.parameters.torque_sensor_gain
                    + self.noise.joint_torque * self._standard_normal())
         return Measurement(self.position, self.velocity, current, reading)

@@ -181,8 +181,8 @@ def test_a_fresh_drive_has_its_physics_compiled_before_it_boots():
     late): building the device compiles, or loads, the integrator."""
     probe = ("from model import dynamics; from model.parameters import load_model; "
              "from sim_bus.device import Cia402Device; "
-             "assert not dynamics.step.signatures; Cia402Device(load_model()); "
-             "print(len(dynamics.step.signatures))")
+             "assert not dynamics.step_sensed.signatures; Cia402Device(load_model()); "
+             "print(len(dynamics.step_sensed.signatures))")
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
                          timeout=120)
     assert out.returncode == 0, out.stderr
