@@ -92,6 +92,11 @@ class SyncCycle:
         for cob_id in self._tpdos:
             self.network.subscribe(cob_id, self._on_tpdo)
 
+    @property
+    def frames_per_cycle(self) -> int:
+        """This drive's PDOs in one cycle (the SYNC apart)."""
+        return len(self._rpdos) + len(self._tpdos)
+
     def send(self, outputs: Sequence[int]) -> None:
         send = self.network.send_message
         for cob_id, codec, start, stop in self._rpdos:

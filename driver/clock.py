@@ -38,11 +38,12 @@ def collector_off_the_cycle() -> Iterator[None]:
     """Keep Python's cyclic garbage collector from stopping a running loop for tens of ms.
 
     By the time a loop starts, the process holds a few hundred thousand long-lived objects
-    (numba, Zenoh, canopen, numpy); a full collection walks them all, measured at 44 ms in a
-    7-joint run at 1 kHz (44 cycles missed at once). The collector is left on, for what the
-    loop itself makes and drops; what exists at the start is collected once and frozen
-    (`gc.freeze`, the documented way for exactly this), and unfrozen at the end so a process
-    that runs several loops (a test session) gets it back."""
+    (numba, Zenoh, canopen, numpy); a full collection walks them all: 38-57 ms here, measured
+    at start-up with `gc.callbacks` (none came during a 120 s run, but one comes whenever
+    enough of what a loop makes survives, and it would cost 40-odd cycles at once). The
+    collector stays on for what the loop makes and drops; what exists at the start is
+    collected once and frozen (`gc.freeze`, documented for exactly this), and unfrozen at the
+    end, so a process that runs several loops (a test session) gets it back."""
     gc.collect()
     gc.freeze()
     try:

@@ -72,7 +72,9 @@ class CanOpenBus(Segment):
         self.network = network
 
     def started(self) -> None:
+        cyclic = 1 + sum(drive.transport.sync_cycle.frames_per_cycle for _, drive in self.joints)
         for _, drive in self.joints:
+            drive.transport.health.expect_cyclic_frames(cyclic)
             drive.transport.health.restart_count()
 
     def trigger(self) -> None:

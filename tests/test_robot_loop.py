@@ -35,6 +35,25 @@ class _SyncCounter:
             self.syncs += 1
 
 
+def test_a_link_carrying_the_whole_robot_is_not_taken_for_a_flood():
+    """--sim puts talos_32's EtherCAT line on one in-process link: 32 drives, 129 frames a
+    cycle by design. The flood check judges frames beyond the bus's cyclic traffic (it warned
+    on every joint in every cycle when it judged 32 frames a cycle whatever the bus)."""
+    connection = open_robot(load_robot(ROBOTS / "talos_32.toml"), sim=True, lockstep=True,
+                            seed=0, period=1e-3, response_timeout=1.0)
+    try:
+        group = connection.group
+        group.start()
+        for _ in range(5):
+            group.sync()
+            group.command_currents([0.0] * len(group))
+        assert group.warnings() == []
+        health = group.drives[0].transport.health
+        assert health.frame_limit == 1 + 32 * 4 + 32  # SYNC, 1 RPDO and 3 TPDOs a drive, margin
+    finally:
+        connection.close()
+
+
 def test_one_sync_per_bus_per_cycle_and_every_joint_sampled_in_it():
     robot = load_robot(ARM)
     connection = open_robot(robot, sim=True, lockstep=True, seed=0, period=1e-3,
