@@ -1,15 +1,18 @@
 """The loop's safety net end to end on the virtual drive: faults are published, the commanded
 current never leaves the limit, a failing drive stops the loop."""
 
+import gc
 import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from controller.loop import ControlLoop, LoopOptions
 from controller.messages import topic_of
 from controller.mpc import Mpc
 from controller.problem import OcpSettings
+from driver.clock import collector_off_the_cycle
 from model.parameters import load_model
 from tests.conftest import virtual_pair
 
@@ -82,3 +85,16 @@ def test_ring_stats_percentiles():
         stats.add(float(value))
     assert stats.count == 1000 and stats.max == 999.0
     assert stats.percentile(50) == np.percentile(np.arange(900, 1000), 50)
+
+
+def test_a_loop_runs_with_the_start_up_heap_frozen_and_gives_it_back():
+    """What exists when a loop starts is out of the collector's full passes while it runs
+    (gc.freeze), and back in them afterwards, also when the loop raises: a test session runs
+    many loops in one process."""
+    before = gc.get_freeze_count()
+    with collector_off_the_cycle():
+        assert gc.get_freeze_count() > before
+    assert gc.get_freeze_count() == 0
+    with pytest.raises(RuntimeError), collector_off_the_cycle():
+        raise RuntimeError("the loop failed")
+    assert gc.get_freeze_count() == 0
