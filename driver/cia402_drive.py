@@ -71,7 +71,6 @@ class Cia402Drive(Drive):
         self.drive_gain = drive_gain
         self.current_max = current_max
         self.profile: Profile = select_profile(transport.dictionary, drive_gain)
-        self._has_joint_torque = self.profile.has_joint_torque  # looked at every sample
         self.guard = SampleGuard(velocity_limit, period)
         self.scaling: Scaling | None = None
         self.current_limit = 0.0
@@ -179,7 +178,7 @@ class Cia402Drive(Drive):
         self.cycle += 1
         scaling = self.scaling
         joint_torque = math.nan
-        if self._has_joint_torque:
+        if self.profile.has_joint_torque:
             reading = values[4]
             if self.guard.saturated(reading):
                 self._warnings.append(f"joint torque sensor reading saturated ({reading} mN.m)")

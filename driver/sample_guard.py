@@ -1,7 +1,7 @@
 """Plausibility of a drive's samples, with the joint's limits passed in: a sample is physics,
 not a transport's business, and each joint has its own limits."""
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from driver.interface import EncoderGlitch
 from protocol import cia301
@@ -18,11 +18,10 @@ class SampleGuard:
 
     velocity_limit: float
     period: float
-    max_position_step: float = field(init=False)  # rad, checked every cycle
 
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "max_position_step",
-                           GLITCH_FACTOR * self.velocity_limit * self.period)
+    @property
+    def max_position_step(self) -> float:
+        return GLITCH_FACTOR * self.velocity_limit * self.period
 
     def check_step(self, previous: float, position: float, name: str) -> None:
         """EncoderGlitch if the position jumped further than the joint can move."""
