@@ -16,7 +16,10 @@ from protocol import telemetry as schema
 
 log = logging.getLogger(__name__)
 
-EXPRESS_TOPICS = ("state", "command")  # latency matters more than batching for these
+EXPRESS_TOPICS = ("state", "command", "fault")  # latency matters more than batching for these
+# rare, and the one message a watcher must not miss: it waits out congestion (in the publisher
+# thread; the loop only appends to the queue) where the others are dropped by Zenoh
+NEVER_DROPPED = ("fault",)
 QUEUE_DEPTH = 4096
 # s between the publisher thread's passes over the queue. The loop only appends to a deque:
 # no lock, no wake-up of another thread per message (in lock-step each wake-up handed the
@@ -41,7 +44,8 @@ class TelemetryPublisher:
         self._publishers = {
             topic: session.declare_publisher(
                 schema.key_expr(prefix, topic), encoding=zenoh.Encoding.APPLICATION_PROTOBUF,
-                congestion_control=zenoh.CongestionControl.DROP,
+                congestion_control=(zenoh.CongestionControl.BLOCK if topic in NEVER_DROPPED
+                                    else zenoh.CongestionControl.DROP),
                 express=topic in EXPRESS_TOPICS)
             for topic in topics}
         self._queryables: list = []
