@@ -156,7 +156,6 @@ def main(argv: list[str] | None = None) -> int:
     from driver.clock import collector_off_the_cycle
 
     period = args.period_us * 1e-6
-    apply_real_time(args, PROG)  # before any thread starts: they inherit it
     try:
         session = open_session(args)
     except ValueError as exc:
@@ -164,6 +163,11 @@ def main(argv: list[str] | None = None) -> int:
     from controller.telemetry import TelemetryPublisher
 
     publisher = TelemetryPublisher(session, args.prefix)
+    mpc = Mpc(model, settings, payload, reference)  # compiled code loaded before the drive
+    # real-time priority from here on (the drive's threads inherit it), not before: Zenoh's
+    # and the publisher's threads stay off the cycle, and a start-up's heavy work at that
+    # priority starved the drives and the other master on a 2-core host
+    apply_real_time(args, PROG)
     try:
         # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host
         connection = open_drive(args, model, sim_model, payload, schedule, period=period,
@@ -173,7 +177,6 @@ def main(argv: list[str] | None = None) -> int:
         session.close()
         return job_error(PROG, str(exc))
     drive = connection.drive
-    mpc = Mpc(model, settings, payload, reference)
     loop = ControlLoop(drive, mpc, LoopOptions(period=period, lockstep=args.lockstep,
                                                duration=args.duration,
                                                keep_history=bool(args.plot)),
@@ -306,12 +309,13 @@ def _run_robot(args: argparse.Namespace) -> int:
     from driver.clock import collector_off_the_cycle
 
     period = robot.period_us * 1e-6
-    apply_real_time(args, PROG)  # before any thread starts: they inherit it
     try:
         session = open_session(args)
     except ValueError as exc:
         return usage_error(PROG, str(exc))
     publisher = TelemetryPublisher(session, args.prefix, telemetry.ROBOT_TOPICS)
+    batch = BatchMpc(problems)  # compiled before any drive is opened
+    apply_real_time(args, PROG)  # from here on, for the reason given in the one-joint run
     try:
         # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host
         connection: RobotConnection = open_robot(
@@ -322,7 +326,6 @@ def _run_robot(args: argparse.Namespace) -> int:
         session.close()
         return job_error(PROG, str(exc))
     group = connection.group
-    batch = BatchMpc(problems)  # compiled before any drive is enabled
     loop = RobotLoop(group, batch, LoopOptions(period=period, lockstep=args.lockstep,
                                                duration=args.duration),
                      [publisher.publish], lambda: publisher.dropped, settle=TRACKING_SETTLE)

@@ -39,6 +39,7 @@ from sim_bus.canopen_watchdogs import DEFAULT_SILENCE_TIMEOUT
 from sim_bus.device import Cia402Device
 from sim_bus.faults import Fault
 from sim_bus.plant import SensorNoise
+from sim_bus.priority import answer_like_hardware
 
 PROG = "sim-bus"
 
@@ -132,10 +133,6 @@ def _serve_robot(args) -> int:
                                       joint.address, eds_path=joint.eds, commissioned=True,
                                       silence_timeout=_silence_timeout(args)))
                 served.append((joint.name, nodes[-1].device))
-        if lines:
-            from sim_bus.ethercat.segment import prefer_this_process
-
-            prefer_this_process()  # before the lines' threads, which inherit it
         for line in lines:
             line.start()
         for line in lines:
@@ -154,6 +151,7 @@ def _serve_robot(args) -> int:
         devices[name].schedule(fault, seconds)
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    answer_like_hardware()
     print(f"sim-bus: {len(served)} drives of {robot.name} on {', '.join(robot.buses())} ready",
           flush=True)
     while not stop.is_set() and not any(line.failure for line in lines):
@@ -221,7 +219,7 @@ def _serve_line(args: argparse.Namespace, interface: str, model: ActuatorModel,
     answering in this thread until a signal; then each slave's end state."""
     from protocol import ethercat as ec
     from sim_bus.embedded import make_device
-    from sim_bus.ethercat.segment import prefer_this_process, serve
+    from sim_bus.ethercat.segment import serve
 
     devices = [make_device(model, payload, SensorNoise(
         current=args.current_noise, joint_torque=args.torque_noise, seed=args.seed + k),
@@ -234,10 +232,10 @@ def _serve_line(args: argparse.Namespace, interface: str, model: ActuatorModel,
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    prefer_this_process()
     count = f"{args.slaves} slave{'s' if args.slaves > 1 else ''}"
 
     def ready(_) -> None:
+        answer_like_hardware()  # this thread answers every frame
         print(f"sim-bus: {count} on {args.bus} ready ({model.name or model.source}, payload "
               f"{payload.mass} kg at ({payload.x}, {payload.y}) m)", flush=True)
 
@@ -314,6 +312,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     node.boot()
+    answer_like_hardware()
     print(f"sim-bus: node {args.node_id} on {where} ready ({model.name or model.source}, "
           f"payload {payload.mass} kg at ({payload.x}, {payload.y}) m)", flush=True)
     stop.wait()

@@ -29,6 +29,7 @@ STATE_TIMEOUT_US = 2_000_000  # SOEM's EC_TIMEOUTSTATE: what a state change may 
 OP_FRAMES = 200  # frames sent after the OP request before giving up (OP comes with outputs)
 LOCKSTEP_RESPONSE_TIMEOUT = 1.0  # s: in lock-step a late frame is not a failure, only none is
 REALTIME_RESPONSE_TIMEOUT = 0.1  # s: the slaves' default process data watchdog
+DEFAULT_WATCHDOG = 0.1  # s: the ESC's reset value (ETG.1000.4: 1000 x 100 us)
 KEEP_ALIVE = 0.02  # s: a fifth of the ESC's default watchdog
 SCAN_RETRY = 0.1  # s between two scans of a line that did not answer right
 
@@ -39,8 +40,8 @@ class EthercatMaster:
     `lockstep`: the slaves' process data watchdog (a wall-clock timer in each ESC) is switched
     off (0x0420 = 0), because a lock-step host may pause for any wall time between two cycles;
     the master's own check, the working counter of every frame, counts cycles. In real time the
-    watchdog stays on (the ESC's 100 ms, or `watchdog` s), so the slaves stop their drives when
-    this master dies.
+    watchdog is on (the ESC's 100 ms, or `watchdog` s; written, never assumed), so the slaves
+    stop their drives when this master dies.
     """
 
     def __init__(self, interface: str, esi: EsiDevice, *, lockstep: bool = False,
@@ -144,10 +145,13 @@ class EthercatMaster:
         master = self.master
         if not self.mapped:
             try:
-                if self.lockstep or self.watchdog is not None:
-                    milliseconds = 0.0 if self.lockstep else self.watchdog * 1e3
-                    for slave in self.slaves:
-                        slave.set_watchdog("processdata", milliseconds)
+                # written in real time too, never left as found: an earlier lock-step master
+                # (killed, or one that never closed) may have switched it off, and a slave
+                # without it keeps its drive enabled when this master dies
+                milliseconds = 0.0 if self.lockstep else (
+                    self.watchdog if self.watchdog is not None else DEFAULT_WATCHDOG) * 1e3
+                for slave in self.slaves:
+                    slave.set_watchdog("processdata", milliseconds)
                 master.config_map()
             except pysoem.ConfigMapError as exc:
                 raise DriveError(f"EtherCAT {self.interface}: reading the PDO assignment "

@@ -9,6 +9,7 @@ mailbox when the statusword shows a fault, and handed to `on_emergency` before t
 that shows it.
 """
 
+import logging
 import struct
 from collections.abc import Sequence
 from pathlib import Path
@@ -18,13 +19,16 @@ import pysoem
 from driver.ethercat_master import EthercatMaster
 from driver.interface import DriveError, DriveLost, ProfileError
 from driver.transport import Transport
+from protocol import cia402, objects
 from protocol import eds_path as shipped_eds_path
 from protocol import esi_path as shipped_esi_path
 from protocol import ethercat as ec
-from protocol import objects
+from protocol.cia402 import State
 from protocol.dictionary import has, load_dictionary, variable
 from protocol.esi import EsiDevice, ethercat_dictionary, load_esi
 from protocol.pdo import MappedObject, PdoLayout
+
+log = logging.getLogger(__name__)
 
 STATUSWORD_FAULT = 0x0008  # CiA 402 statusword bit 3
 EMERGENCY_POLLS = 8  # cycles to look for the emergency behind a fault bit before giving up
@@ -75,6 +79,18 @@ class EthercatTransport(Transport):
         if slave is not self._listening:  # a new scan made new slave objects
             slave.add_emergency_callback(self._on_emergency)
             self._listening = slave
+        self._disable_what_was_left()
+
+    def _disable_what_was_left(self) -> None:
+        """A drive an earlier master left powered (killed in lock-step, where no watchdog
+        watched it, or mid-way through its own start) is switched off before anything is
+        configured: a master never inherits an enabled drive or its last target."""
+        state = cia402.state_from_statusword(self.read(objects.STATUSWORD))
+        if state in (State.SWITCH_ON_DISABLED, State.NOT_READY_TO_SWITCH_ON, State.FAULT):
+            return
+        log.warning("%s: drive found in '%s', left by an earlier master: disabling it",
+                    self.name, state.value)
+        self.write(objects.CONTROLWORD, 0, cia402.Command.DISABLE_VOLTAGE.value)
 
     def read(self, index: int, subindex: int = 0) -> int:
         var = self._variable(index, subindex)

@@ -103,6 +103,7 @@ class Cia402Device:
         self.injected: list[tuple[int, Fault]] = []  # (cycle, fault) as they happened
         self.cycle_count = 0
         self.master_loss: str | None = None  # why the master was declared lost, until reset
+        self._alone: tuple[float, int] | None = None  # see `run_alone`
         self._values: dict[tuple[int, int], int] = {}
         self._stored: dict[tuple[int, int], int] = {}  # see `store`
         self.reset_application()
@@ -138,6 +139,11 @@ class Cia402Device:
     @property
     def power_stage_on(self) -> bool:
         return self._state in _POWERED
+
+    @property
+    def at_rest(self) -> bool:
+        """Power stage off and the joint standing still: nothing changes without a master."""
+        return self._state not in _POWERED and self.plant.velocity == 0.0
 
     def _set_state(self, state: State) -> None:
         self._state = state
@@ -399,6 +405,39 @@ class Cia402Device:
             elif option == objects.ABORT_QUICK_STOP:
                 self._set_state(cia402.next_state(self._state, cia402.Command.QUICK_STOP))
                 self._finish_quick_stop()
+
+    def master_found(self) -> None:
+        """A master started cyclic exchange with the drive (EtherCAT: PRE-OP -> SAFE-OP):
+        its loss will be reacted to again. On CAN the NMT reset that every master starts with
+        does this. Without it a drive reacts to the first master it loses only, and a later
+        master's death leaves it enabled."""
+        with self._lock:
+            self.master_loss = None
+            self._alone = None
+
+    def run_alone(self, now: float) -> None:
+        """Real time only, from the exposing node's idle loop (`now`: its monotonic clock, s):
+        a drive whose master is gone keeps its own control loop running, one cycle a period,
+        so its quick stop ends in switch on disabled once the motor stands still and a loaded
+        joint moves as it would, without anyone sending a SYNC or a frame. Cycles the bus
+        drives (a new master's) take precedence: while they come nothing runs here. Lock-step
+        never calls this: its drive time is the bus's cycles only."""
+        if self.master_loss is None and self._alone is None:
+            return  # the every-frame case, without the lock
+        with self._lock:
+            if self.master_loss is None or self.at_rest:
+                self._alone = None
+                return
+            if self._alone is None or self._alone[1] != self.cycle_count:
+                self._alone = (now, self.cycle_count)  # from here on, or the bus cycled it
+                return
+            since = self._alone[0]
+            cycles = int((now - since) / self._period)
+            for _ in range(cycles):
+                self.cycle(self._values[_SYNC_ECHO])
+                if self.at_rest:
+                    break
+            self._alone = (since + cycles * self._period, self.cycle_count)
 
     def _finish_quick_stop(self) -> None:
         """Quick stop in a torque drive: no torque, brake engaged; once the joint stands

@@ -145,11 +145,12 @@ def _serve_line(namespace: str, port: str, count: int, model: ActuatorModel, pay
                 noise: SensorNoise, pipe) -> None:
     """The slave process: into the namespace, the drives on the port until SIGTERM, then the
     end state of every slave down the pipe."""
-    from sim_bus.ethercat.segment import prefer_this_process, serve
+    from sim_bus.ethercat.segment import serve
+    from sim_bus.priority import answer_like_hardware
 
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    prefer_this_process()  # not permitted: the line still works, SOEM retrying more often
+    answer_like_hardware()  # not permitted: the line still works, SOEM retrying more often
     try:
         libc = ctypes.CDLL(None, use_errno=True)
         with open(f"/run/netns/{namespace}") as target:
