@@ -6,18 +6,10 @@ import datetime
 import sys
 from pathlib import Path
 
-from commands.options import (
-    CommandParser,
-    add_logging_argument,
-    add_model_argument,
-    add_payload_arguments,
-    check_output_file,
-    check_output_folder,
-    configure_logging,
-    parse_payload,
-    positive_float,
-    usage_error,
-)
+from commands.log_options import add_logging_argument, configure_logging
+from commands.model_options import add_model_argument, add_payload_arguments, parse_payload
+from commands.output_options import check_output_file, check_output_folder
+from commands.parsing import CommandParser, positive_float, usage_error
 from model.identify import (
     CUTOFF_HZ,
     PARAMETERS,

@@ -6,15 +6,9 @@ import json
 import sys
 from pathlib import Path
 
-from commands.options import (
-    CommandParser,
-    add_logging_argument,
-    check_output_file,
-    check_output_folder,
-    configure_logging,
-    positive_float,
-    usage_error,
-)
+from commands.log_options import add_logging_argument, configure_logging
+from commands.output_options import check_output_file, check_output_folder
+from commands.parsing import CommandParser, positive_float, usage_error
 from model.gap import (
     HORIZON,
     GapError,

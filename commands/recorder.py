@@ -16,41 +16,33 @@ import threading
 import time
 from pathlib import Path
 
-from commands.options import (
-    CommandParser,
-    DriveOpenError,
+from commands.bus_options import (
     add_bus_arguments,
-    add_logging_argument,
-    add_model_argument,
-    add_payload_arguments,
     add_real_time_argument,
-    add_virtual_drive_arguments,
-    add_zenoh_arguments,
     apply_real_time,
     check_drive_arguments,
     check_eds,
-    check_key_expr,
-    check_output_file,
-    check_payload,
-    configure_logging,
-    finite_float,
-    int_range,
-    job_error,
     load_esi_option,
     open_drive,
-    open_joint,
-    open_session,
-    payload_from_args,
-    positive_float,
-    usage_error,
-    with_truth_effects,
 )
+from commands.log_options import add_logging_argument, configure_logging, job_error
+from commands.model_options import (
+    add_model_argument,
+    add_payload_arguments,
+    check_payload,
+    payload_from_args,
+)
+from commands.output_options import check_output_file
+from commands.parsing import CommandParser, finite_float, int_range, positive_float, usage_error
+from commands.sim_options import add_virtual_drive_arguments, with_truth_effects
+from commands.zenoh_options import add_zenoh_arguments, check_key_expr, open_session
 from model.parameters import ModelFileError, load_model
 from protocol import telemetry
 from protocol.bus_spec import BusSpecError
 from recorder.exciting import ExcitingTrajectory, SlowSinusoid
 from recorder.reader import load_recording
 from recorder.recording import RecordingError
+from robot.wiring import DriveOpenError, open_joint
 
 PROG = "recorder"
 RECORDED_TOPICS = ("state", "command", "fault")  # what an experiment's recording keeps
@@ -127,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
 def _robot_joint(args: argparse.Namespace):
     """(robot, joint) for --robot/--joint, the trajectory's defaults fitted to the joint;
     (None, None) without --robot. ValueError names the option."""
-    from commands.robot_file import load_robot
+    from robot.description import load_robot
 
     if args.robot is None:
         if args.joint is not None:
