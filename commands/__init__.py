@@ -1,5 +1,5 @@
 """The console scripts, one module each, and the options they share, split by job
-(`parsing`, `bus_options`, `sim_options`, `model_options`, `zenoh_options`, `output_options`,
+(`parsing`, `bus_options`, `sim_options`, `model_options`, `zenoh_options`, `file_options`,
 `log_options`).
 
 A command parses its command line, checks it whole and turns errors into exit codes; the robot

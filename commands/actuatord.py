@@ -16,15 +16,16 @@ from commands.bus_options import (
     load_esi_option,
     open_drive,
 )
+from commands.file_options import check_output_folder
 from commands.log_options import add_logging_argument, configure_logging, job_error
 from commands.model_options import (
     add_model_argument,
     add_payload_arguments,
     check_payload,
+    load_model_option,
     parse_assignments,
     payload_from_args,
 )
-from commands.output_options import check_output_folder
 from commands.parsing import CommandParser, int_range, positive_float, usage_error
 from commands.sim_options import add_virtual_drive_arguments, fault_schedule, with_truth_effects
 from commands.zenoh_options import add_zenoh_arguments, check_key_expr, open_session
@@ -33,7 +34,7 @@ from controller.mpc import Mpc
 from controller.problem import MAX_HORIZON, OcpSettings, ResolutionError, Weights
 from controller.reference import ReferenceError, Sinusoid, reference_from_dict
 from controller.requests import RequestHandler
-from model.parameters import ActuatorModel, ModelFileError, load_model
+from model.parameters import ActuatorModel, ModelFileError
 from protocol import telemetry
 from protocol.bus_spec import BusSpecError
 from robot.wiring import DriveOpenError
@@ -128,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.prefix is None:
         args.prefix = telemetry.DEFAULT_PREFIX
     try:
-        model = load_model(args.model)
+        model = load_model_option(args.model)
         sim_model = with_truth_effects(model, args.truth_effect)
         schedule = fault_schedule(args)
         if schedule and not args.sim:

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import can
 import can.cli
 
-from commands.output_options import check_output_file
+from commands.file_options import Inputs, check_output_file, option_inputs
 from commands.parsing import DEFAULT_NODE_ID, LINE_SLAVES, NODE_ID, SLAVE_POSITION, int_range
 from model.parameters import ActuatorModel, Payload
 from protocol.bus_spec import BusSpecError, is_ethercat, parse_bus_spec
@@ -173,7 +173,7 @@ def check_drive_arguments(args: argparse.Namespace,
                 raise ValueError(f"--lockstep needs --sim or EtherCAT buses only: bus {bus} is "
                                  "CAN, whose drives run in real time")
     if args.can_log is not None:
-        check_can_log(args.can_log)
+        check_can_log(args.can_log, option_inputs(args))
 
 
 def load_esi_option(args: argparse.Namespace) -> EsiDevice | None:
@@ -185,8 +185,6 @@ def load_esi_option(args: argparse.Namespace) -> EsiDevice | None:
     from protocol.esi import EsiError, load_esi
 
     path = args.esi
-    if path is not None and not Path(path).is_file():
-        raise ValueError(f"--esi {path}: no such file")
     try:
         return load_esi(path if path is not None else esi_path())
     except EsiError as exc:
@@ -195,27 +193,32 @@ def load_esi_option(args: argparse.Namespace) -> EsiDevice | None:
 
 def check_eds(path: str | None, drive_gain: float | None = None, *,
               master: bool = True, esi: EsiDevice | None = None) -> None:
-    """--eds FILE: an EDS canopen reads and, for a `master`, one that offers what the torque
-    loop needs (`driver.profile`, the check the master repeats when it opens the drive), so a
-    drive the loop cannot run is refused before anything is sent to it. Over EtherCAT (`esi`)
-    the loop gets only what the ESI's PDOs carry, so the check is on the EDS seen through it,
-    the shipped EDS included. ValueError names the option and every missing object."""
-    if path is None and (esi is None or not master):
+    """--eds FILE: an EDS canopen reads (checked whole: `protocol.dictionary`), whose objects
+    take the ESI's PDOs when there is one (`esi`), and, for a `master`, one that offers what
+    the torque loop needs (`driver.profile`, the check the master repeats when it opens the
+    drive), so a drive the loop cannot run is refused before anything is sent to it. Over
+    EtherCAT (`esi`) the loop gets only what the ESI's PDOs carry, so the check is on the EDS
+    seen through it, the shipped EDS included. ValueError names the option and every missing
+    object."""
+    if path is None and esi is None:
         return
     from driver.interface import ProfileError
     from driver.profile import select_profile
     from protocol import eds_path
     from protocol.dictionary import load_dictionary
-    from protocol.esi import ethercat_dictionary
+    from protocol.esi import EsiError, check_against_dictionary, ethercat_dictionary
 
-    if path is not None and not Path(path).is_file():
-        raise ValueError(f"--eds {path}: no such file")
     try:
         dictionary = load_dictionary(path if path is not None else eds_path())
     except ValueError as exc:  # its error names the file
         raise ValueError(f"--eds {exc}") from None
+    shown = f"--eds {path}" if path is not None else f"the shipped EDS {eds_path().name}"
+    if esi is not None:  # the slave maps what the ESI's PDOs list into the EDS's objects
+        try:
+            check_against_dictionary(esi, dictionary)
+        except EsiError as exc:
+            raise ValueError(f"--esi ({esi.name}) with {shown}: {exc}") from None
     if master:
-        shown = f"--eds {path}" if path is not None else f"the shipped EDS {eds_path().name}"
         if esi is not None:
             dictionary = ethercat_dictionary(dictionary, esi)
             shown += f" through the ESI's PDOs ({esi.name})"
@@ -250,8 +253,9 @@ def _python_can_names_an_interface() -> bool:
     return any(source.get("interface") or source.get("bustype") for source in sources)
 
 
-def check_can_log(path: str) -> None:
-    """--can-log FILE: a suffix python-can writes (optionally .gz) in a folder that takes it."""
+def check_can_log(path: str, inputs: Inputs = ()) -> None:
+    """--can-log FILE: a suffix python-can writes (optionally .gz) in a folder that takes it,
+    none of the command's `inputs`."""
     suffixes = Path(path).suffixes
     suffix = suffixes[-2] if len(suffixes) > 1 and suffixes[-1] == ".gz" else (
         suffixes[-1] if suffixes else "")
@@ -259,7 +263,7 @@ def check_can_log(path: str) -> None:
     if suffix.lower() not in writers:
         raise ValueError(f"--can-log {path}: expected a file ending in "
                          f"{', '.join(sorted(writers))} (python-can's writers)")
-    check_output_file("--can-log", path)
+    check_output_file("--can-log", path, inputs)
 
 
 def open_can_log(args: argparse.Namespace) -> CanLog:

@@ -13,6 +13,7 @@ from commands.bus_options import (
     check_drive_arguments,
     check_eds,
     ethercat_interface,
+    load_esi_option,
     open_can_log,
 )
 from commands.log_options import add_logging_argument, configure_logging, job_error
@@ -20,6 +21,7 @@ from commands.model_options import (
     add_model_argument,
     add_payload_arguments,
     check_payload,
+    load_model_option,
     payload_from_args,
 )
 from commands.parsing import CommandParser, finite_float, non_negative_float, usage_error
@@ -29,7 +31,7 @@ from commands.sim_options import (
     parse_fault,
     with_truth_effects,
 )
-from model.parameters import ActuatorModel, ModelFileError, Payload, load_model
+from model.parameters import ActuatorModel, ModelFileError, Payload
 from protocol.bus_spec import BusSpecError, is_ethercat, parse_bus_spec
 from robot.wiring import describe_bus, open_can_network
 from sim_bus.canopen_node import CanOpenNode
@@ -275,8 +277,8 @@ def main(argv: list[str] | None = None) -> int:
         if interface is not None and args.silence_timeout is not None:
             raise ValueError(f"--bus {args.bus} and --silence-timeout: EtherCAT slaves watch "
                              "their master with the sync manager watchdog the master sets")
-        check_eds(args.eds, master=False)
-        nominal = load_model(args.model)
+        check_eds(args.eds, master=False, esi=load_esi_option(args))
+        nominal = load_model_option(args.model)
         model = with_truth_effects(nominal, args.truth_effect)
         payload = payload_from_args(args)
         check_payload(nominal, payload)

@@ -8,6 +8,8 @@ import json
 
 import zenoh
 
+from commands.file_options import check_input_option
+
 
 def check_key_expr(option: str, text: str, wildcards: bool) -> str:
     """A Zenoh key expression (`wildcards` allows `*`, `**`, `$*`: subscriptions do, a
@@ -37,6 +39,8 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
 def zenoh_config(args: argparse.Namespace) -> zenoh.Config:
     """A Zenoh config from the file (if any) with the command-line options applied on top.
     Raises ValueError naming the option at fault."""
+    if args.zenoh_config is not None:
+        check_input_option("--zenoh-config", args.zenoh_config, "a Zenoh JSON5 config")
     try:
         config = zenoh.Config.from_file(args.zenoh_config) if args.zenoh_config else (
             zenoh.Config())
