@@ -7,43 +7,37 @@ import signal
 import sys
 from pathlib import Path
 
-from commands.options import (
-    CommandParser,
-    DriveOpenError,
+from commands.bus_options import (
     add_bus_arguments,
-    add_logging_argument,
-    add_model_argument,
-    add_payload_arguments,
     add_real_time_argument,
-    add_virtual_drive_arguments,
-    add_zenoh_arguments,
     apply_real_time,
     check_drive_arguments,
     check_eds,
-    check_key_expr,
-    check_output_folder,
-    check_payload,
-    configure_logging,
-    fault_schedule,
-    int_range,
-    job_error,
     load_esi_option,
     open_drive,
-    open_session,
+)
+from commands.file_options import check_output_folder
+from commands.log_options import add_logging_argument, configure_logging, job_error
+from commands.model_options import (
+    add_model_argument,
+    add_payload_arguments,
+    check_payload,
+    load_model_option,
     parse_assignments,
     payload_from_args,
-    positive_float,
-    usage_error,
-    with_truth_effects,
 )
+from commands.parsing import CommandParser, int_range, positive_float, usage_error
+from commands.sim_options import add_virtual_drive_arguments, fault_schedule, with_truth_effects
+from commands.zenoh_options import add_zenoh_arguments, check_key_expr, open_session
 from controller.loop import ControlLoop, LoopOptions
 from controller.mpc import Mpc
 from controller.problem import MAX_HORIZON, OcpSettings, ResolutionError, Weights
 from controller.reference import ReferenceError, Sinusoid, reference_from_dict
 from controller.requests import RequestHandler
-from model.parameters import ActuatorModel, ModelFileError, load_model
+from model.parameters import ActuatorModel, ModelFileError
 from protocol import telemetry
 from protocol.bus_spec import BusSpecError
+from robot.wiring import DriveOpenError
 
 PROG = "actuatord"
 
@@ -135,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.prefix is None:
         args.prefix = telemetry.DEFAULT_PREFIX
     try:
-        model = load_model(args.model)
+        model = load_model_option(args.model)
         sim_model = with_truth_effects(model, args.truth_effect)
         schedule = fault_schedule(args)
         if schedule and not args.sim:
@@ -279,8 +273,9 @@ def _robot_parameters(robot, problems: list) -> dict:
 def _run_robot(args: argparse.Namespace) -> int:
     """`actuatord --robot FILE`: exit 0 when the run ends as asked, 1 when a joint failed
     (every joint quick-stopped, the joint named), 2 for a bad file or option."""
-    from commands.options import RobotConnection, open_robot, parse_joint_fault
-    from commands.robot_file import RobotFileError, load_robot
+    from commands.sim_options import parse_joint_fault
+    from robot.description import RobotFileError, load_robot
+    from robot.wiring import RobotConnection, open_robot
 
     try:
         for option, key, default in _SINGLE_JOINT_OPTIONS:

@@ -4,7 +4,8 @@ batched MPC for 7 and 32 joints (the measuring is `controller.benchmark`)."""
 import json
 import sys
 
-from commands.options import CommandParser, add_logging_argument, configure_logging, int_range
+from commands.log_options import add_logging_argument, configure_logging
+from commands.parsing import CommandParser, int_range
 from controller.benchmark import run
 
 

@@ -18,13 +18,8 @@ import time
 
 import numpy as np
 
-from commands.options import (
-    CommandParser,
-    add_logging_argument,
-    configure_logging,
-    int_range,
-    job_error,
-)
+from commands.log_options import add_logging_argument, configure_logging, job_error
+from commands.parsing import CommandParser, int_range
 from driver.canopen_drive import CanOpenDrive, open_network
 
 ETHERCAT_LINES = (1, 4)  # slaves on the measured lines

@@ -13,18 +13,10 @@ import socket
 import sys
 import threading
 
-from commands.options import (
-    TCP_PORT,
-    CommandParser,
-    add_logging_argument,
-    add_zenoh_arguments,
-    check_key_expr,
-    configure_logging,
-    job_error,
-    open_session,
-    parse_assignments,
-    usage_error,
-)
+from commands.log_options import add_logging_argument, configure_logging, job_error
+from commands.model_options import parse_assignments
+from commands.parsing import TCP_PORT, CommandParser, usage_error
+from commands.zenoh_options import add_zenoh_arguments, check_key_expr, open_session
 from protocol import telemetry
 
 PROG = "dashboard"

@@ -6,18 +6,15 @@ import datetime
 import sys
 from pathlib import Path
 
-from commands.options import (
-    CommandParser,
-    add_logging_argument,
+from commands.file_options import check_output_file, check_output_folder
+from commands.log_options import add_logging_argument, configure_logging
+from commands.model_options import (
     add_model_argument,
     add_payload_arguments,
-    check_output_file,
-    check_output_folder,
-    configure_logging,
+    load_model_option,
     parse_payload,
-    positive_float,
-    usage_error,
 )
+from commands.parsing import CommandParser, positive_float, usage_error
 from model.identify import (
     CUTOFF_HZ,
     PARAMETERS,
@@ -27,7 +24,7 @@ from model.identify import (
     identify,
 )
 from model.model_file import write_model
-from model.parameters import ActuatorModel, ModelFileError, load_model
+from model.parameters import ActuatorModel, ModelFileError
 from model.plots import identification_figures
 from recorder.reader import load_recording
 from recorder.recording import Recording, RecordingError
@@ -62,10 +59,11 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)
     try:
-        check_output_file("-o", args.output)
+        check_output_file("-o", args.output, [("NOLOAD", args.no_load), ("LOAD", args.load),
+                                              ("--model", args.model)])
         if args.plots:
             check_output_folder("--plots", args.plots)
-        nominal = load_model(args.model)
+        nominal = load_model_option(args.model)
         no_load = load_recording(args.no_load)
         load = load_recording(args.load)
         if args.payload_mass is not None:

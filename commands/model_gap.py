@@ -6,15 +6,10 @@ import json
 import sys
 from pathlib import Path
 
-from commands.options import (
-    CommandParser,
-    add_logging_argument,
-    check_output_file,
-    check_output_folder,
-    configure_logging,
-    positive_float,
-    usage_error,
-)
+from commands.file_options import check_distinct_outputs, check_output_file, check_output_folder
+from commands.log_options import add_logging_argument, configure_logging
+from commands.model_options import load_model_option
+from commands.parsing import CommandParser, positive_float, usage_error
 from model.gap import (
     HORIZON,
     GapError,
@@ -25,7 +20,7 @@ from model.gap import (
 )
 from model.identify import Experiment
 from model.model_file import write_model
-from model.parameters import ModelFileError, Payload, load_model
+from model.parameters import ModelFileError, Payload
 from model.plots import gap_figures
 from recorder.reader import load_recording
 from recorder.recording import RecordingError
@@ -53,12 +48,14 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)
     try:
+        inputs = [("--model", args.model), *(("RECORDING", path) for path in args.recordings)]
         for option, path in (("--report", args.report), ("-o", args.output)):
             if path:
-                check_output_file(option, path)
+                check_output_file(option, path, inputs)
+        check_distinct_outputs([("--report", args.report), ("-o", args.output)])
         if args.plots:
             check_output_folder("--plots", args.plots)
-        model = load_model(args.model)
+        model = load_model_option(args.model)
         experiments = []
         for path in args.recordings:
             recording = load_recording(path).with_joint_torque()

@@ -16,41 +16,34 @@ import threading
 import time
 from pathlib import Path
 
-from commands.options import (
-    CommandParser,
-    DriveOpenError,
+from commands.bus_options import (
     add_bus_arguments,
-    add_logging_argument,
-    add_model_argument,
-    add_payload_arguments,
     add_real_time_argument,
-    add_virtual_drive_arguments,
-    add_zenoh_arguments,
     apply_real_time,
     check_drive_arguments,
     check_eds,
-    check_key_expr,
-    check_output_file,
-    check_payload,
-    configure_logging,
-    finite_float,
-    int_range,
-    job_error,
     load_esi_option,
     open_drive,
-    open_joint,
-    open_session,
-    payload_from_args,
-    positive_float,
-    usage_error,
-    with_truth_effects,
 )
-from model.parameters import ModelFileError, load_model
+from commands.file_options import check_distinct_outputs, check_output_file, option_inputs
+from commands.log_options import add_logging_argument, configure_logging, job_error
+from commands.model_options import (
+    add_model_argument,
+    add_payload_arguments,
+    check_payload,
+    load_model_option,
+    payload_from_args,
+)
+from commands.parsing import CommandParser, finite_float, int_range, positive_float, usage_error
+from commands.sim_options import add_virtual_drive_arguments, with_truth_effects
+from commands.zenoh_options import add_zenoh_arguments, check_key_expr, open_session
+from model.parameters import ModelFileError
 from protocol import telemetry
 from protocol.bus_spec import BusSpecError
 from recorder.exciting import ExcitingTrajectory, SlowSinusoid
 from recorder.reader import load_recording
 from recorder.recording import RecordingError
+from robot.wiring import DriveOpenError, open_joint
 
 PROG = "recorder"
 RECORDED_TOPICS = ("state", "command", "fault")  # what an experiment's recording keeps
@@ -108,7 +101,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)
     try:
-        check_output_file("-o", args.output)
+        check_output_file("-o", args.output, option_inputs(args))
+        check_distinct_outputs([("-o", args.output), ("--can-log", args.can_log)])
         if args.zenoh:
             check_key_expr("--zenoh", args.zenoh, wildcards=True)
             if args.can_log:
@@ -127,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
 def _robot_joint(args: argparse.Namespace):
     """(robot, joint) for --robot/--joint, the trajectory's defaults fitted to the joint;
     (None, None) without --robot. ValueError names the option."""
-    from commands.robot_file import load_robot
+    from robot.description import load_robot
 
     if args.robot is None:
         if args.joint is not None:
@@ -161,7 +155,7 @@ def _robot_joint(args: argparse.Namespace):
 def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     try:
         robot, joint = _robot_joint(args)
-        model = load_model(args.model) if joint is None else joint.model
+        model = load_model_option(args.model) if joint is None else joint.model
         sim_model = with_truth_effects(model, args.truth_effect)
         payload = payload_from_args(args)
         check_payload(model, payload)
@@ -332,7 +326,7 @@ def _export(argv: list[str]) -> int:
     from recorder.csv_io import write_csv
 
     try:
-        check_output_file("-o", args.output)
+        check_output_file("-o", args.output, [("FILE.mcap", args.recording)])
         recording = load_recording(args.recording)
     except (RecordingError, ValueError) as exc:
         return usage_error(PROG, str(exc))
@@ -357,7 +351,7 @@ def _repair(argv: list[str]) -> int:
     from recorder.repair import repair_recording
 
     try:
-        check_output_file("-o", args.output)
+        check_output_file("-o", args.output)  # the same file: refused by repair, naming it
         report = repair_recording(args.recording, args.output)
     except (RecordingError, ValueError) as exc:
         return usage_error(PROG, str(exc))

@@ -213,7 +213,8 @@ def shipped_path() -> Path:
 
 def _robot_names(path: str) -> tuple[str, list[str]] | None:
     """The robot's name and its joints' names, in order, from a robot file (read as TOML
-    here: the dashboard layer does not import the commands that check robot files whole)."""
+    here: the dashboard layer imports only `protocol`, not `robot.description`, which checks
+    robot files whole)."""
     import tomllib
 
     try:

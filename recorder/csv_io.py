@@ -21,6 +21,8 @@ def read_csv(path: Path) -> Recording:
                              "an MCAP file") from None
     except OSError as exc:
         raise RecordingError(f"{path}: cannot read: {exc.strerror}") from None
+    except csv.Error as exc:  # a field over the csv module's limit (128 KiB), a NUL byte
+        raise RecordingError(f"{path}: not a CSV recording: {exc}") from None
 
 
 def _read_csv(path: Path) -> Recording:

@@ -283,8 +283,8 @@ def recorded_fields(path) -> dict[str, set[str]]:
 def test_robot_layout_plots_every_joint_from_fields_the_robot_publishes():
     """`python3 -m dashboard.layout --robot FILE`: every joint of the file, each path a field
     of the message actuatord --robot publishes on that topic, every index a joint."""
-    from commands.robot_file import load_robot
     from dashboard.layout import robot_layout
+    from robot.description import load_robot
 
     robot = load_robot(ARM)
     prefix = f"robots/{robot.name}"

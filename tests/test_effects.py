@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from commands.options import with_truth_effects
+from commands.sim_options import with_truth_effects
 from model import dynamics
 from model.effects import EFFECTS, HIDDEN_ONLY, LIBRARY, FitContext
 from model.identify import Columns, rows

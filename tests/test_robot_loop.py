@@ -6,11 +6,11 @@ import subprocess
 import sys
 from pathlib import Path
 
-from commands.options import open_robot
-from commands.robot_file import load_robot
 from controller.messages import JointStates
 from protocol import cia301, telemetry
 from protocol.cia402 import State
+from robot.description import load_robot
+from robot.wiring import open_robot
 from sim_bus.faults import Fault
 from sim_bus.plant import SensorNoise
 from tests.conftest import free_port

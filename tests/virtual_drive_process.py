@@ -14,7 +14,7 @@ import threading
 
 import canopen
 
-from commands.options import parse_payload
+from commands.model_options import parse_payload
 from model.parameters import load_model
 from protocol.bus_spec import parse_bus_spec
 from sim_bus.canopen_node import CanOpenNode
