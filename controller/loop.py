@@ -48,6 +48,9 @@ class LoopReport:
     reason: str = "stopped"
     clock: CycleClock | None = None
     solve: RingStats = field(default_factory=RingStats)
+    # us per cycle the master spends besides the MPC's call: exchange with the drives,
+    # decoding, safety, encoding (a figure of its own: what the service adds to the solver)
+    master: RingStats = field(default_factory=RingStats)
     history: dict = field(default_factory=dict)
 
     @property
@@ -63,8 +66,9 @@ class LoopReport:
                 f"fallbacks; cold solve {self.cold_solve_us:.0f} us; period jitter p99 "
                 f"{self.jitter.percentile(99):.1f} us, max {self.jitter.max:.1f} us; MPC tick "
                 f"median {self.solve.percentile(50):.1f} us, p99 "
-                f"{self.solve.percentile(99):.1f} us, max {self.solve.max:.1f} us; "
-                f"{self.reason}")
+                f"{self.solve.percentile(99):.1f} us, max {self.solve.max:.1f} us; master "
+                f"(MPC excluded) median {self.master.percentile(50):.1f} us, p99 "
+                f"{self.master.percentile(99):.1f} us; {self.reason}")
 
 
 class CycleLoop:
@@ -90,6 +94,7 @@ class CycleLoop:
         self._stop = stop if stop is not None else threading.Event()
         self.report = LoopReport()
         self._t: float | None = None  # drive time of the last sample (None before the first)
+        self._mpc_time = 0.0  # s the last cycle spent in the policy's own call (set by _cycle)
 
     @property
     def time(self) -> float:
@@ -128,9 +133,11 @@ class CycleLoop:
             missed = clock.missed_cycles
             while self._requests:
                 self._requests.popleft()()
+            started = time.perf_counter()
             decide_time = self._cycle()
             if isinstance(decide_time, LoopReport):
                 return decide_time
+            master_time = time.perf_counter() - started - self._mpc_time
             if report.cycles == 0:
                 # the cold solve runs once before the rhythm starts: timed on its own, and the
                 # deadlines begin after it
@@ -139,6 +146,7 @@ class CycleLoop:
             else:
                 clock.check_overrun()
                 report.solve.add(decide_time * 1e6)
+                report.master.add(master_time * 1e6)
             report.cycles += 1
             self._published(decide_time)
             t = self._t
@@ -214,7 +222,7 @@ class ControlLoop(CycleLoop):
                                 "drive", "stopped commanding; drive disabled on exit", sample.t)
         start = time.perf_counter()
         safe = self._safe = self._net.decide(sample)
-        decide_time = time.perf_counter() - start
+        decide_time = self._mpc_time = time.perf_counter() - start
         try:
             drive.command_current(safe.current)
         except (CommandRangeError, DriveError) as exc:

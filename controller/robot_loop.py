@@ -26,7 +26,7 @@ from controller.policy import Decision, PlanSnapshot
 from controller.reference import reference_at
 from controller.safety import NOT_FINITE, BatchSafety, SafetyNet
 from driver import DriveError, Sample
-from driver.interface import SAMPLE_POSITION, SAMPLE_STATUSWORD, SAMPLE_VELOCITY
+from driver.interface import SAMPLE_POSITION, SAMPLE_STATUSWORD, SAMPLE_T, SAMPLE_VELOCITY
 from protocol import cia402
 
 QUICK_STOPPED = "every joint quick-stopped, then disabled"  # what the caller does on failure
@@ -37,7 +37,8 @@ class Joints(Protocol):
 
     names: list[str]
 
-    def sync(self) -> list[Sample]: ...
+    def sync(self) -> np.ndarray:
+        """This cycle's samples, a row per joint (`driver.interface.SAMPLE_*` columns)."""
 
     def command_currents(self, currents: Sequence[float]) -> None: ...
 
@@ -111,11 +112,10 @@ class RobotLoop(CycleLoop):
     def _cycle(self) -> "float | LoopReport":
         joints, batch, safety = self._joints, self.batch, self._safety
         try:
-            samples = joints.sync()
+            table = self.latest = joints.sync()
         except DriveError as exc:
             return self._fail(exc, self.time + self.options.period)
-        table = self.latest = np.array(samples, dtype=float)
-        t = self._t = samples[0].t
+        t = self._t = float(table[0, SAMPLE_T])
         for warning in joints.warnings():
             self.fault(t, "drive", warning, "continuing: the command does not use it")
         statuswords = table[:, SAMPLE_STATUSWORD].astype(np.int64)
@@ -133,13 +133,16 @@ class RobotLoop(CycleLoop):
         fallbacks = self._fallbacks = {}
         if not believed.all():  # rare: the per-joint nets say why, and hold those joints
             for j in np.flatnonzero(~believed):
-                fallbacks[int(j)] = self._nets[j].screen(samples[j]).fault
+                sample = Sample(*table[j, :SAMPLE_STATUSWORD], int(table[j, SAMPLE_STATUSWORD]))
+                fallbacks[int(j)] = self._nets[j].screen(sample).fault
         rows[believed, ws.POSITION] = positions[believed]
         rows[believed, ws.VELOCITY] = velocities[believed]
         cold = believed & (rows[:, ws.MODE] == COLD)
         if cold.any():  # a cold start begins from the current that holds the joint
-            rows[cold, ws.INITIAL_CURRENT] = safety.hold_currents(positions[cold])
+            rows[cold, ws.INITIAL_CURRENT] = safety.hold_currents(positions)[cold]
+        mpc_start = time.perf_counter()
         batch.run(t)
+        self._mpc_time = time.perf_counter() - mpc_start
         header = self._header = rows[:, :ws.HEADER].copy()
         status = header[:, ws.STATUS]
         ok = (status == CONVERGED) | (status == MAX_ITERATIONS)

@@ -116,7 +116,8 @@ class BatchSafety:
         self._velocity_high = np.array([VELOCITY_MARGIN * lim.velocity_max for lim in limits])
 
     def hold_currents(self, positions: np.ndarray) -> np.ndarray:
-        """`holding_current` of every joint (A), within its limit."""
+        """`holding_current` of every joint (A), within its limit (`positions`: one per joint
+        of the batch, in its order)."""
         torque = (self._gravity_my * np.sin(positions) + self._gravity_mx * np.cos(positions)
                   + self._torque_offset)
         return np.clip(torque / self._drive_gain, -self.current_max, self.current_max)

@@ -16,6 +16,7 @@ import logging
 import socket
 import time
 from collections.abc import Callable
+from typing import Any
 
 import pysoem
 
@@ -42,11 +43,16 @@ class EthercatMaster:
     the master's own check, the working counter of every frame, counts cycles. In real time the
     watchdog is on (the ESC's 100 ms, or `watchdog` s; written, never assumed), so the slaves
     stop their drives when this master dies.
+
+    `open_master` makes the pysoem master (by default SOEM on the interface; a line of
+    virtual slaves in this process for `--sim`: `sim_bus.ethercat.linked.LinkedMaster`).
     """
 
     def __init__(self, interface: str, esi: EsiDevice, *, lockstep: bool = False,
-                 response_timeout: float | None = None, watchdog: float | None = None):
+                 response_timeout: float | None = None, watchdog: float | None = None,
+                 open_master: Callable[[], Any] = pysoem.Master):
         self.interface = interface
+        self._open_master = open_master
         self.esi = esi
         self.lockstep = lockstep
         if response_timeout is None:
@@ -105,7 +111,7 @@ class EthercatMaster:
 
     def _scan_once(self) -> DriveError | None:
         self.close_line()
-        master = pysoem.Master()
+        master = self._open_master()
         try:
             master.open(self.interface)
         except ConnectionError as exc:

@@ -11,8 +11,9 @@ that shows it.
 
 import logging
 import struct
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import pysoem
 
@@ -257,15 +258,18 @@ def open_ethercat_transports(interface: str, positions: Sequence[int], *,
                              lockstep: bool = False, esi: str | Path | EsiDevice | None = None,
                              eds: str | Path | Sequence[str | Path | None] | None = None,
                              response_timeout: float | None = None,
-                             watchdog: float | None = None) -> list[EthercatTransport]:
+                             watchdog: float | None = None,
+                             open_master: Callable[[], Any] = pysoem.Master
+                             ) -> list[EthercatTransport]:
     """One transport per slave position on the line at `interface`, sharing its master (one
     frame per cycle for all of them). `esi` defaults to the shipped elbow drive ESI; `eds` is
-    every slave's EDS, or a list with one per position (drives of different joints differ)."""
+    every slave's EDS, or a list with one per position (drives of different joints differ).
+    `open_master`: see `driver.ethercat_master.EthercatMaster`."""
     if not isinstance(esi, EsiDevice):
         esi = load_esi(esi if esi is not None else shipped_esi_path())
     if eds is None or isinstance(eds, str | Path):
         eds = [eds] * len(positions)
     line = EthercatMaster(interface, esi, lockstep=lockstep, response_timeout=response_timeout,
-                          watchdog=watchdog)
+                          watchdog=watchdog, open_master=open_master)
     return [EthercatTransport(line, position, eds=path)
             for position, path in zip(positions, eds, strict=True)]

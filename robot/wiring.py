@@ -10,7 +10,7 @@ checked from the caller (the command layer parses and checks options).
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -213,37 +213,38 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
                faults: Iterable[tuple[str, Fault, float]] = ()) -> RobotConnection:
     """Every joint's drive, grouped by bus: one SYNC per CAN bus and one frame per EtherCAT
     line a cycle (`driver.drive_group`; a line's joints opened in slave order, the group
-    keeps the file's joint order). With `sim`, each bus, CAN or EtherCAT, is an in-process
-    CANopen link carrying one virtual drive per joint, commissioned for the joint's model
-    (`sim_bus.commissioning`), its physics the joint's model, its noise seeded `seed` + the
-    joint's index. An EtherCAT line has no in-process equivalent (its slaves answer on a raw
-    interface), and the physics behind either bus is the same `Cia402Device`: what --sim does
-    not exercise for those joints is the EtherCAT transport (cyclic synchronous torque through
-    the ESI instead of the EDS's current mode). Raises DriveOpenError (exit 1)."""
+    keeps the file's joint order). With `sim`, every bus keeps its kind, one virtual drive
+    per joint, commissioned for the joint's model (`sim_bus.commissioning`), its physics the
+    joint's model, its noise seeded `seed` + the joint's index: a CAN bus is an in-process
+    CANopen link, an EtherCAT line a line of virtual slaves linked to the master's process
+    image in this process (`sim_bus.ethercat.linked`: the same PDO layout, state machine and
+    CoE objects as on a wire, one image a cycle). Raises DriveOpenError (exit 1)."""
     from driver.canopen_transport import CanOpenTransport, open_network
     from driver.cia402_drive import Cia402Drive
-    from driver.drive_group import CanOpenBus, DriveGroup, Segment
+    from driver.drive_group import CanOpenBus, DriveGroup, EthercatLine
     from driver.ethercat_drive import JointOnLine
 
     faults = list(faults)
     segments, embedded, devices = [], [], {}
     try:
         for bus, joints in robot.buses().items():
-            if is_ethercat(bus) and not sim:
+            if is_ethercat(bus):
                 on_line = sorted(joints, key=lambda joint: joint.address)
-                segments.append(Segment(bus, []))
+                options = {}
+                if sim:  # the line's slaves in this process, linked to the master's image
+                    options["open_master"] = _linked_line(
+                        robot, on_line, seed, faults, devices)
+                segments.append(EthercatLine(bus, []))
                 drives = _open_on_line(bus, parse_bus_spec(bus)["channel"], [
                     JointOnLine(j.address, j.model.limits.velocity_max,
                                 j.model.parameters.drive_gain, j.eds,
                                 j.model.limits.current_max) for j in on_line],
-                    period=period, lockstep=lockstep, response_timeout=response_timeout)
+                    period=period, lockstep=lockstep, response_timeout=response_timeout,
+                    **options)
                 segments[-1].joints = [(j.name, drive)
                                        for j, drive in zip(on_line, drives, strict=True)]
                 continue
-            # an embedded EtherCAT line: its joints at node ids 1.. in slave order
-            addresses = ({j.name: k for k, j in enumerate(
-                sorted(joints, key=lambda joint: joint.address), start=1)}
-                if is_ethercat(bus) else {j.name: j.address for j in joints})
+            addresses = {j.name: j.address for j in joints}
             if sim:
                 from sim_bus.embedded import EmbeddedBus
                 from sim_bus.plant import SensorNoise
@@ -283,6 +284,32 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
         if isinstance(exc, DriveOpenError):
             raise DriveOpenError(f"{robot.source}: {exc}") from exc
         raise DriveOpenError(f"cannot open the drives of {robot.source}: {exc}") from exc
+
+
+def _linked_line(robot: RobotSpec, on_line: list, seed: int,
+                 faults: list[tuple[str, Fault, float]],
+                 devices: dict[str, Cia402Device]) -> Callable[[], object]:
+    """`--sim` for an EtherCAT line: a virtual drive per joint (commissioned for its model,
+    its noise seeded `seed` + the joint's index, its scheduled faults), in slave order, as a
+    line of slaves in this process; what makes the master that drives them
+    (`sim_bus.ethercat.linked`). The drives go into `devices` by joint name."""
+    from sim_bus.embedded import make_device
+    from sim_bus.ethercat.linked import LinkedMaster
+    from sim_bus.ethercat.segment import Segment as VirtualLine
+    from sim_bus.plant import SensorNoise
+
+    line = []
+    for joint in on_line:
+        device = make_device(joint.model, Payload(),
+                             SensorNoise(seed=seed + robot.joints.index(joint)),
+                             eds_path=joint.eds, commissioned=True)
+        for name, fault, seconds in faults:
+            if name == joint.name:
+                device.schedule(fault, seconds)
+        devices[joint.name] = device
+        line.append(device)
+    segment = VirtualLine(line)
+    return lambda: LinkedMaster(segment)
 
 
 def open_joint(robot: RobotSpec, joint: JointSpec, sim_model: ActuatorModel,

@@ -10,10 +10,16 @@ import time
 import pysoem
 import pytest
 
-from driver.drive_group import DriveGroup, Segment
+from driver.drive_group import DriveGroup, EthercatLine
 from driver.ethercat_drive import JointOnLine, open_ethercat_drives
 from driver.ethercat_transport import open_ethercat_transports
-from driver.interface import DriveError, DriveFault, DriveLost, ProfileError
+from driver.interface import (
+    SAMPLE_MOTOR_CURRENT,
+    DriveError,
+    DriveFault,
+    DriveLost,
+    ProfileError,
+)
 from model.parameters import load_model
 from protocol import esi_path, objects
 from protocol import ethercat as ec
@@ -122,8 +128,8 @@ def test_a_line_is_one_segment_of_a_drive_group(link):
     with slaves(link, 3) as line, link.entered():
         drives = open_ethercat_drives(link.master_port, [joint(k) for k in range(3)],
                                       lockstep=True)
-        group = DriveGroup(names, [Segment(f"ethercat:{link.master_port}",
-                                           list(zip(names, drives, strict=True)))])
+        group = DriveGroup(names, [EthercatLine(f"ethercat:{link.master_port}",
+                                                list(zip(names, drives, strict=True)))])
         try:
             group.start()
             frames = drives[0].transport.line.frames
@@ -131,7 +137,8 @@ def test_a_line_is_one_segment_of_a_drive_group(link):
                 samples = group.sync()
                 group.command_currents([0.2, 0.0, -0.2])
             assert drives[0].transport.line.frames == frames + 50
-            assert [round(s.motor_current, 1) for s in samples] == [0.2, 0.0, -0.2]
+            assert [round(current, 1) for current in samples[:, SAMPLE_MOTOR_CURRENT]] == [
+                0.2, 0.0, -0.2]
             states = group.quick_stop_all()
         finally:
             group.close()
