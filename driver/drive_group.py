@@ -179,7 +179,9 @@ class EthercatLine(Segment):
             self._transports[0].exchange()  # this cycle's frame, for every slave on the line
         except DriveError as exc:
             raise JointFailure(self.joints[0][0], exc) from exc
-        raw = np.frombuffer(b"".join([slave.input for slave in self._slaves]), self._in_dtype)
+        with self._line.lock:  # the line's keeper may be sending a frame
+            data = b"".join([slave.input for slave in self._slaves])
+        raw = np.frombuffer(data, self._in_dtype)
         self._cycle += 1
         table = np.empty((len(self._drives), len(SAMPLE_COLUMNS)))
         table[:, SAMPLE_T] = self._cycle * self._period
@@ -238,11 +240,12 @@ class EthercatLine(Segment):
         outputs["f0"] = cia402.Command.ENABLE_OPERATION.value
         outputs["f1"] = np.rint(currents * self._target_per_amp)
         data, size = outputs.tobytes(), self._out_size
-        for k, (slave, transport) in enumerate(zip(self._slaves, self._transports,
-                                                     strict=True)):
-            chunk = data[k * size:(k + 1) * size]
-            slave.output = chunk
-            transport._staged[:] = transport._out_codec.struct.unpack(chunk)
+        with self._line.lock:
+            for k, (slave, transport) in enumerate(zip(self._slaves, self._transports,
+                                                         strict=True)):
+                chunk = data[k * size:(k + 1) * size]
+                slave.output = chunk
+                transport._staged[:] = transport._out_codec.struct.unpack(chunk)
 
 
 class DriveGroup:

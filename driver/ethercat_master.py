@@ -14,6 +14,7 @@ state and AL status code, as read right after the failed frame.
 
 import logging
 import socket
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -71,6 +72,9 @@ class EthercatMaster:
         self._last_frame = 0.0  # time.monotonic() of the last process data frame
         # position -> (ready for OP, stage its outputs)
         self._claimed: dict[int, tuple[Callable[[], bool], Callable[[], None]]] = {}
+        # one user of SOEM at a time: the cycle, CoE accesses and the keeper
+        self.lock = threading.RLock()
+        self._keeper_stop: threading.Event | None = None
 
     # --- bring-up ----------------------------------------------------------------------------
 
@@ -148,6 +152,10 @@ class EthercatMaster:
         every slave is operational (a slave enters OP with its first valid outputs)."""
         if self.operational:
             return
+        with self.lock:
+            self._go_operational()
+
+    def _go_operational(self) -> None:
         master = self.master
         if not self.mapped:
             try:
@@ -178,14 +186,16 @@ class EthercatMaster:
             if master.state_check(pysoem.OP_STATE, 1000) == pysoem.OP_STATE:
                 self.operational = True
                 self._last_frame = time.monotonic()
+                self._start_keeper()
                 return
         self._require_state(pysoem.OP_STATE, "OP")
 
     def request_state(self, state: int) -> None:
         """Ask every slave for `state` and wait for it (DriveError naming the refusals)."""
-        self.master.state = state
-        self.master.write_state()
-        self._require_state(state, ec.al_state_name(state))
+        with self.lock:
+            self.master.state = state
+            self.master.write_state()
+            self._require_state(state, ec.al_state_name(state))
 
     def _require_state(self, state: int, name: str) -> None:
         """Wait for every slave to reach `state`; DriveError naming each that did not, with
@@ -208,8 +218,32 @@ class EthercatMaster:
 
     def cycle(self) -> None:
         """Send the one frame of this cycle and check its working counter."""
-        self.frames += 1
-        self._frame()
+        with self.lock:
+            self.frames += 1
+            self._frame()
+
+    def _start_keeper(self) -> None:
+        """Real time: from OP on, a thread of the line's own sends a frame whenever the
+        cycle has sent none for KEEP_ALIVE s, so nothing the controller does (the cold solve
+        of 32 joints, an enable sequence, a garbage collection, a stalled cycle) starves the
+        slaves' watchdog: at worst the drives hold the last command a little longer. A real
+        master (SOEM's examples, ros2_control's EtherCAT drivers) keeps its own cyclic thread
+        for the same reason. Lock-step has none: there a frame is a cycle of drive time."""
+        if self.lockstep or self._keeper_stop is not None:
+            return
+        stop = self._keeper_stop = threading.Event()
+        threading.Thread(target=self._keep, args=(stop,), daemon=True,
+                         name=f"ethercat-keeper-{self.interface}").start()
+
+    def _keep(self, stop: threading.Event) -> None:
+        while not stop.wait(KEEP_ALIVE / 2):
+            with self.lock:
+                if stop.is_set():
+                    return
+                try:
+                    self.keep_alive()
+                except DriveError:
+                    return  # kept in self.failure: the next cycle raises it, naming the slave
 
     def keep_alive(self) -> None:
         """Real time, while OP: a frame when none went out for KEEP_ALIVE s, so an acyclic
@@ -257,6 +291,10 @@ class EthercatMaster:
         expected working counter drops by its share."""
         if position in self._released or not 0 <= position < len(self.slaves):
             return
+        with self.lock:
+            self._release(position)
+
+    def _release(self, position: int) -> None:
         slave = self.slaves[position]
         if self.operational:
             share = (2 if slave.output else 0) + (1 if slave.input else 0)
@@ -267,8 +305,15 @@ class EthercatMaster:
 
     def close_line(self) -> None:
         """Every slave back to INIT and the interface closed. Best effort."""
+        if self._keeper_stop is not None:
+            self._keeper_stop.set()
+            self._keeper_stop = None
         if self.master is None:
             return
+        with self.lock:
+            self._close_master()
+
+    def _close_master(self) -> None:
         try:
             self.master.state = pysoem.INIT_STATE
             self.master.write_state()

@@ -119,9 +119,10 @@ class EthercatTransport(Transport):
         register access SOEM gave up on after its few ms): an SDO abort is the drive's
         answer and is not retried."""
         for attempt in range(MAILBOX_ATTEMPTS):
-            self.line.keep_alive()
             try:
-                return access(index, subindex, *data)
+                with self.line.lock:
+                    self.line.keep_alive()
+                    return access(index, subindex, *data)
             except (pysoem.WkcError, pysoem.MailboxError, pysoem.PacketError) as exc:
                 if attempt == MAILBOX_ATTEMPTS - 1:
                     raise DriveError(f"{self.name}: CoE access 0x{index:04X}:{subindex:02X} "
@@ -197,7 +198,8 @@ class EthercatTransport(Transport):
 
     def _stage(self) -> None:
         if self.line.mapped and self._mapped:
-            self.slave.output = self._out_codec.struct.pack(*self._staged)
+            with self.line.lock:
+                self.slave.output = self._out_codec.struct.pack(*self._staged)
 
     def exchange(self) -> tuple[int, ...]:
         line = self.line

@@ -277,3 +277,29 @@ def test_malformed_frames_do_not_stop_the_line(link):
     wkcs = [ec.datagram_result(a, ec.datagram_spans(a)[0])[1] for a in answers]
     assert wkcs == [0, 2]  # the unknown command untouched, then the good frame by both
     assert len(report) == 2
+
+
+def test_a_stalled_controller_holds_the_command_instead_of_tripping_the_watchdog(link):
+    """Real time: the line's own keeper sends frames while the cycle stalls (a cold solve, a
+    collection), so the slaves' 100 ms watchdog never fires for a master that is alive."""
+    with slaves(link, 2) as line, link.entered():
+        drives = open_ethercat_drives(link.master_port, [joint(0), joint(1)], lockstep=False)
+        group = DriveGroup(["a", "b"], [EthercatLine(f"ethercat:{link.master_port}",
+                                                     list(zip(["a", "b"], drives,
+                                                              strict=True)))])
+        try:
+            group.start()
+            for _ in range(20):
+                group.sync()
+                group.command_currents([0.1, -0.1])
+                time.sleep(0.001)
+            time.sleep(0.5)  # five watchdog times without a cycle
+            for _ in range(20):
+                table = group.sync()
+                group.command_currents([0.1, -0.1])
+                time.sleep(0.001)
+            assert [round(c, 1) for c in table[:, SAMPLE_MOTOR_CURRENT]] == [0.1, -0.1]
+        finally:
+            group.close()
+        report = line.report()
+    assert [r["master_loss"] for r in report] == [None, None]
