@@ -244,6 +244,8 @@ class EthercatMaster:
                     self.keep_alive()
                 except DriveError:
                     return  # kept in self.failure: the next cycle raises it, naming the slave
+                except pysoem.NetworkInterfaceNotOpenError:
+                    return  # the interface went away under it: the next cycle says so
 
     def keep_alive(self) -> None:
         """Real time, while OP: a frame when none went out for KEEP_ALIVE s, so an acyclic

@@ -221,9 +221,9 @@ def test_master_loss_trips_the_watchdog_and_the_drive_stops_on_its_brake(link):
         for _ in range(50):
             drive.sync()
             drive.command_current(0.2)
-        # the master dies: no close, no more frames
-        time.sleep(0.5)
+        # the master dies: no close, no more frames (its socket goes with its process)
         drive.transport.line.master.close()
+        time.sleep(0.5)
         [slave] = line.report()
     assert slave["al_status"] == ec.AlState.SAFE_OP | ec.AL_ERROR
     assert slave["al_status_code"] == ec.AL_SM_WATCHDOG
