@@ -111,8 +111,10 @@ class RobotLoop(CycleLoop):
 
     def _cycle(self) -> "float | LoopReport":
         joints, batch, safety = self._joints, self.batch, self._safety
+        exchange = time.perf_counter()
         try:
             table = self.latest = joints.sync()
+            self._exchange_time = time.perf_counter() - exchange
         except DriveError as exc:
             return self._fail(exc, self.time + self.options.period)
         t = self._t = float(table[0, SAMPLE_T])

@@ -83,10 +83,14 @@ class CycleClock:
         """Deadlines count from now (after a long first cycle, say)."""
         self._deadline = time.perf_counter()
         self._last_wake: float | None = None
+        self.wake_lateness = 0.0
 
-    def wait(self) -> None:
+    def wait(self) -> int:
         """Return at the next deadline; a deadline already more than a period past is skipped
-        and counted as missed."""
+        and counted as missed. Returns the deadlines this call skipped (what came before it,
+        the previous cycle or the host, overran); `wake_lateness` is how late this wake-up
+        came after its deadline (s, 0 in lock-step)."""
+        late = 0
         if not self.lockstep:
             self._deadline += self.period
             now = time.perf_counter()
@@ -100,11 +104,15 @@ class CycleClock:
             while time.perf_counter() < self._deadline:
                 pass
         wake = time.perf_counter()
+        self.wake_lateness = wake - self._deadline if not self.lockstep else 0.0
         if self._last_wake is not None:
             self.jitter_us.add(abs(wake - self._last_wake - self.period) * 1e6)
         self._last_wake = wake
+        return late
 
-    def check_overrun(self) -> None:
+    def check_overrun(self) -> bool:
         """Call when the cycle's work is done: counts it as missed if it overran its period."""
         if not self.lockstep and time.perf_counter() > self._deadline + self.period:
             self.missed_cycles += 1
+            return True
+        return False
