@@ -5,6 +5,7 @@ import dataclasses
 import json
 import signal
 import sys
+import threading
 from pathlib import Path
 
 from commands.bus_options import (
@@ -17,7 +18,13 @@ from commands.bus_options import (
     open_drive,
 )
 from commands.file_options import check_output_folder
-from commands.log_options import add_logging_argument, configure_logging, job_error
+from commands.log_options import (
+    ThreadFailures,
+    add_logging_argument,
+    configure_logging,
+    internal_error,
+    job_error,
+)
 from commands.model_options import (
     add_model_argument,
     add_payload_arguments,
@@ -124,8 +131,18 @@ def _reference(text: str | None, model: ActuatorModel):
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)
-    if args.robot is not None:
-        return _run_robot(args)
+    # from before the first thread starts: an exception that ends any thread stops the loop
+    # (or keeps it from starting), and the run then ends with every drive quick-stopped
+    stop = threading.Event()
+    with ThreadFailures(stop.set) as threads:
+        if args.robot is not None:
+            return _run_robot(args, stop, threads)
+        return _run_joint(args, stop, threads)
+
+
+def _run_joint(args: argparse.Namespace, stop: threading.Event, threads: ThreadFailures) -> int:
+    """`actuatord` on one drive: exit 0 when the run ends as asked, 1 when it failed (the drive
+    quick-stopped), 2 for bad input."""
     if args.prefix is None:
         args.prefix = telemetry.DEFAULT_PREFIX
     try:
@@ -143,6 +160,14 @@ def main(argv: list[str] | None = None) -> int:
         reference = _reference(args.reference, model)
         if args.plot:
             check_output_folder("--plot", args.plot)
+        # built (and compiled) before the drive is opened: a reference the model's limits
+        # refuse (a velocity_max below the default sinusoid's peak) is bad input, not a crash
+        try:
+            mpc = Mpc(model, settings, payload, reference)
+        except ReferenceError as exc:
+            shown = args.reference or "(default: the paper's sinusoid)"
+            raise ValueError(f"--reference {shown[:60]} with the limits of the model "
+                             f"{model.source}: {exc}") from None
     except (ModelFileError, BusSpecError, ReferenceError, ValueError) as exc:
         return usage_error(PROG, str(exc))
 
@@ -167,11 +192,10 @@ def main(argv: list[str] | None = None) -> int:
         session.close()
         return job_error(PROG, str(exc))
     drive = connection.drive
-    mpc = Mpc(model, settings, payload, reference)
     loop = ControlLoop(drive, mpc, LoopOptions(period=period, lockstep=args.lockstep,
                                                duration=args.duration,
                                                keep_history=bool(args.plot)),
-                       [publisher.publish], lambda: publisher.dropped)
+                       [publisher.publish], lambda: publisher.dropped, stop)
     requests = RequestHandler(loop, mpc, model, payload, publisher.publish_audit)
     publisher.serve_json(telemetry.PARAMETERS, requests.parameters)
     publisher.serve_json(telemetry.REFERENCE, requests.set_reference)
@@ -184,6 +208,9 @@ def main(argv: list[str] | None = None) -> int:
               f"telemetry under {args.prefix}/", flush=True)
         with collector_off_the_cycle():
             report = loop.run()
+        if threads.first is not None and report.exit_code == 0:
+            report.exit_code, report.reason = 1, threads.first
+            _quick_stop(drive)
         if report.exit_code == 1:  # the loop ended on a fault: one line on stderr too
             job_error(PROG, report.reason)
     except ProfileError as exc:  # the drive does not fit the model: refused before enabling
@@ -195,6 +222,11 @@ def main(argv: list[str] | None = None) -> int:
         job_error(PROG, str(exc))
         report = loop.report
         report.exit_code, report.reason = 1, str(exc)
+    except Exception as exc:  # a bug or an input no check foresaw: the drive stops
+        report = loop.report
+        report.exit_code, report.reason = 1, internal_error(exc)
+        _quick_stop(drive)
+        job_error(PROG, report.reason)
     finally:
         connection.close()
         publisher.close()
@@ -209,6 +241,14 @@ def main(argv: list[str] | None = None) -> int:
         for path in save_figures(report.history, model.limits, Path(args.plot), title):
             print(f"actuatord: wrote {path}", flush=True)
     return report.exit_code
+
+
+def _quick_stop(drive) -> None:
+    """After an unexpected failure: quick stop (best effort; closing then disables)."""
+    try:
+        drive.quick_stop()
+    except Exception as exc:  # the drive may be what failed; closing still disables it
+        job_error(PROG, f"quick stop failed: {exc}")
 
 
 # --- a robot file: every joint in one cycle ---------------------------------------------------
@@ -267,10 +307,12 @@ def _robot_parameters(robot, problems: list) -> dict:
         for joint, problem in zip(robot.joints, problems, strict=True)]}
 
 
-def _run_robot(args: argparse.Namespace) -> int:
+def _run_robot(args: argparse.Namespace, stop: threading.Event,
+               threads: ThreadFailures) -> int:
     """`actuatord --robot FILE`: exit 0 when the run ends as asked, 1 when a joint failed
     (every joint quick-stopped, the joint named), 2 for a bad file or option."""
     from commands.sim_options import parse_joint_fault
+    from controller.mpc import BatchMpc
     from robot.description import RobotFileError, load_robot
     from robot.wiring import RobotConnection, open_robot
 
@@ -291,10 +333,10 @@ def _run_robot(args: argparse.Namespace) -> int:
         args.prefix = args.prefix or f"robots/{robot.name}"
         check_key_expr("--prefix", args.prefix, wildcards=False)
         problems = _robot_problems(args, robot)
+        batch = BatchMpc(problems)  # compiled before any drive is opened
     except (RobotFileError, BusSpecError, ValueError) as exc:
         return usage_error(PROG, str(exc))
 
-    from controller.mpc import BatchMpc
     from controller.robot_loop import RobotLoop
     from controller.telemetry import TelemetryPublisher
     from driver import DriveError, ProfileError
@@ -317,10 +359,10 @@ def _run_robot(args: argparse.Namespace) -> int:
         session.close()
         return job_error(PROG, str(exc))
     group = connection.group
-    batch = BatchMpc(problems)  # compiled before any drive is enabled
     loop = RobotLoop(group, batch, LoopOptions(period=period, lockstep=args.lockstep,
                                                duration=args.duration),
-                     [publisher.publish], lambda: publisher.dropped, settle=TRACKING_SETTLE)
+                     [publisher.publish], lambda: publisher.dropped, stop,
+                     settle=TRACKING_SETTLE)
     parameters = _robot_parameters(robot, problems)
     publisher.serve_json(telemetry.PARAMETERS, lambda _: parameters)
     signal.signal(signal.SIGINT, lambda *_: loop.stop())
@@ -329,18 +371,25 @@ def _run_robot(args: argparse.Namespace) -> int:
     try:
         group.start()
         print(f"actuatord: {len(group)} joints of {robot.name} on "
-              f"{', '.join(robot.buses())}{' (--sim)' if args.sim else ''} enabled; telemetry "
-              f"under {args.prefix}/", flush=True)
+              f"{', '.join(robot.buses())}{' (--sim)' if args.sim else ''} enabled; "
+              f"telemetry under {args.prefix}/", flush=True)
         with collector_off_the_cycle():
             report = loop.run()
         if report.exit_code != 0:
             failure = report.reason
     except DriveError as exc:
         report = loop.report
-        # a drive that does not fit its joint's model is refused before any drive is enabled
+        # a drive that does not fit its joint's model is refused before any is enabled
         unfit = isinstance(exc.__cause__, ProfileError)
         report.exit_code, report.reason = 2 if unfit else 1, str(exc)
         failure = str(exc)
+    except Exception as exc:  # a bug or an input no check foresaw: the drives stop
+        report = loop.report
+        report.exit_code, report.reason = 1, internal_error(exc)
+        failure = report.reason
+    if threads.first is not None and failure is None:
+        report.exit_code, report.reason = 1, threads.first
+        failure = threads.first
     try:
         if failure is not None:
             states = group.quick_stop_all()
