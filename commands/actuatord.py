@@ -102,6 +102,7 @@ def _settings(args: argparse.Namespace, model: ActuatorModel) -> OcpSettings:
         weights["torque_barrier"] = 0.0
     try:
         settings = OcpSettings(horizon=args.horizon, dt=args.dt).with_weights(**weights)
+        settings.check_weights()
     except ValueError as exc:
         raise ValueError(f"--weight/--dt: {exc}") from None
     _check_resolution(settings, model, args.period_us)
@@ -284,6 +285,7 @@ def _robot_problems(args: argparse.Namespace, robot) -> list:
             if joint.friction_sharpness is not None:
                 settings = dataclasses.replace(settings,
                                                friction_sharpness=joint.friction_sharpness)
+            settings.check_weights()
         except ValueError as exc:
             raise ValueError(f"--weight/--dt for joint {joint.name}: {exc}") from None
         try:
