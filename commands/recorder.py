@@ -203,10 +203,10 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         "joint": "" if joint is None else joint.name,
         "recorded_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
     try:  # before the drive runs
-        writer = McapRecorder(args.output, metadata)
+        writer = McapRecorder(args.output, metadata, on_failure=stop.set)
     except OSError as exc:
         connection.close()
-        return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
+        return job_error(PROG, f"-o {args.output}: cannot write: {exc.strerror or exc}")
     # channels named as the Zenoh keys, so a Foxglove layout serves live data and both recordings
     record = writer.subscriber(RECORDED_TOPICS, telemetry.DEFAULT_PREFIX)
     state_channel = writer.channel(telemetry.key_expr(telemetry.DEFAULT_PREFIX, "state"), "State")
@@ -219,7 +219,9 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         with collector_off_the_cycle():
             report = run_trajectory(drive, trajectory, law, model.limits, [record],
                                     args.lockstep, bar, stop)
-        if stop.is_set():
+        if writer.failure is not None:
+            code = 1  # reported below, once the file is closed
+        elif stop.is_set():
             code = 1
             print(f"{PROG}: interrupted after {writer.messages_on(state_channel)} samples",
                   file=sys.stderr)
@@ -237,12 +239,22 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
             writer.discard()  # failed before its first sample: leave no file
         else:
             writer.close()
+    if writer.failure is not None:
+        code = job_error(PROG, _write_failure(args.output, writer.failure, samples))
     elapsed = time.perf_counter() - started
     bar(None)
     output = args.output if samples else "no file written"
     print(f"recorder: {samples} samples ({samples / 1000:.1f} s of drive time) in {elapsed:.1f} s "
           f"(real-time factor {samples / 1000 / elapsed:.2f}) -> {output}", flush=True)
     return code
+
+
+def _write_failure(path: str, exc: OSError, samples: int) -> str:
+    """One line for a recording that could not be written to the end (a full disk): what was
+    kept and how to make it whole."""
+    return (f"-o {path}: cannot write: {exc.strerror or exc} after {samples} samples; the "
+            f"file ends at its last complete chunk: `recorder repair {path} -o "
+            "REPAIRED.mcap` keeps them")
 
 
 def _address_metadata(address: str) -> dict[str, str | int]:
@@ -277,10 +289,11 @@ def _record_zenoh(args: argparse.Namespace, stop: threading.Event) -> int:
     except ValueError as exc:
         return usage_error(PROG, str(exc))
     try:
-        writer = McapRecorder(args.output, {"source": f"zenoh {args.zenoh}"})
+        writer = McapRecorder(args.output, {"source": f"zenoh {args.zenoh}"},
+                              on_failure=stop.set)
     except OSError as exc:
         session.close()
-        return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
+        return job_error(PROG, f"-o {args.output}: cannot write: {exc.strerror or exc}")
     received: queue.Queue = queue.Queue()
     subscriber = session.declare_subscriber(
         args.zenoh, lambda sample: received.put((str(sample.key_expr),
@@ -310,6 +323,8 @@ def _record_zenoh(args: argparse.Namespace, stop: threading.Event) -> int:
                 writer.write(writer.channel(key, message), data, publish_time_ns=log_time,
                              log_time_ns=log_time)
         writer.close()
+    if writer.failure is not None:
+        return job_error(PROG, _write_failure(args.output, writer.failure, writer.messages))
     print(f"recorder: {writer.messages} messages ({skipped} on keys without a schema skipped) "
           f"-> {args.output}", flush=True)
     return 0
@@ -332,8 +347,8 @@ def _export(argv: list[str]) -> int:
         return usage_error(PROG, str(exc))
     try:
         write_csv(recording, Path(args.output))
-    except OSError as exc:
-        return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
+    except OSError as exc:  # a full disk: nothing is left behind (written whole or not)
+        return job_error(PROG, f"-o {args.output}: cannot write: {exc.strerror or exc}")
     print(f"recorder: {len(recording)} samples -> {args.output}")
     return 0
 
@@ -355,8 +370,8 @@ def _repair(argv: list[str]) -> int:
         report = repair_recording(args.recording, args.output)
     except (RecordingError, ValueError) as exc:
         return usage_error(PROG, str(exc))
-    except OSError as exc:
-        return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
+    except OSError as exc:  # a full disk: the source is untouched, no partial copy is left
+        return job_error(PROG, f"-o {args.output}: cannot write: {exc.strerror or exc}")
     print(f"recorder: {report.summary()} -> {args.output}")
     return 0
 

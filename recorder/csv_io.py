@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from model.model_file import write_atomically
 from recorder.recording import Recording, RecordingError
 
 COLUMNS = ("t", "q", "current", "joint_torque")
@@ -64,10 +65,11 @@ def _read_csv(path: Path) -> Recording:
 
 
 def write_csv(recording: Recording, path: Path) -> None:
-    with open(path, "w", newline="") as fh:
-        for key, value in recording.metadata.items():
-            fh.write(f"# {key}={value}\n")
-        fh.write(",".join(COLUMNS) + "\n")
-        for row in zip(recording.t, recording.q, recording.current, recording.joint_torque,
-                       strict=True):
-            fh.write(f"{row[0]:.6f},{row[1]:.9f},{row[2]:.6f},{row[3]:.6f}\n")
+    """The recording as CSV, written whole or not at all (`write_atomically`: a full disk
+    leaves no truncated file). Raises OSError."""
+    lines = [f"# {key}={value}\n" for key, value in recording.metadata.items()]
+    lines.append(",".join(COLUMNS) + "\n")
+    lines += [f"{row[0]:.6f},{row[1]:.9f},{row[2]:.6f},{row[3]:.6f}\n"
+              for row in zip(recording.t, recording.q, recording.current,
+                             recording.joint_torque, strict=True)]
+    write_atomically(path, "".join(lines).encode())
