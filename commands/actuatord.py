@@ -35,7 +35,12 @@ from commands.model_options import (
 )
 from commands.parsing import CommandParser, int_range, positive_float, usage_error
 from commands.sim_options import add_virtual_drive_arguments, fault_schedule, with_truth_effects
-from commands.zenoh_options import add_zenoh_arguments, check_key_expr, open_session
+from commands.zenoh_options import (
+    add_zenoh_arguments,
+    check_key_expr,
+    open_session,
+    zenoh_config,
+)
 from controller.loop import ControlLoop, LoopOptions
 from controller.mpc import Mpc
 from controller.problem import MAX_HORIZON, OcpSettings, ResolutionError, Weights
@@ -157,6 +162,7 @@ def _run_joint(args: argparse.Namespace, stop: threading.Event, threads: ThreadF
         check_drive_arguments(args)
         check_eds(args.eds, model.parameters.drive_gain, esi=load_esi_option(args))
         check_key_expr("--prefix", args.prefix, wildcards=False)
+        zenoh_config(args)  # its file and endpoints, before the controller is compiled
         settings = _settings(args, model)
         reference = _reference(args.reference, model)
         if args.plot:
@@ -334,6 +340,7 @@ def _run_robot(args: argparse.Namespace, stop: threading.Event,
             raise ValueError("--inject-fault needs --sim")
         args.prefix = args.prefix or f"robots/{robot.name}"
         check_key_expr("--prefix", args.prefix, wildcards=False)
+        zenoh_config(args)  # its file and endpoints, before the controller is compiled
         problems = _robot_problems(args, robot)
         batch = BatchMpc(problems)  # compiled before any drive is opened
     except (RobotFileError, BusSpecError, ValueError) as exc:

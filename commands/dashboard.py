@@ -62,6 +62,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.job == "foxglove":
             if args.key is not None:
                 check_key_expr("--key", args.key, wildcards=True)
+            if args.legacy_port == args.port:
+                raise ValueError(f"--legacy-port {args.legacy_port}: the same as --port; "
+                                 "expected a port of its own")
             for port in (args.port, args.legacy_port):
                 if port is not None:
                     _check_port_free(args.host, port)

@@ -56,7 +56,11 @@ def parse_payload(mass: float, position: str | None) -> Payload:
                              "e.g. 0,0.05")
     if mass > 0 and position is None:
         raise ValueError("payload mass given without --payload-position X,Y")
-    return Payload(mass=mass, x=x, y=y)
+    try:
+        return Payload(mass=mass, x=x, y=y)
+    except ValueError as exc:
+        raise ValueError(f"--payload-mass {mass:g} --payload-position {position}: {exc}") \
+            from None
 
 
 def peak_joint_torque(model: ActuatorModel) -> float:

@@ -36,7 +36,12 @@ from commands.model_options import (
 )
 from commands.parsing import CommandParser, finite_float, int_range, positive_float, usage_error
 from commands.sim_options import add_virtual_drive_arguments, with_truth_effects
-from commands.zenoh_options import add_zenoh_arguments, check_key_expr, open_session
+from commands.zenoh_options import (
+    add_zenoh_arguments,
+    check_key_expr,
+    open_session,
+    zenoh_config,
+)
 from model.parameters import ModelFileError
 from protocol import telemetry
 from protocol.bus_spec import BusSpecError
@@ -48,6 +53,14 @@ from robot.wiring import DriveOpenError, open_joint
 PROG = "recorder"
 RECORDED_TOPICS = ("state", "command", "fault")  # what an experiment's recording keeps
 ELBOW_MARGIN = 0.15  # rad: the exciting trajectory's default margin inside the elbow's limits
+# the options that choose or shape a drive: meaningless for --zenoh, which drives nothing
+_DRIVE_OPTIONS = (("--sim", "sim"), ("--lockstep", "lockstep"), ("--bus", "bus"),
+                  ("-i", "interface"), ("-c", "channel"), ("--node-id", "node_id"),
+                  ("--slave", "slave"), ("--eds", "eds"), ("--esi", "esi"),
+                  ("--can-log", "can_log"), ("--model", "model"), ("--robot", "robot"),
+                  ("--joint", "joint"), ("--payload-position", "payload_position"),
+                  ("--truth-effect", "truth_effect"))
+MAX_RUN = 3600.0  # s of drive time in one recording (3.6 M samples, some 500 MB of MCAP)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -103,17 +116,19 @@ def main(argv: list[str] | None = None) -> int:
     try:
         check_output_file("-o", args.output, option_inputs(args))
         check_distinct_outputs([("-o", args.output), ("--can-log", args.can_log)])
-        if args.zenoh:
+        if args.zenoh is not None:  # '' too: an empty key expression is refused, not falsy
             check_key_expr("--zenoh", args.zenoh, wildcards=True)
-            if args.can_log:
-                raise ValueError("--can-log: --zenoh records no CAN bus; expected "
-                                 "--exciting-trajectory or --sinusoid")
+            for option, key in _DRIVE_OPTIONS:
+                if getattr(args, key, None) not in (None, False, []):
+                    raise ValueError(f"{option}: --zenoh records telemetry and drives "
+                                     "nothing; expected --exciting-trajectory or --sinusoid")
+            zenoh_config(args)
     except ValueError as exc:
         return usage_error(PROG, str(exc))
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    if args.zenoh:
+    if args.zenoh is not None:
         return _record_zenoh(args, stop)
     return _record_trajectory(args, stop)
 
@@ -170,6 +185,14 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         check_drive_arguments(args, None if robot is None else [joint.bus])
         check_eds(args.eds, model.parameters.drive_gain, esi=load_esi_option(args))
         limits = model.limits
+        if not args.sinusoid and not args.velocity_max <= limits.velocity_max:
+            raise ValueError(f"--velocity-max {args.velocity_max:g} rad/s: expected at most "
+                             f"the model's velocity limit {limits.velocity_max:g} rad/s")
+        if not trajectory.duration <= MAX_RUN:
+            shown = (f"--duration {args.duration:g} s" if args.sinusoid else
+                     f"--velocity-min {args.velocity_min:g} rad/s")
+            raise ValueError(f"{shown}: the trajectory would last {trajectory.duration:.3g} s; "
+                             f"expected at most {MAX_RUN:g} s in one recording")
         if not (limits.position_min <= trajectory_range[0]
                 and trajectory_range[1] <= limits.position_max):
             raise ValueError(f"trajectory [{trajectory_range[0]}, {trajectory_range[1]}] rad "

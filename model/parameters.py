@@ -91,6 +91,13 @@ class ActuatorParameters:
         return replace(self, effects=self.effects.with_table(name, table))
 
 
+# an actuator's SI parameters and limits lie far within these magnitudes; beyond them the
+# dynamics, the drive's integer units and the solver over- or underflow (K_j = 1e-300 made a
+# joint torque reading no PDO holds), so a file outside them is a mistake, not a robot
+MAGNITUDE_MAX = 1e6
+POSITIVE_MIN = 1e-6
+
+
 @dataclass(frozen=True)
 class Payload:
     mass: float = 0.0
@@ -99,8 +106,12 @@ class Payload:
 
     def __post_init__(self) -> None:
         for name in ("mass", "x", "y"):
-            if not math.isfinite(getattr(self, name)):
+            value = getattr(self, name)
+            if not math.isfinite(value):
                 raise ValueError(f"payload {name} must be finite")
+            if abs(value) > MAGNITUDE_MAX:  # m (x^2 + y^2) would overflow past ~1e154
+                raise ValueError(f"payload {name} {value:g}: expected at most "
+                                 f"{MAGNITUDE_MAX:g} in size (kg, m)")
         if self.mass < 0:
             raise ValueError(f"payload mass must be >= 0 kg, got {self.mass}")
 
@@ -126,11 +137,6 @@ class ActuatorModel:
 
 
 _POSITIVE = {"drive_gain", "torque_sensor_gain", "link_inertia", "motor_inertia"}
-# an actuator's SI parameters and limits lie far within these magnitudes; beyond them the
-# dynamics, the drive's integer units and the solver over- or underflow (K_j = 1e-300 made a
-# joint torque reading no PDO holds), so a file outside them is a mistake, not a robot
-MAGNITUDE_MAX = 1e6
-POSITIVE_MIN = 1e-6
 _NON_NEGATIVE = {"viscous_friction_motor", "viscous_friction_joint", "dry_friction_motor",
                  "dry_friction_joint"}
 
