@@ -24,6 +24,7 @@ from commands.log_options import (
     configure_logging,
     internal_error,
     job_error,
+    reports_failures,
 )
 from commands.model_options import (
     add_model_argument,
@@ -134,6 +135,7 @@ def _reference(text: str | None, model: ActuatorModel):
     return reference_from_dict(spec, model.limits)
 
 
+@reports_failures(PROG)
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)

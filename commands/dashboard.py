@@ -13,7 +13,12 @@ import socket
 import sys
 import threading
 
-from commands.log_options import add_logging_argument, configure_logging, job_error
+from commands.log_options import (
+    add_logging_argument,
+    configure_logging,
+    job_error,
+    reports_failures,
+)
 from commands.model_options import parse_assignments
 from commands.parsing import TCP_PORT, CommandParser, usage_error
 from commands.zenoh_options import add_zenoh_arguments, check_key_expr, open_session
@@ -52,6 +57,7 @@ def build_parser() -> CommandParser:
     return parser
 
 
+@reports_failures(PROG)
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)

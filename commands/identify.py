@@ -7,7 +7,12 @@ import sys
 from pathlib import Path
 
 from commands.file_options import check_output_file, check_output_folder
-from commands.log_options import add_logging_argument, configure_logging, job_error
+from commands.log_options import (
+    add_logging_argument,
+    configure_logging,
+    job_error,
+    reports_failures,
+)
 from commands.model_options import (
     add_model_argument,
     add_payload_arguments,
@@ -55,6 +60,7 @@ def _experiment(recording: Recording, payload) -> Experiment:
                       payload, recording.source)
 
 
+@reports_failures(PROG)
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)

@@ -4,6 +4,7 @@ warning or error, each read once; `job_error` reports a failed job (exit code 1)
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
 import sys
 import threading
@@ -96,3 +97,20 @@ class ThreadFailures:
 
     def __exit__(self, *exc_info) -> None:
         threading.excepthook = self._previous
+
+
+def reports_failures(prog: str) -> Callable[[Callable[..., int]], Callable[..., int]]:
+    """The last net of a command's `main`: an exception nothing else caught (a bug, or an
+    input no check foresaw) is one line, `PROG: error: internal error: TYPE: message`, and
+    exit code 1, never a traceback (it goes to --log-level debug). Usage errors and signals
+    pass through (SystemExit, KeyboardInterrupt are not Exceptions)."""
+    def wrap(main: Callable[..., int]) -> Callable[..., int]:
+        @functools.wraps(main)
+        def run(argv: list[str] | None = None) -> int:
+            try:
+                return main(argv)
+            except Exception as exc:
+                print(f"{prog}: error: {internal_error(exc)}", file=sys.stderr, flush=True)
+                return 1
+        return run
+    return wrap

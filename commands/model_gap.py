@@ -7,7 +7,12 @@ import sys
 from pathlib import Path
 
 from commands.file_options import check_distinct_outputs, check_output_file, check_output_folder
-from commands.log_options import add_logging_argument, configure_logging, job_error
+from commands.log_options import (
+    add_logging_argument,
+    configure_logging,
+    job_error,
+    reports_failures,
+)
 from commands.model_options import load_model_option
 from commands.parsing import CommandParser, positive_float, usage_error
 from model.gap import (
@@ -44,6 +49,7 @@ def build_parser() -> CommandParser:
     return parser
 
 
+@reports_failures(PROG)
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)

@@ -26,7 +26,12 @@ from commands.bus_options import (
     open_drive,
 )
 from commands.file_options import check_distinct_outputs, check_output_file, option_inputs
-from commands.log_options import add_logging_argument, configure_logging, job_error
+from commands.log_options import (
+    add_logging_argument,
+    configure_logging,
+    job_error,
+    reports_failures,
+)
 from commands.model_options import (
     add_model_argument,
     add_payload_arguments,
@@ -105,6 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@reports_failures(PROG)
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "export":

@@ -96,3 +96,27 @@ def test_a_single_joint_run_ends_in_one_line_and_exit_1(capsys, monkeypatch):
         ControlLoop._published, 50, KeyError("injected")))
     out = _check_ended(capsys, main(ARGS), "internal error: KeyError")
     assert "ran 5" not in out
+
+
+@pytest.mark.parametrize("command,patched,argv", [
+    ("identify", "load_model_option", ["a.csv", "b.csv", "-o", "{tmp}/m.toml"]),
+    ("model_gap", "load_model_option", ["a.csv", "--model", "m.toml"]),
+    ("recorder", "load_recording", ["export", "a.mcap", "-o", "{tmp}/a.csv"]),
+    ("sim_bus", "load_model_option", ["--bus", "virtual:bug"]),
+    ("dashboard", "open_session", ["set", "weights", "position=300"]),
+])
+def test_every_command_turns_a_bug_into_one_line_and_exit_1(capsys, monkeypatch, tmp_path,
+                                                           command, patched, argv):
+    import importlib
+
+    module = importlib.import_module(f"commands.{command}")
+
+    def bug(*args, **kwargs):
+        raise RuntimeError("injected bug")
+
+    monkeypatch.setattr(module, patched, bug)
+    code = module.main([a.replace("{tmp}", str(tmp_path)) for a in argv])
+    out, err = capsys.readouterr()
+    lines = err.strip().splitlines()
+    assert code == 1 and len(lines) == 1, err
+    assert "internal error: RuntimeError: injected bug" in lines[0] and "Traceback" not in err
