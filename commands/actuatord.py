@@ -205,13 +205,13 @@ def _run_joint(args: argparse.Namespace, stop: threading.Event, threads: ThreadF
                                                duration=args.duration,
                                                keep_history=bool(args.plot)),
                        [publisher.publish], lambda: publisher.dropped, stop)
-    requests = RequestHandler(loop, mpc, model, payload, publisher.publish_audit)
-    publisher.serve_json(telemetry.PARAMETERS, requests.parameters)
-    publisher.serve_json(telemetry.REFERENCE, requests.set_reference)
-    publisher.serve_json(telemetry.WEIGHTS, requests.set_weights)
     signal.signal(signal.SIGINT, lambda *_: loop.stop())
     signal.signal(signal.SIGTERM, lambda *_: loop.stop())
-    try:
+    try:  # from here on the drive is open: whatever happens, it is stopped and closed
+        requests = RequestHandler(loop, mpc, model, payload, publisher.publish_audit)
+        publisher.serve_json(telemetry.PARAMETERS, requests.parameters)
+        publisher.serve_json(telemetry.REFERENCE, requests.set_reference)
+        publisher.serve_json(telemetry.WEIGHTS, requests.set_weights)
         drive.start()
         print(f"actuatord: {connection.address} on {connection.where} enabled; "
               f"telemetry under {args.prefix}/", flush=True)
@@ -374,12 +374,12 @@ def _run_robot(args: argparse.Namespace, stop: threading.Event,
                                                duration=args.duration),
                      [publisher.publish], lambda: publisher.dropped, stop,
                      settle=TRACKING_SETTLE)
-    parameters = _robot_parameters(robot, problems)
-    publisher.serve_json(telemetry.PARAMETERS, lambda _: parameters)
     signal.signal(signal.SIGINT, lambda *_: loop.stop())
     signal.signal(signal.SIGTERM, lambda *_: loop.stop())
     failure = None
-    try:
+    try:  # from here on the drives are open: whatever happens, they are stopped and closed
+        parameters = _robot_parameters(robot, problems)
+        publisher.serve_json(telemetry.PARAMETERS, lambda _: parameters)
         group.start()
         print(f"actuatord: {len(group)} joints of {robot.name} on "
               f"{', '.join(robot.buses())}{' (--sim)' if args.sim else ''} enabled; "
