@@ -5,6 +5,7 @@ import dataclasses
 import json
 import signal
 import sys
+import threading
 from pathlib import Path
 
 from commands.bus_options import (
@@ -17,7 +18,14 @@ from commands.bus_options import (
     open_drive,
 )
 from commands.file_options import check_output_folder
-from commands.log_options import add_logging_argument, configure_logging, job_error
+from commands.log_options import (
+    ThreadFailures,
+    add_logging_argument,
+    configure_logging,
+    internal_error,
+    job_error,
+    reports_failures,
+)
 from commands.model_options import (
     add_model_argument,
     add_payload_arguments,
@@ -28,7 +36,12 @@ from commands.model_options import (
 )
 from commands.parsing import CommandParser, int_range, positive_float, usage_error
 from commands.sim_options import add_virtual_drive_arguments, fault_schedule, with_truth_effects
-from commands.zenoh_options import add_zenoh_arguments, check_key_expr, open_session
+from commands.zenoh_options import (
+    add_zenoh_arguments,
+    check_key_expr,
+    open_session,
+    zenoh_config,
+)
 from controller.loop import ControlLoop, LoopOptions
 from controller.mpc import Mpc
 from controller.problem import MAX_HORIZON, OcpSettings, ResolutionError, Weights
@@ -95,6 +108,7 @@ def _settings(args: argparse.Namespace, model: ActuatorModel) -> OcpSettings:
         weights["torque_barrier"] = 0.0
     try:
         settings = OcpSettings(horizon=args.horizon, dt=args.dt).with_weights(**weights)
+        settings.check_weights()
     except ValueError as exc:
         raise ValueError(f"--weight/--dt: {exc}") from None
     _check_resolution(settings, model, args.period_us)
@@ -121,11 +135,22 @@ def _reference(text: str | None, model: ActuatorModel):
     return reference_from_dict(spec, model.limits)
 
 
+@reports_failures(PROG)
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)
-    if args.robot is not None:
-        return _run_robot(args)
+    # from before the first thread starts: an exception that ends any thread stops the loop
+    # (or keeps it from starting), and the run then ends with every drive quick-stopped
+    stop = threading.Event()
+    with ThreadFailures(stop.set) as threads:
+        if args.robot is not None:
+            return _run_robot(args, stop, threads)
+        return _run_joint(args, stop, threads)
+
+
+def _run_joint(args: argparse.Namespace, stop: threading.Event, threads: ThreadFailures) -> int:
+    """`actuatord` on one drive: exit 0 when the run ends as asked, 1 when it failed (the drive
+    quick-stopped), 2 for bad input."""
     if args.prefix is None:
         args.prefix = telemetry.DEFAULT_PREFIX
     try:
@@ -139,10 +164,19 @@ def main(argv: list[str] | None = None) -> int:
         check_drive_arguments(args)
         check_eds(args.eds, model.parameters.drive_gain, esi=load_esi_option(args))
         check_key_expr("--prefix", args.prefix, wildcards=False)
+        zenoh_config(args)  # its file and endpoints, before the controller is compiled
         settings = _settings(args, model)
         reference = _reference(args.reference, model)
         if args.plot:
             check_output_folder("--plot", args.plot)
+        # built (and compiled) before the drive is opened: a reference the model's limits
+        # refuse (a velocity_max below the default sinusoid's peak) is bad input, not a crash
+        try:
+            mpc = Mpc(model, settings, payload, reference)
+        except ReferenceError as exc:
+            shown = args.reference or "(default: the paper's sinusoid)"
+            raise ValueError(f"--reference {shown[:60]} with the limits of the model "
+                             f"{model.source}: {exc}") from None
     except (ModelFileError, BusSpecError, ReferenceError, ValueError) as exc:
         return usage_error(PROG, str(exc))
 
@@ -174,19 +208,22 @@ def main(argv: list[str] | None = None) -> int:
     loop = ControlLoop(drive, mpc, LoopOptions(period=period, lockstep=args.lockstep,
                                                duration=args.duration,
                                                keep_history=bool(args.plot)),
-                       [publisher.publish], lambda: publisher.dropped)
-    requests = RequestHandler(loop, mpc, model, payload, publisher.publish_audit)
-    publisher.serve_json(telemetry.PARAMETERS, requests.parameters)
-    publisher.serve_json(telemetry.REFERENCE, requests.set_reference)
-    publisher.serve_json(telemetry.WEIGHTS, requests.set_weights)
+                       [publisher.publish], lambda: publisher.dropped, stop)
     signal.signal(signal.SIGINT, lambda *_: loop.stop())
     signal.signal(signal.SIGTERM, lambda *_: loop.stop())
-    try:
+    try:  # from here on the drive is open: whatever happens, it is stopped and closed
+        requests = RequestHandler(loop, mpc, model, payload, publisher.publish_audit)
+        publisher.serve_json(telemetry.PARAMETERS, requests.parameters)
+        publisher.serve_json(telemetry.REFERENCE, requests.set_reference)
+        publisher.serve_json(telemetry.WEIGHTS, requests.set_weights)
         drive.start()
         print(f"actuatord: {connection.address} on {connection.where} enabled; "
               f"telemetry under {args.prefix}/", flush=True)
         with collector_off_the_cycle():
             report = loop.run()
+        if threads.first is not None and report.exit_code == 0:
+            report.exit_code, report.reason = 1, threads.first
+            _quick_stop(drive)
         if report.exit_code == 1:  # the loop ended on a fault: one line on stderr too
             job_error(PROG, report.reason)
     except ProfileError as exc:  # the drive does not fit the model: refused before enabling
@@ -198,6 +235,11 @@ def main(argv: list[str] | None = None) -> int:
         job_error(PROG, str(exc))
         report = loop.report
         report.exit_code, report.reason = 1, str(exc)
+    except Exception as exc:  # a bug or an input no check foresaw: the drive stops
+        report = loop.report
+        report.exit_code, report.reason = 1, internal_error(exc)
+        _quick_stop(drive)
+        job_error(PROG, report.reason)
     finally:
         connection.close()
         publisher.close()
@@ -212,6 +254,14 @@ def main(argv: list[str] | None = None) -> int:
         for path in save_figures(report.history, model.limits, Path(args.plot), title):
             print(f"actuatord: wrote {path}", flush=True)
     return report.exit_code
+
+
+def _quick_stop(drive) -> None:
+    """After an unexpected failure: quick stop (best effort; closing then disables)."""
+    try:
+        drive.quick_stop()
+    except Exception as exc:  # the drive may be what failed; closing still disables it
+        job_error(PROG, f"quick stop failed: {exc}")
 
 
 # --- a robot file: every joint in one cycle ---------------------------------------------------
@@ -247,6 +297,7 @@ def _robot_problems(args: argparse.Namespace, robot) -> list:
             if joint.friction_sharpness is not None:
                 settings = dataclasses.replace(settings,
                                                friction_sharpness=joint.friction_sharpness)
+            settings.check_weights()
         except ValueError as exc:
             raise ValueError(f"--weight/--dt for joint {joint.name}: {exc}") from None
         try:
@@ -270,10 +321,12 @@ def _robot_parameters(robot, problems: list) -> dict:
         for joint, problem in zip(robot.joints, problems, strict=True)]}
 
 
-def _run_robot(args: argparse.Namespace) -> int:
+def _run_robot(args: argparse.Namespace, stop: threading.Event,
+               threads: ThreadFailures) -> int:
     """`actuatord --robot FILE`: exit 0 when the run ends as asked, 1 when a joint failed
     (every joint quick-stopped, the joint named), 2 for a bad file or option."""
     from commands.sim_options import parse_joint_fault
+    from controller.mpc import BatchMpc
     from robot.description import RobotFileError, load_robot
     from robot.wiring import RobotConnection, open_robot
 
@@ -293,11 +346,12 @@ def _run_robot(args: argparse.Namespace) -> int:
             raise ValueError("--inject-fault needs --sim")
         args.prefix = args.prefix or f"robots/{robot.name}"
         check_key_expr("--prefix", args.prefix, wildcards=False)
+        zenoh_config(args)  # its file and endpoints, before the controller is compiled
         problems = _robot_problems(args, robot)
+        batch = BatchMpc(problems)  # compiled before any drive is opened
     except (RobotFileError, BusSpecError, ValueError) as exc:
         return usage_error(PROG, str(exc))
 
-    from controller.mpc import BatchMpc
     from controller.robot_loop import RobotLoop
     from controller.telemetry import TelemetryPublisher
     from driver import DriveError, ProfileError
@@ -323,27 +377,35 @@ def _run_robot(args: argparse.Namespace) -> int:
     group = connection.group
     loop = RobotLoop(group, batch, LoopOptions(period=period, lockstep=args.lockstep,
                                                duration=args.duration),
-                     [publisher.publish], lambda: publisher.dropped, settle=TRACKING_SETTLE)
-    parameters = _robot_parameters(robot, problems)
-    publisher.serve_json(telemetry.PARAMETERS, lambda _: parameters)
+                     [publisher.publish], lambda: publisher.dropped, stop,
+                     settle=TRACKING_SETTLE)
     signal.signal(signal.SIGINT, lambda *_: loop.stop())
     signal.signal(signal.SIGTERM, lambda *_: loop.stop())
     failure = None
-    try:
+    try:  # from here on the drives are open: whatever happens, they are stopped and closed
+        parameters = _robot_parameters(robot, problems)
+        publisher.serve_json(telemetry.PARAMETERS, lambda _: parameters)
         group.start()
         print(f"actuatord: {len(group)} joints of {robot.name} on "
-              f"{', '.join(robot.buses())}{' (--sim)' if args.sim else ''} enabled; telemetry "
-              f"under {args.prefix}/", flush=True)
+              f"{', '.join(robot.buses())}{' (--sim)' if args.sim else ''} enabled; "
+              f"telemetry under {args.prefix}/", flush=True)
         with collector_off_the_cycle():
             report = loop.run()
         if report.exit_code != 0:
             failure = report.reason
     except DriveError as exc:
         report = loop.report
-        # a drive that does not fit its joint's model is refused before any drive is enabled
+        # a drive that does not fit its joint's model is refused before any is enabled
         unfit = isinstance(exc.__cause__, ProfileError)
         report.exit_code, report.reason = 2 if unfit else 1, str(exc)
         failure = str(exc)
+    except Exception as exc:  # a bug or an input no check foresaw: the drives stop
+        report = loop.report
+        report.exit_code, report.reason = 1, internal_error(exc)
+        failure = report.reason
+    if threads.first is not None and failure is None:
+        report.exit_code, report.reason = 1, threads.first
+        failure = threads.first
     try:
         if failure is not None:
             states = group.quick_stop_all()

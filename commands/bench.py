@@ -4,11 +4,12 @@ batched MPC for 7 and 32 joints (the measuring is `controller.benchmark`)."""
 import json
 import sys
 
-from commands.log_options import add_logging_argument, configure_logging
+from commands.log_options import add_logging_argument, configure_logging, reports_failures
 from commands.parsing import CommandParser, int_range
 from controller.benchmark import run
 
 
+@reports_failures("bench")
 def main(argv: list[str] | None = None) -> int:
     parser = CommandParser(prog="bench", description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="print one JSON object")

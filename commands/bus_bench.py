@@ -18,7 +18,12 @@ import time
 
 import numpy as np
 
-from commands.log_options import add_logging_argument, configure_logging, job_error
+from commands.log_options import (
+    add_logging_argument,
+    configure_logging,
+    job_error,
+    reports_failures,
+)
 from commands.parsing import CommandParser, int_range
 from driver.canopen_drive import CanOpenDrive, open_network
 
@@ -111,6 +116,7 @@ def _velocity_limit() -> float:
     return load_model().limits.velocity_max
 
 
+@reports_failures("bus-bench")
 def main(argv: list[str] | None = None) -> int:
     parser = CommandParser(prog="bus-bench", description=__doc__.splitlines()[0])
     parser.add_argument("--cycles", type=int_range(1, 10_000_000), default=5000,

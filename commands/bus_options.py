@@ -217,7 +217,7 @@ def check_eds(path: str | None, drive_gain: float | None = None, *,
         try:
             check_against_dictionary(esi, dictionary)
         except EsiError as exc:
-            raise ValueError(f"--esi ({esi.name}) with {shown}: {exc}") from None
+            raise ValueError(f"--esi {esi.source} with {shown}: {exc}") from None
     if master:
         if esi is not None:
             dictionary = ethercat_dictionary(dictionary, esi)

@@ -13,7 +13,12 @@ import socket
 import sys
 import threading
 
-from commands.log_options import add_logging_argument, configure_logging, job_error
+from commands.log_options import (
+    add_logging_argument,
+    configure_logging,
+    job_error,
+    reports_failures,
+)
 from commands.model_options import parse_assignments
 from commands.parsing import TCP_PORT, CommandParser, usage_error
 from commands.zenoh_options import add_zenoh_arguments, check_key_expr, open_session
@@ -52,6 +57,7 @@ def build_parser() -> CommandParser:
     return parser
 
 
+@reports_failures(PROG)
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)
@@ -62,6 +68,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.job == "foxglove":
             if args.key is not None:
                 check_key_expr("--key", args.key, wildcards=True)
+            if args.legacy_port == args.port:
+                raise ValueError(f"--legacy-port {args.legacy_port}: the same as --port; "
+                                 "expected a port of its own")
             for port in (args.port, args.legacy_port):
                 if port is not None:
                     _check_port_free(args.host, port)

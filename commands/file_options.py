@@ -43,11 +43,14 @@ def check_output_file(option: str, path: str, inputs: Inputs = ()) -> Path:
     or a hard link included). Probed with a temporary file that is removed at once (permission
     bits say nothing when running as root). ValueError names the option."""
     target = Path(path)
-    if target.is_dir():
-        raise ValueError(f"{option} {path}: is a directory; expected a file path")
-    folder = target.parent
-    if not folder.is_dir():
-        raise ValueError(f"{option} {path}: folder {folder} does not exist")
+    try:
+        if target.is_dir():
+            raise ValueError(f"{option} {path}: is a directory; expected a file path")
+        folder = target.parent
+        if not folder.is_dir():
+            raise ValueError(f"{option} {path}: folder {folder} does not exist")
+    except OSError as exc:  # too long, a loop of links: the path itself is unusable
+        raise ValueError(_unusable(option, path, exc)) from None
     _check_not_an_input(option, path, inputs)
     _probe(option, path, folder)
     return target
@@ -57,15 +60,22 @@ def check_output_folder(option: str, path: str) -> Path:
     """A folder this command will create (if needed) and fill: the nearest existing ancestor
     takes new entries. ValueError names the option."""
     target = Path(path)
-    if target.exists() and not target.is_dir():
-        raise ValueError(f"{option} {path}: exists and is not a directory")
-    existing = target
-    while not existing.exists():
-        existing = existing.parent
-    if not existing.is_dir():
-        raise ValueError(f"{option} {path}: {existing} is not a directory")
+    try:
+        if target.exists() and not target.is_dir():
+            raise ValueError(f"{option} {path}: exists and is not a directory")
+        existing = target
+        while not existing.exists():
+            existing = existing.parent
+        if not existing.is_dir():
+            raise ValueError(f"{option} {path}: {existing} is not a directory")
+    except OSError as exc:  # too long, a loop of links: the path itself is unusable
+        raise ValueError(_unusable(option, path, exc)) from None
     _probe(option, path, existing)
     return target
+
+
+def _unusable(option: str, path: str, exc: OSError) -> str:
+    return f"{option} {path[:200]}: cannot use this path ({exc.strerror or exc})"
 
 
 def check_distinct_outputs(outputs: Iterable[tuple[str, str | None]]) -> None:
@@ -94,8 +104,7 @@ def _check_not_an_input(option: str, path: str, inputs: Inputs) -> None:
     except FileNotFoundError:
         info = None
     except OSError as exc:
-        raise ValueError(f"{option} {path[:200]}: cannot use this path "
-                         f"({exc.strerror or exc})") from None
+        raise ValueError(_unusable(option, path, exc)) from None
     if info is not None and not stat.S_ISREG(info.st_mode):
         raise ValueError(f"{option} {path}: exists and is not a regular file (a device, FIFO "
                          "or socket would be replaced or block); expected a file path")

@@ -7,7 +7,12 @@ import sys
 from pathlib import Path
 
 from commands.file_options import check_output_file, check_output_folder
-from commands.log_options import add_logging_argument, configure_logging
+from commands.log_options import (
+    add_logging_argument,
+    configure_logging,
+    job_error,
+    reports_failures,
+)
 from commands.model_options import (
     add_model_argument,
     add_payload_arguments,
@@ -55,6 +60,7 @@ def _experiment(recording: Recording, payload) -> Experiment:
                       payload, recording.source)
 
 
+@reports_failures(PROG)
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)
@@ -78,14 +84,21 @@ def main(argv: list[str] | None = None) -> int:
                           args.cutoff)
     except (ModelFileError, RecordingError, IdentificationError, ValueError) as exc:
         return usage_error(PROG, str(exc))
-    write_identified(Path(args.output), result, nominal, args.no_load, args.load)
+    try:
+        write_identified(Path(args.output), result, nominal, args.no_load, args.load)
+    except OSError as exc:  # a full disk: the model is written whole or not at all
+        return job_error(PROG, f"-o {args.output}: cannot write: {exc.strerror or exc}")
     print(table(result, nominal))
     print(f"condition number {result.condition_number:.1f} (paper: 36); torque-fit RMSD motor "
           f"{result.rmsd_motor:.3f} N.m, joint {result.rmsd_joint:.3f} N.m (paper: 0.6 N.m); "
           f"{result.rows} rows -> {args.output}")
     if args.plots:
-        for path in identification_figures(result, Path(args.plots)):
-            print(f"{PROG}: wrote {path}")
+        try:
+            for path in identification_figures(result, Path(args.plots)):
+                print(f"{PROG}: wrote {path}")
+        except OSError as exc:
+            return job_error(PROG, f"--plots {args.plots}: cannot write: "
+                                   f"{exc.strerror or exc} (the model was written)")
     return 0
 
 

@@ -7,7 +7,12 @@ import sys
 from pathlib import Path
 
 from commands.file_options import check_distinct_outputs, check_output_file, check_output_folder
-from commands.log_options import add_logging_argument, configure_logging
+from commands.log_options import (
+    add_logging_argument,
+    configure_logging,
+    job_error,
+    reports_failures,
+)
 from commands.model_options import load_model_option
 from commands.parsing import CommandParser, positive_float, usage_error
 from model.gap import (
@@ -19,7 +24,7 @@ from model.gap import (
     summary,
 )
 from model.identify import Experiment
-from model.model_file import write_model
+from model.model_file import write_atomically, write_model
 from model.parameters import ModelFileError, Payload
 from model.plots import gap_figures
 from recorder.reader import load_recording
@@ -44,6 +49,7 @@ def build_parser() -> CommandParser:
     return parser
 
 
+@reports_failures(PROG)
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)
@@ -69,18 +75,25 @@ def main(argv: list[str] | None = None) -> int:
         return usage_error(PROG, str(exc))
 
     improved_path = args.model
-    if result.effects and args.output:
-        provenance = improved_provenance(result, args.recordings,
-                                         datetime.date.today().isoformat())
-        write_model(Path(args.output), result.parameters, model,
-                    f"{model.name or Path(args.model).stem} + {result.effect}", provenance)
-        improved_path = args.output
-    report = build_report(result, improved_path)
-    if args.report:
-        Path(args.report).write_text(json.dumps(report, indent=2))
-    if args.plots:
-        for path in gap_figures(result, Path(args.plots)):
-            print(f"{PROG}: wrote {path}")
+    option = "-o"
+    try:  # a full disk: each file is written whole or not at all, named in one line
+        if result.effects and args.output:
+            provenance = improved_provenance(result, args.recordings,
+                                             datetime.date.today().isoformat())
+            write_model(Path(args.output), result.parameters, model,
+                        f"{model.name or Path(args.model).stem} + {result.effect}", provenance)
+            improved_path = args.output
+        report = build_report(result, improved_path)
+        if args.report:
+            option = "--report"
+            write_atomically(Path(args.report), json.dumps(report, indent=2).encode())
+        if args.plots:
+            option = "--plots"
+            for path in gap_figures(result, Path(args.plots)):
+                print(f"{PROG}: wrote {path}")
+    except OSError as exc:
+        shown = {"-o": args.output, "--report": args.report, "--plots": args.plots}[option]
+        return job_error(PROG, f"{option} {shown}: cannot write: {exc.strerror or exc}")
     print(summary(result))
     closed = not result.effects or (result.rmsd_after < result.rmsd_before
                                     and result.sim_rmsd_after <= result.sim_rmsd_before)

@@ -7,11 +7,11 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Iterable
-from pathlib import Path
 
 from commands.file_options import check_input_option
 from commands.parsing import non_negative_float
 from model.parameters import GRAVITY, ActuatorModel, Payload, load_model
+from protocol.input_files import present
 
 
 def add_model_argument(parser: argparse.ArgumentParser,
@@ -23,7 +23,7 @@ def load_model_option(path: str | None, option: str = "--model") -> ActuatorMode
     """The model a `--model FILE` names (None: the packaged defaults), stat'ed before it is
     read so a device, a FIFO or a huge file is refused at once. ModelFileError or ValueError
     names the file."""
-    if path is not None and Path(path).exists():  # a missing file: load_model says so
+    if path is not None and present(path):  # a missing file: load_model says so
         check_input_option(option, path, "a model TOML")
     return load_model(path)
 
@@ -56,7 +56,11 @@ def parse_payload(mass: float, position: str | None) -> Payload:
                              "e.g. 0,0.05")
     if mass > 0 and position is None:
         raise ValueError("payload mass given without --payload-position X,Y")
-    return Payload(mass=mass, x=x, y=y)
+    try:
+        return Payload(mass=mass, x=x, y=y)
+    except ValueError as exc:
+        raise ValueError(f"--payload-mass {mass:g} --payload-position {position}: {exc}") \
+            from None
 
 
 def peak_joint_torque(model: ActuatorModel) -> float:

@@ -26,7 +26,12 @@ from commands.bus_options import (
     open_drive,
 )
 from commands.file_options import check_distinct_outputs, check_output_file, option_inputs
-from commands.log_options import add_logging_argument, configure_logging, job_error
+from commands.log_options import (
+    add_logging_argument,
+    configure_logging,
+    job_error,
+    reports_failures,
+)
 from commands.model_options import (
     add_model_argument,
     add_payload_arguments,
@@ -36,7 +41,12 @@ from commands.model_options import (
 )
 from commands.parsing import CommandParser, finite_float, int_range, positive_float, usage_error
 from commands.sim_options import add_virtual_drive_arguments, with_truth_effects
-from commands.zenoh_options import add_zenoh_arguments, check_key_expr, open_session
+from commands.zenoh_options import (
+    add_zenoh_arguments,
+    check_key_expr,
+    open_session,
+    zenoh_config,
+)
 from model.parameters import ModelFileError
 from protocol import telemetry
 from protocol.bus_spec import BusSpecError
@@ -48,6 +58,14 @@ from robot.wiring import DriveOpenError, open_joint
 PROG = "recorder"
 RECORDED_TOPICS = ("state", "command", "fault")  # what an experiment's recording keeps
 ELBOW_MARGIN = 0.15  # rad: the exciting trajectory's default margin inside the elbow's limits
+# the options that choose or shape a drive: meaningless for --zenoh, which drives nothing
+_DRIVE_OPTIONS = (("--sim", "sim"), ("--lockstep", "lockstep"), ("--bus", "bus"),
+                  ("-i", "interface"), ("-c", "channel"), ("--node-id", "node_id"),
+                  ("--slave", "slave"), ("--eds", "eds"), ("--esi", "esi"),
+                  ("--can-log", "can_log"), ("--model", "model"), ("--robot", "robot"),
+                  ("--joint", "joint"), ("--payload-position", "payload_position"),
+                  ("--truth-effect", "truth_effect"))
+MAX_RUN = 3600.0  # s of drive time in one recording (3.6 M samples, some 500 MB of MCAP)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -92,6 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@reports_failures(PROG)
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "export":
@@ -103,17 +122,19 @@ def main(argv: list[str] | None = None) -> int:
     try:
         check_output_file("-o", args.output, option_inputs(args))
         check_distinct_outputs([("-o", args.output), ("--can-log", args.can_log)])
-        if args.zenoh:
+        if args.zenoh is not None:  # '' too: an empty key expression is refused, not falsy
             check_key_expr("--zenoh", args.zenoh, wildcards=True)
-            if args.can_log:
-                raise ValueError("--can-log: --zenoh records no CAN bus; expected "
-                                 "--exciting-trajectory or --sinusoid")
+            for option, key in _DRIVE_OPTIONS:
+                if getattr(args, key, None) not in (None, False, []):
+                    raise ValueError(f"{option}: --zenoh records telemetry and drives "
+                                     "nothing; expected --exciting-trajectory or --sinusoid")
+            zenoh_config(args)
     except ValueError as exc:
         return usage_error(PROG, str(exc))
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    if args.zenoh:
+    if args.zenoh is not None:
         return _record_zenoh(args, stop)
     return _record_trajectory(args, stop)
 
@@ -170,6 +191,14 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         check_drive_arguments(args, None if robot is None else [joint.bus])
         check_eds(args.eds, model.parameters.drive_gain, esi=load_esi_option(args))
         limits = model.limits
+        if not args.sinusoid and not args.velocity_max <= limits.velocity_max:
+            raise ValueError(f"--velocity-max {args.velocity_max:g} rad/s: expected at most "
+                             f"the model's velocity limit {limits.velocity_max:g} rad/s")
+        if not trajectory.duration <= MAX_RUN:
+            shown = (f"--duration {args.duration:g} s" if args.sinusoid else
+                     f"--velocity-min {args.velocity_min:g} rad/s")
+            raise ValueError(f"{shown}: the trajectory would last {trajectory.duration:.3g} s; "
+                             f"expected at most {MAX_RUN:g} s in one recording")
         if not (limits.position_min <= trajectory_range[0]
                 and trajectory_range[1] <= limits.position_max):
             raise ValueError(f"trajectory [{trajectory_range[0]}, {trajectory_range[1]}] rad "
@@ -203,10 +232,10 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         "joint": "" if joint is None else joint.name,
         "recorded_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
     try:  # before the drive runs
-        writer = McapRecorder(args.output, metadata)
+        writer = McapRecorder(args.output, metadata, on_failure=stop.set)
     except OSError as exc:
         connection.close()
-        return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
+        return job_error(PROG, f"-o {args.output}: cannot write: {exc.strerror or exc}")
     # channels named as the Zenoh keys, so a Foxglove layout serves live data and both recordings
     record = writer.subscriber(RECORDED_TOPICS, telemetry.DEFAULT_PREFIX)
     state_channel = writer.channel(telemetry.key_expr(telemetry.DEFAULT_PREFIX, "state"), "State")
@@ -219,7 +248,9 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         with collector_off_the_cycle():
             report = run_trajectory(drive, trajectory, law, model.limits, [record],
                                     args.lockstep, bar, stop)
-        if stop.is_set():
+        if writer.failure is not None:
+            code = 1  # reported below, once the file is closed
+        elif stop.is_set():
             code = 1
             print(f"{PROG}: interrupted after {writer.messages_on(state_channel)} samples",
                   file=sys.stderr)
@@ -237,12 +268,22 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
             writer.discard()  # failed before its first sample: leave no file
         else:
             writer.close()
+    if writer.failure is not None:
+        code = job_error(PROG, _write_failure(args.output, writer.failure, samples))
     elapsed = time.perf_counter() - started
     bar(None)
     output = args.output if samples else "no file written"
     print(f"recorder: {samples} samples ({samples / 1000:.1f} s of drive time) in {elapsed:.1f} s "
           f"(real-time factor {samples / 1000 / elapsed:.2f}) -> {output}", flush=True)
     return code
+
+
+def _write_failure(path: str, exc: OSError, samples: int) -> str:
+    """One line for a recording that could not be written to the end (a full disk): what was
+    kept and how to make it whole."""
+    return (f"-o {path}: cannot write: {exc.strerror or exc} after {samples} samples; the "
+            f"file ends at its last complete chunk: `recorder repair {path} -o "
+            "REPAIRED.mcap` keeps them")
 
 
 def _address_metadata(address: str) -> dict[str, str | int]:
@@ -277,10 +318,11 @@ def _record_zenoh(args: argparse.Namespace, stop: threading.Event) -> int:
     except ValueError as exc:
         return usage_error(PROG, str(exc))
     try:
-        writer = McapRecorder(args.output, {"source": f"zenoh {args.zenoh}"})
+        writer = McapRecorder(args.output, {"source": f"zenoh {args.zenoh}"},
+                              on_failure=stop.set)
     except OSError as exc:
         session.close()
-        return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
+        return job_error(PROG, f"-o {args.output}: cannot write: {exc.strerror or exc}")
     received: queue.Queue = queue.Queue()
     subscriber = session.declare_subscriber(
         args.zenoh, lambda sample: received.put((str(sample.key_expr),
@@ -310,6 +352,8 @@ def _record_zenoh(args: argparse.Namespace, stop: threading.Event) -> int:
                 writer.write(writer.channel(key, message), data, publish_time_ns=log_time,
                              log_time_ns=log_time)
         writer.close()
+    if writer.failure is not None:
+        return job_error(PROG, _write_failure(args.output, writer.failure, writer.messages))
     print(f"recorder: {writer.messages} messages ({skipped} on keys without a schema skipped) "
           f"-> {args.output}", flush=True)
     return 0
@@ -332,8 +376,8 @@ def _export(argv: list[str]) -> int:
         return usage_error(PROG, str(exc))
     try:
         write_csv(recording, Path(args.output))
-    except OSError as exc:
-        return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
+    except OSError as exc:  # a full disk: nothing is left behind (written whole or not)
+        return job_error(PROG, f"-o {args.output}: cannot write: {exc.strerror or exc}")
     print(f"recorder: {len(recording)} samples -> {args.output}")
     return 0
 
@@ -355,8 +399,8 @@ def _repair(argv: list[str]) -> int:
         report = repair_recording(args.recording, args.output)
     except (RecordingError, ValueError) as exc:
         return usage_error(PROG, str(exc))
-    except OSError as exc:
-        return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
+    except OSError as exc:  # a full disk: the source is untouched, no partial copy is left
+        return job_error(PROG, f"-o {args.output}: cannot write: {exc.strerror or exc}")
     print(f"recorder: {report.summary()} -> {args.output}")
     return 0
 

@@ -16,7 +16,12 @@ from commands.bus_options import (
     load_esi_option,
     open_can_log,
 )
-from commands.log_options import add_logging_argument, configure_logging, job_error
+from commands.log_options import (
+    add_logging_argument,
+    configure_logging,
+    job_error,
+    reports_failures,
+)
 from commands.model_options import (
     add_model_argument,
     add_payload_arguments,
@@ -264,6 +269,7 @@ def _silence_timeout(args) -> float | None:
     return (DEFAULT_SILENCE_TIMEOUT if given is None else given) or None
 
 
+@reports_failures(PROG)
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)

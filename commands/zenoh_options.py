@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import json
 
 import zenoh
@@ -22,6 +23,35 @@ def check_key_expr(option: str, text: str, wildcards: bool) -> str:
     except Exception as exc:  # zenoh raises its own ZError; keep its reason, not its source
         reason = str(exc).split(" at /", 1)[0]
         raise ValueError(f"{option} {text!r}: not a Zenoh key expression: {reason}") from None
+    return text
+
+
+# Zenoh's locators over IP: PROTOCOL/HOST:PORT (an IPv6 host in brackets)
+_IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+_OTHER_PROTOCOLS = ("unixsock-stream", "unixpipe", "serial", "vsock")
+
+
+def check_endpoint(option: str, text: str) -> str:
+    """A Zenoh endpoint `PROTOCOL/ADDRESS[?config][#metadata]`, with HOST:PORT over IP
+    (`tcp/127.0.0.1:7447`, `tcp/[::1]:7447`): Zenoh itself ignores a malformed one without a
+    word, so a session would silently miss its peer. ValueError names the option."""
+    locator = text.split("#", 1)[0].split("?", 1)[0]
+    protocol, sep, address = locator.partition("/")
+    expected = "expected PROTOCOL/HOST:PORT, e.g. tcp/127.0.0.1:7447 or tcp/[::1]:7447"
+    if not sep or not address or protocol not in _IP_PROTOCOLS + _OTHER_PROTOCOLS:
+        raise ValueError(f"{option} {text[:80]!r}: {expected}")
+    if protocol in _IP_PROTOCOLS:
+        host, colon, port = address.rpartition(":")
+        if host.startswith("["):
+            inner = host[1:-1] if host.endswith("]") else ""
+            try:
+                ok = bool(inner) and ipaddress.IPv6Address(inner.split("%", 1)[0]) is not None
+            except ValueError:
+                ok = False
+        else:
+            ok = bool(host) and all(c.isalnum() or c in "-._" for c in host)
+        if not (colon and ok and port.isdigit() and int(port) <= 65535):
+            raise ValueError(f"{option} {text[:80]!r}: {expected}")
     return text
 
 
@@ -48,6 +78,8 @@ def zenoh_config(args: argparse.Namespace) -> zenoh.Config:
         raise ValueError(f"--zenoh-config {args.zenoh_config}: {exc}") from None
     for option, key in (("listen", "listen/endpoints"), ("connect", "connect/endpoints")):
         endpoints = getattr(args, option)
+        for endpoint in endpoints:
+            check_endpoint(f"--{option}", endpoint)
         if endpoints:
             try:
                 config.insert_json5(key, json.dumps(endpoints))

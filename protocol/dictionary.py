@@ -92,9 +92,10 @@ def _variables(dictionary: ObjectDictionary):
         yield from (obj.values() if hasattr(obj, "values") else (obj,))
 
 
-def _integer_range(var: ODVariable) -> tuple[int, int]:
+def integer_range(var: ODVariable) -> tuple[int, int]:
+    """The values an integer object's DataType holds."""
     bits = len(var)
-    if var.data_type in SIGNED_TYPES:
+    if var.data_type in datatypes.SIGNED_TYPES:
         return -(1 << (bits - 1)), (1 << (bits - 1)) - 1
     return 0, (1 << bits) - 1
 
@@ -113,7 +114,7 @@ def check_dictionary(dictionary: ObjectDictionary, source: str | Path) -> None:
                 if not math.isfinite(value):
                     raise ValueError(f"{where}: {label} {value}: expected a finite number")
                 continue
-            low, high = _integer_range(var)
+            low, high = integer_range(var)
             if var.data_type == datatypes.BOOLEAN:
                 low, high = 0, 1
             if var.min is not None:

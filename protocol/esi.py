@@ -4,7 +4,7 @@ image and the master's checks need; the object dictionary itself stays in the ED
 
 import copy
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from canopen.objectdictionary import ObjectDictionary, ODVariable
@@ -98,6 +98,7 @@ class EsiDevice:
     coe_details: int  # ec.COE_DETAILS_* bits
     eeprom_bytes: int
     config_data: bytes  # SII words 0.. (PDI control, configuration, alias)
+    source: str = ""  # the file it was read from, to name it in errors
 
     @property
     def identity(self) -> tuple[int, int, int]:
@@ -174,7 +175,7 @@ def load_esi(path: str | Path) -> EsiDevice:
     except ValueError as exc:
         raise EsiError(str(exc)) from None
     try:
-        return parse_esi(text)
+        return replace(parse_esi(text), source=str(path))
     except EsiError as exc:
         raise EsiError(f"{path}: {exc}") from None
 

@@ -36,6 +36,19 @@ def _kind(mode: int) -> str:
     return "not a regular file"
 
 
+def present(path: str | Path) -> bool:
+    """Whether anything is at `path`; a path that cannot even be looked up (too long, a loop
+    of links, no permission) counts as present, so that `check_input_file` says why in one
+    line (`Path.exists` raises for those)."""
+    try:
+        os.stat(path)
+    except FileNotFoundError:
+        return False
+    except (OSError, ValueError):
+        return True
+    return True
+
+
 def check_input_file(path: str | Path, what: str, limit: int) -> Path:
     """`path` is a regular file (links followed) of at most `limit` bytes; `what` names the
     expected content ("an EDS", "a model TOML"). Raises InputFileError in one line."""

@@ -17,7 +17,7 @@ experiments), the same as the `t` inside the message.
 
 import time
 import zlib
-from collections.abc import Collection, Iterator
+from collections.abc import Callable, Collection, Iterator
 from pathlib import Path
 from typing import NamedTuple
 
@@ -68,10 +68,18 @@ def _provisional_end(data_section_crc: int) -> bytes:
 
 class McapRecorder:
     """Writes telemetry messages to an MCAP file, one channel per topic. Opening raises OSError
-    when the file cannot be created."""
+    when the file cannot be created.
 
-    def __init__(self, path: str | Path, metadata: dict[str, str] | None = None):
+    A write that fails later (a full disk) does not raise into the control loop: the recorder
+    keeps the error in `failure`, calls `on_failure` once (the command stops the run) and
+    writes nothing more, so the file ends at its last flushed chunk, which `recorder repair`
+    keeps."""
+
+    def __init__(self, path: str | Path, metadata: dict[str, str] | None = None,
+                 on_failure: Callable[[], None] = lambda: None):
         self.path = Path(path)
+        self.failure: OSError | None = None
+        self._on_failure = on_failure
         self._file = _DataFile(self.path)
         self._writer = Writer(self._file, chunk_size=CHUNK_SIZE,
                               compression=CompressionType.ZSTD, enable_data_crcs=True)
@@ -101,14 +109,24 @@ class McapRecorder:
         """One message. `publish_time_ns`: the time the message speaks for (drive time for an
         experiment); `log_time_ns`: when it was logged, the wall clock now unless given (a
         Zenoh recording passes the time the sample arrived)."""
+        if self.failure is not None:
+            return
         log_time = time.time_ns() if log_time_ns is None else log_time_ns
         self._file.written = False
-        self._writer.add_message(channel_id, log_time, data, publish_time_ns, self._sequence)
-        self._sequence += 1
-        self.messages += 1
-        self._counts[channel_id] += 1
-        if self._file.written:  # a chunk was closed: get it to the file now
-            self._end_here()
+        try:
+            self._writer.add_message(channel_id, log_time, data, publish_time_ns,
+                                     self._sequence)
+            self._sequence += 1
+            self.messages += 1
+            self._counts[channel_id] += 1
+            if self._file.written:  # a chunk was closed: get it to the file now
+                self._end_here()
+        except OSError as exc:
+            self._failed(exc)
+
+    def _failed(self, exc: OSError) -> None:
+        self.failure = exc
+        self._on_failure()
 
     def messages_on(self, channel_id: int) -> int:
         """Messages written on a channel so far (those in the open chunk included)."""
@@ -139,14 +157,27 @@ class McapRecorder:
         return write
 
     def close(self) -> None:
-        """Finish the file: the last chunk, the real DataEnd, summary, indexes, statistics."""
-        self._writer.finish()
-        self._file.file.close()
+        """Finish the file: the last chunk, the real DataEnd, summary, indexes, statistics.
+        After a failed write (or if finishing fails) the file is left as it stands, ending at
+        its last flushed chunk: `failure` says why."""
+        try:
+            if self.failure is None:
+                self._writer.finish()
+        except OSError as exc:
+            self._failed(exc)
+        try:
+            self._file.file.close()
+        except OSError as exc:  # what was buffered could not be flushed
+            if self.failure is None:
+                self._failed(exc)
 
     def discard(self) -> None:
         """Close and delete the file: for a run that failed before its first message, so no
         file is left that claims to be a recording."""
-        self._file.file.close()
+        try:
+            self._file.file.close()
+        except OSError:  # what was buffered could not be flushed: the file goes anyway
+            pass
         self.path.unlink(missing_ok=True)
 
 

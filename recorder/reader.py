@@ -4,7 +4,7 @@ The content decides, not the name: an exported or renamed file reads the same.""
 
 from pathlib import Path
 
-from protocol.input_files import RECORDING_MAX, InputFileError, check_input_file
+from protocol.input_files import RECORDING_MAX, InputFileError, check_input_file, present
 from recorder.csv_io import read_csv
 from recorder.mcap_io import read_mcap
 from recorder.mcap_records import MAGIC
@@ -15,7 +15,7 @@ def load_recording(path: str | Path) -> Recording:
     """Read and check a recording; any problem is one RecordingError line naming the file."""
     path = Path(path)
     try:
-        if path.exists():  # stat'ed before opening: a FIFO or a device is never read
+        if present(path):  # stat'ed before opening: a FIFO or a device is never read
             check_input_file(path, "a recording (MCAP or CSV)", RECORDING_MAX)
     except InputFileError as exc:
         raise RecordingError(str(exc)) from None

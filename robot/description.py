@@ -39,7 +39,13 @@ from model.parameters import ActuatorModel, Limits, ModelFileError, load_model
 from protocol import bus_load
 from protocol import pdo as pdo_layout
 from protocol.bus_spec import BusSpecError, is_ethercat, parse_bus_spec
-from protocol.input_files import TEXT_MAX, InputFileError, check_input_file, read_input_file
+from protocol.input_files import (
+    TEXT_MAX,
+    InputFileError,
+    check_input_file,
+    present,
+    read_input_file,
+)
 
 DEFAULT_BITRATE = bus_load.CAN_CLASSIC_MAX_BITRATE
 DEFAULT_HEARTBEAT_MS = 100  # the drives' and the master's heartbeat (driver default)
@@ -108,7 +114,7 @@ def cyclic_frame_bytes() -> list[int]:
 def load_robot(path: str | Path) -> RobotSpec:
     """Read and check a robot file; RobotFileError names what is wrong."""
     path = Path(path)
-    if not path.exists():
+    if not present(path):
         raise RobotFileError(f"{path}: robot file not found")
     try:
         doc = tomllib.loads(read_input_file(path, "a robot file (TOML)", TEXT_MAX).decode(
@@ -180,7 +186,7 @@ def _joint(path: Path, number: int, entry: dict,
     model_path = _relative(path, f"{where}.model", entry.get("model"))
     if model_path not in models:
         try:
-            if model_path is not None and model_path.exists():  # else: "not found"
+            if model_path is not None and present(model_path):  # else: "not found"
                 check_input_file(model_path, "a model TOML", TEXT_MAX)
             models[model_path] = load_model(model_path)
         except (ModelFileError, InputFileError) as exc:

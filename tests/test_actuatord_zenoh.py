@@ -6,10 +6,13 @@ import subprocess
 import sys
 import time
 
+import pytest
 import zenoh
 
 from protocol import telemetry
 from tests.conftest import free_port
+
+pytestmark = pytest.mark.subprocess  # runs the commands as processes
 
 PREFIX = "test/elbow"
 

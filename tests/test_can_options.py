@@ -17,6 +17,8 @@ from sim_bus.canopen_node import CanOpenNode
 from sim_bus.device import Cia402Device
 from tests.conftest import sim_bus_process
 
+pytestmark = pytest.mark.subprocess  # runs the commands as processes
+
 NODE = 2
 SYNC = 0x80
 TPDOS = [layout.cob_id(NODE) for layout in pdo.DEFAULT_TPDOS]

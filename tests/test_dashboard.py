@@ -25,6 +25,8 @@ from tests.conftest import free_port
 from tests.test_actuatord_zenoh import PREFIX, dashboard_session, start_actuatord
 from tests.test_robot_loop import ARM
 
+pytestmark = pytest.mark.subprocess  # runs the commands as processes
+
 FOXGLOVE_SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
 
 

@@ -48,7 +48,7 @@ def case_id(case: tuple) -> str:
 
 # the first test pays for every case's recordings (about 30 cases, two at a time): longer
 # than the suite's 300 s per-test default even on a quiet machine
-pytestmark = pytest.mark.timeout(1800)
+pytestmark = [pytest.mark.timeout(1800), pytest.mark.subprocess]
 
 
 @pytest.fixture(scope="session")

@@ -15,6 +15,8 @@ from controller.mpc import Mpc
 from model import dynamics
 from model.parameters import load_model
 
+pytestmark = pytest.mark.subprocess  # runs the commands as processes
+
 HIDDEN = {
     "stribeck": "stribeck:breakaway_friction=1.5,velocity=0.05",
     "position_ripple": "position_ripple:amplitude=0.6,spatial_frequency=8,phase=0.3",
