@@ -87,20 +87,20 @@ _EXP_MAX = 710.0  # e^710 overflows, e^-746 underflows: clamping there changes n
 _EXP_MIN = -746.0
 
 
-@register_jitable
+@register_jitable(forceinline=True)
 def _round_to_integer(x):
     """x rounded to the nearest integer, as a float and as an int64 (|x| < 2^51)."""
     shifted = x + _ROUNDER
     return shifted - _ROUNDER, _bits(shifted) - _ROUNDER_BITS
 
 
-@register_jitable
+@register_jitable(forceinline=True)
 def _power_of_two(n):
     """2^n for an int64 |n| <= 1022 (a normal number)."""
     return _from_bits((n + 1023) << 52)
 
 
-@register_jitable
+@register_jitable(forceinline=True)
 def _exp_reduced(r):
     """e^r for |r| <= ln2/2 (Taylor, degree 13, Horner with fused steps)."""
     c = _EXP_TAYLOR
@@ -120,7 +120,7 @@ def _exp_reduced(r):
     return fused_multiply_add(e, r, c[13])
 
 
-@register_jitable
+@register_jitable(forceinline=True)
 def exp(x):
     """e^x within 2 ulp, branch-free (see the module docstring)."""
     clamped = _EXP_MAX if x > _EXP_MAX else x
@@ -140,7 +140,7 @@ _EXPM1_TAYLOR = (1.0 / 6227020800.0, 1.0 / 479001600.0, 1.0 / 39916800.0, 1.0 / 
 _TANH_SATURATION = 20.0  # tanh(20) = 1 - 8e-18 rounds to 1
 
 
-@register_jitable
+@register_jitable(forceinline=True)
 def _expm1_small(y):
     """e^y - 1 for 0 <= y <= ln2/2, with relative accuracy near zero (Taylor, degree 13)."""
     c = _EXPM1_TAYLOR
@@ -160,12 +160,14 @@ def _expm1_small(y):
     return e * y
 
 
-@register_jitable
+@register_jitable(forceinline=True)
 def tanh(x):
     """tanh x within 3 ulp, branch-free (see the module docstring)."""
     magnitude = abs(x)
     y = 2.0 * (_TANH_SATURATION if magnitude > _TANH_SATURATION else magnitude)
-    em1 = _expm1_small(y) if y <= 0.34657359027997264 else exp(y) - 1.0
+    small = _expm1_small(y)
+    large = exp(y) - 1.0
+    em1 = small if y <= 0.34657359027997264 else large  # both computed: one select per lane
     t = em1 / (em1 + 2.0)
     t = -t if x < 0.0 else t
     return x if x != x else t
@@ -184,7 +186,7 @@ _C1, _C2, _C3 = 4.16666666666666019037e-02, -1.38888888888741095749e-03, 2.48015
 _C4, _C5, _C6 = -2.75573143513906633035e-07, 2.08757232129817482790e-09, -1.13596475577881948265e-11
 
 
-@register_jitable
+@register_jitable(forceinline=True)
 def sin_cos(x):
     """(sin x, cos x) within 2 ulp for |x| <= 2^19 pi/2, branch-free (see the module
     docstring): one reduction serves both, as the joint's gravity needs both."""
@@ -204,9 +206,14 @@ def sin_cos(x):
     half_z = 0.5 * z
     w = 1.0 - half_z
     c = w + (((1.0 - w) - half_z) + z * z * c_poly)
-    quadrant = n & 3
-    sin_x = s if quadrant == 0 else (c if quadrant == 1 else (-s if quadrant == 2 else -c))
-    cos_x = c if quadrant == 0 else (-s if quadrant == 1 else (-c if quadrant == 2 else s))
+    # quadrant n mod 4: sin x = s, c, -s, -c and cos x = c, -s, -c, s; as selects on its two
+    # bits (a select per lane, where a chain of comparisons would become a switch that stops
+    # the vectoriser)
+    odd = (n & 1) != 0
+    sin_r = c if odd else s
+    cos_r = s if odd else c
+    sin_x = -sin_r if (n & 2) != 0 else sin_r
+    cos_x = -cos_r if ((n + 1) & 2) != 0 else cos_r
     nan = x - x  # NaN for inf and NaN
     return (sin_x if finite else nan), (cos_x if finite else nan)
 

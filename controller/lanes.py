@@ -3,8 +3,9 @@
 running over joints so that LLVM vectorises the backward pass, the forward simulation and the
 barrier terms across them (AVX2/FMA, or AVX-512 where the CPU has it).
 
-Layout: a joint-major structure of arrays, `lanes[field, k, j]` for step k of joint j, so the
-values of one step for consecutive joints are contiguous. Per-joint scalars (the parameters,
+Layout: a joint-major structure of arrays, `trajectories[which, chunk, k, field, lane]` for
+step k of joint chunk x WIDTH + lane, so the values of one step for consecutive joints are
+contiguous. Per-joint scalars (the parameters,
 the cost vector, the solver's state) live in `scratch[row, j]` the same way. The tick's inputs
 and outputs stay in the joints' workspace rows (`controller.workspace` header), so Python's side
 of the batch does not change; the trajectories of a lane batch live only here.
@@ -34,9 +35,11 @@ cores or fewer (see `default_threads`).
 
 import os
 
+import llvmlite.binding as llvm
 import numba
 import numpy as np
-from numba.np.unsafe.ndarray import to_fixed_tuple
+from numba import types
+from numba.extending import intrinsic, register_jitable
 
 from controller import workspace as ws
 from controller.action_model import stage_cost_given, step_given, terminal_cost_given
@@ -78,17 +81,26 @@ from model.dynamics import (
 
 COLD, WARM, RESAMPLE, SKIP = 0, 1, 2, 3  # tick modes, as controller.mpc
 
-# fields of lanes[field, k, j]: two trajectories of TRAJECTORY_FIELDS each, then the rest
+# Joints go in chunks of WIDTH lanes: a compile-time width, so the compiler knows the loop over
+# a chunk's lanes and the distance between two fields (and proves they do not overlap). Four
+# doubles are one AVX2 register; with AVX-512 LLVM pairs two chunks' worth per instruction.
+WIDTH = 8
+
+# LLVM vectorises a loop with a constant trip count below 16 only if it needs no run-time check
+# that its arrays do not overlap; a loop over a chunk's lanes reads and writes separate arrays
+# (trajectories, gains, scratch), one cheap check per pair. The option is process-wide and read
+# when a function is compiled: numba compiles ours at their first call, after this import.
+# Elsewhere it only lets short loops with such checks be vectorised too.
+llvm.set_option("", f"-vectorizer-min-trip-count={WIDTH}")
+
+# fields of trajectories[which, chunk, k, field, lane]: the current solution and the trial
 Q, QD, U, A11, A12, A21, A22, B1, B2, LQ, LQD, LQQ, LQDQD, LU, LUU, LC = range(16)
 TRAJECTORY_FIELDS = 16
-K1 = 2 * TRAJECTORY_FIELDS  # feedback gains on q and qd
-K2 = K1 + 1
-KFF = K1 + 2  # feed-forward steps
-REFERENCE_Q = K1 + 3  # q* over the horizon
-REFERENCE_QD = K1 + 4  # qd* over the horizon
-FIELDS = K1 + 5
+# fields of gains[chunk, k, field, lane]
+K1, K2, KFF, REFERENCE_Q, REFERENCE_QD = range(5)  # feedback on q, qd; feed-forward; q*, qd*
+GAIN_FIELDS = 5
 
-# rows of scratch[row, j]: the dynamics parameters, the cost vector, then the solver's state
+# rows of scratch[chunk, row, lane]: the dynamics parameters, the cost vector, the solver's state
 PARAMETERS = 0
 COSTS = N_PARAMS
 (Q0, QD0, BOX, TOLERANCE, MU, COST, MERIT, DV1, DV2, ALPHA, VX1, VX2, V11, V12, V22, SWEEP_OK,
@@ -97,10 +109,11 @@ SCRATCH = COSTS + N_COST + 21
 
 # phases of a joint within a tick
 DONE, WARM_SWEEP, FIRST_ROLLOUT, SWEEP, SEARCH = range(5)
-# per-joint integer state, state[row, j]
-(PHASE, ATTEMPT, ITERATION, MAX_ITER, AFTER_WARM, STATUS_, ITERATION_OFFSET,
- ROLLOUTS_OFFSET, ROLLOUTS_) = range(9)
+# rows of state[chunk, row, lane], the solver's integer state
+(PHASE, ATTEMPT, ITERATION, MAX_ITER, AFTER_WARM, STATUS, ITERATION_OFFSET, ROLLOUTS_OFFSET,
+ ROLLOUTS) = range(9)
 STATE = 9
+PADDING = -1  # STATUS of a lane that is skipped this tick or holds no joint
 
 
 def supports(packed_parameters: np.ndarray) -> bool:
@@ -111,513 +124,605 @@ def supports(packed_parameters: np.ndarray) -> bool:
 
 
 def default_threads() -> int:
-    """One thread on a machine with two cores or fewer, else two. Measured here (bench, two
-    cores shared): a second thread saves at most what one block's tick takes minus the wake-up
-    of the thread team, and costs that team's wake-up and the cache traffic of two cores on one
-    workspace; on a robot PC with two cores the second belongs to the bus and the telemetry."""
+    """One thread on a machine with two cores or fewer, else two (see `bench`: on the two
+    shared cores here a second thread gained little at 32 joints and lost at 7 under load,
+    and on a robot PC with two cores the second belongs to the bus and the telemetry)."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return 1 if (cores or 1) <= 2 else 2
 
 
-def allocate(joints: int, n: int, blocks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                         np.ndarray]:
-    """The lane workspace of a batch: (lanes, scratch, state, current) where current[b] says
-    which trajectory is the current one in block b."""
-    return (np.zeros((FIELDS, n + 1, joints)), np.zeros((SCRATCH, joints)),
-            np.zeros((STATE, joints), dtype=np.int64), np.zeros(max(blocks, 1), dtype=np.int64))
+def chunks(joints: int) -> int:
+    return -(-joints // WIDTH)
 
 
-@numba.njit(**JIT)
-def _acceleration(q, qd, u, S, j):
+def allocate(joints: int, n: int, blocks: int) -> tuple[np.ndarray, ...]:
+    """The lane workspace of a batch: (trajectories, gains, scratch, state, current), where
+    current[b] says which of the two trajectories is the current one in block b (at most one
+    block per chunk). Separate arrays, so a loop's reads and writes fall in few groups the
+    compiler can check for overlap once."""
+    count = chunks(joints)
+    return (np.zeros((2, count, n + 1, TRAJECTORY_FIELDS, WIDTH)),
+            np.zeros((count, n + 1, GAIN_FIELDS, WIDTH)), np.zeros((count, SCRATCH, WIDTH)),
+            np.zeros((count, STATE, WIDTH), dtype=np.int64),
+            np.zeros(min(max(blocks, 1), count), dtype=np.int64))
+
+
+def block_of(joint: int, joints: int, blocks: int) -> int:
+    """The block whose thread ticks this joint (blocks are runs of whole chunks)."""
+    count = chunks(joints)
+    chunk = joint // WIDTH
+    return next(b for b in range(blocks) if chunk < (b + 1) * count // blocks)
+
+
+def _costs_reader():
+    """A jitable function returning the cost vector of lane w of chunk c as a tuple (what
+    controller.cost indexes), read from scratch with no array view inside the lane loop."""
+    items = ", ".join(f"S[c, {COSTS + i}, w]" for i in range(N_COST))
+    namespace: dict = {}
+    exec(f"def lane_costs(S, c, w):\n    return ({items},)\n", namespace)
+    return register_jitable(forceinline=True)(namespace["lane_costs"])
+
+
+lane_costs = _costs_reader()
+
+
+@intrinsic
+def _data(typingctx, a):
+    """The data pointer of a C-contiguous float64 array."""
+    if not (isinstance(a, types.Array) and a.dtype == types.float64 and a.layout == "C"):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return context.make_array(signature.args[0])(context, builder, args[0]).data
+
+    return types.CPointer(types.float64)(a), codegen
+
+
+@register_jitable(forceinline=True)
+def _steps(a, fields):
+    """A (chunk, k, field, lane) array seen with its inner extents as compile-time constants:
+    the offsets of fields within a step are then constants the compiler sees, so it can prove
+    that the fields a loop writes are not the ones it reads and vectorise the loop over lanes.
+    A view without reference counting: valid while `a` is."""
+    return numba.carray(_data(a), (a.shape[0], a.shape[1], fields, WIDTH))
+
+
+@register_jitable(forceinline=True)
+def _rows(a):
+    """scratch[chunk, row, lane] seen with its inner extents as compile-time constants."""
+    return numba.carray(_data(a), (a.shape[0], SCRATCH, WIDTH))
+
+
+@register_jitable(forceinline=True)
+def _acceleration(q, qd, u, S, c, w):
     """`model.dynamics.smooth_acceleration` for a joint without extra effects, with the lane
     maths: qdd and its partial derivatives in q, qd and u."""
-    th = tanh(S[COSTS + C_FRICTION_SHARPNESS, j] * qd)
-    inv_inertia = 1.0 / S[PARAMETERS + P_INERTIA, j]
+    sharpness = S[c, COSTS + C_FRICTION_SHARPNESS, w]
+    th = tanh(sharpness * qd)
+    inv_inertia = 1.0 / S[c, PARAMETERS + P_INERTIA, w]
     sin_q, cos_q = sin_cos(q)
-    my, mx = S[PARAMETERS + P_GRAVITY_MY, j], S[PARAMETERS + P_GRAVITY_MX, j]
+    my, mx = S[c, PARAMETERS + P_GRAVITY_MY, w], S[c, PARAMETERS + P_GRAVITY_MX, w]
     gravity = my * sin_q + mx * cos_q
     d_gravity = my * cos_q - mx * sin_q
-    level = S[PARAMETERS + P_DRY, j]
-    viscous = S[PARAMETERS + P_VISCOUS, j]
-    gain = S[PARAMETERS + P_DRIVE_GAIN, j]
-    torque = gain * u - viscous * qd - level * th - S[PARAMETERS + P_OFFSET, j] - gravity
-    d_friction = viscous + level * S[COSTS + C_FRICTION_SHARPNESS, j] * (1.0 - th * th)
+    level = S[c, PARAMETERS + P_DRY, w]
+    viscous = S[c, PARAMETERS + P_VISCOUS, w]
+    gain = S[c, PARAMETERS + P_DRIVE_GAIN, w]
+    torque = gain * u - viscous * qd - level * th - S[c, PARAMETERS + P_OFFSET, w] - gravity
+    d_friction = viscous + level * sharpness * (1.0 - th * th)
     return (torque * inv_inertia, -d_gravity * inv_inertia, -d_friction * inv_inertia,
             gain * inv_inertia)
 
 
-@numba.njit(**JIT)
-def _store_stage(L, o, k, j, q, qd, u, S, c):
-    """Step k of lane j into the trajectory at field offset o: state, control, linearisation
+@register_jitable(forceinline=True)
+def _store_stage(T, G, S, c, k, w, q, qd, u):
+    """Step k of lane w into trajectory T: state, control, linearisation
     and cost derivatives (controller.ilqr.store_stage). Returns the stage cost and x+."""
-    a, a_q, a_qd, a_u = _acceleration(q, qd, u, S, j)
-    step = step_given(q, qd, c[C_DT], a, a_q, a_qd, a_u)
-    cost = stage_cost_given(q, qd, u, L[REFERENCE_Q, k, j], L[REFERENCE_QD, k, j], c,
-                            exp(c[C_ALPHA_POSITION] * q), exp(c[C_ALPHA_VELOCITY] * qd),
-                            exp(c[C_ALPHA_TORQUE] * (c[C_DRIVE_GAIN] * u)))
-    L[o + Q, k, j] = q
-    L[o + QD, k, j] = qd
-    L[o + U, k, j] = u
-    L[o + LQ, k, j] = cost.l_q
-    L[o + LQD, k, j] = cost.l_qd
-    L[o + LQQ, k, j] = cost.l_qq
-    L[o + LQDQD, k, j] = cost.l_qdqd
-    L[o + LU, k, j] = cost.l_u
-    L[o + LUU, k, j] = cost.l_uu
-    L[o + LC, k, j] = cost.l
-    L[o + A11, k, j] = step.a11
-    L[o + A12, k, j] = step.a12
-    L[o + A21, k, j] = step.a21
-    L[o + A22, k, j] = step.a22
-    L[o + B1, k, j] = step.b1
-    L[o + B2, k, j] = step.b2
+    costs = lane_costs(S, c, w)
+    a, a_q, a_qd, a_u = _acceleration(q, qd, u, S, c, w)
+    step = step_given(q, qd, costs[C_DT], a, a_q, a_qd, a_u)
+    cost = stage_cost_given(q, qd, u, G[c, k, REFERENCE_Q, w], G[c, k, REFERENCE_QD, w], costs,
+                            exp(costs[C_ALPHA_POSITION] * q), exp(costs[C_ALPHA_VELOCITY] * qd),
+                            exp(costs[C_ALPHA_TORQUE] * (costs[C_DRIVE_GAIN] * u)))
+    T[c, k, Q, w] = q
+    T[c, k, QD, w] = qd
+    T[c, k, U, w] = u
+    T[c, k, LQ, w] = cost.l_q
+    T[c, k, LQD, w] = cost.l_qd
+    T[c, k, LQQ, w] = cost.l_qq
+    T[c, k, LQDQD, w] = cost.l_qdqd
+    T[c, k, LU, w] = cost.l_u
+    T[c, k, LUU, w] = cost.l_uu
+    T[c, k, LC, w] = cost.l
+    T[c, k, A11, w] = step.a11
+    T[c, k, A12, w] = step.a12
+    T[c, k, A21, w] = step.a21
+    T[c, k, A22, w] = step.a22
+    T[c, k, B1, w] = step.b1
+    T[c, k, B2, w] = step.b2
     return cost.l, step.q, step.qd
 
 
-@numba.njit(**JIT)
-def _store_terminal(L, o, n, j, q, qd, c):
+@register_jitable(forceinline=True)
+def _store_terminal(T, G, S, c, n, w, q, qd):
     """The terminal state and its cost derivatives; returns the terminal cost."""
-    cost = terminal_cost_given(q, qd, L[REFERENCE_Q, n, j], L[REFERENCE_QD, n, j], c,
-                               exp(c[C_ALPHA_POSITION] * q), exp(c[C_ALPHA_VELOCITY] * qd))
-    L[o + Q, n, j] = q
-    L[o + QD, n, j] = qd
-    L[o + LQ, n, j] = cost.l_q
-    L[o + LQD, n, j] = cost.l_qd
-    L[o + LQQ, n, j] = cost.l_qq
-    L[o + LQDQD, n, j] = cost.l_qdqd
-    L[o + LC, n, j] = cost.l
+    costs = lane_costs(S, c, w)
+    cost = terminal_cost_given(q, qd, G[c, n, REFERENCE_Q, w], G[c, n, REFERENCE_QD, w], costs,
+                               exp(costs[C_ALPHA_POSITION] * q),
+                               exp(costs[C_ALPHA_VELOCITY] * qd))
+    T[c, n, Q, w] = q
+    T[c, n, QD, w] = qd
+    T[c, n, LQ, w] = cost.l_q
+    T[c, n, LQD, w] = cost.l_qd
+    T[c, n, LQQ, w] = cost.l_qq
+    T[c, n, LQDQD, w] = cost.l_qdqd
+    T[c, n, LC, w] = cost.l
     return cost.l
 
 
 @numba.njit(**JIT)
-def _rollout(L, S, cur, trial, n, j0, j1):
+def _rollout(current, trial, gains, scratch, n, c0, c1):
     """Simulate u = U_cur + alpha kff + K (x - X_cur) from x0 into the trial trajectory, for
-    every lane of [j0, j1) with its own alpha and gains (controller.ilqr.rollout); the total
-    cost, inf when not finite, goes to scratch[TOTAL]."""
-    for j in range(j0, j1):
-        L[trial + Q, 0, j] = S[Q0, j]
-        L[trial + QD, 0, j] = S[QD0, j]
-        S[TOTAL, j] = 0.0
-    for k in range(n):
-        for j in range(j0, j1):
-            c = to_fixed_tuple(S[COSTS:COSTS + N_COST, j], N_COST)
-            q, qd = L[trial + Q, k, j], L[trial + QD, k, j]
-            u = L[cur + U, k, j] + S[ALPHA, j] * L[KFF, k, j] + L[K1, k, j] * (
-                q - L[cur + Q, k, j]) + L[K2, k, j] * (qd - L[cur + QD, k, j])
-            cost, q_next, qd_next = _store_stage(L, trial, k, j, q, qd, u, S, c)
-            S[TOTAL, j] += cost
-            L[trial + Q, k + 1, j] = q_next
-            L[trial + QD, k + 1, j] = qd_next
-    for j in range(j0, j1):
-        c = to_fixed_tuple(S[COSTS:COSTS + N_COST, j], N_COST)
-        total = S[TOTAL, j] + _store_terminal(L, trial, n, j, L[trial + Q, n, j],
-                                              L[trial + QD, n, j], c)
-        S[TOTAL, j] = total if np.isfinite(total) else np.inf
+    every lane of chunks [c0, c1) with its own alpha and gains (controller.ilqr.rollout); the
+    total cost, inf when not finite, goes to scratch[TOTAL]."""
+    Tc, Tt = _steps(current, TRAJECTORY_FIELDS), _steps(trial, TRAJECTORY_FIELDS)
+    G, S = _steps(gains, GAIN_FIELDS), _rows(scratch)
+    for c in range(c0, c1):
+        for w in range(WIDTH):
+            Tt[c, 0, Q, w] = S[c, Q0, w]
+            Tt[c, 0, QD, w] = S[c, QD0, w]
+            S[c, TOTAL, w] = 0.0
+        for k in range(n):
+            for w in range(WIDTH):
+                q, qd = Tt[c, k, Q, w], Tt[c, k, QD, w]
+                u = Tc[c, k, U, w] + S[c, ALPHA, w] * G[c, k, KFF, w] + G[c, k, K1, w] * (
+                    q - Tc[c, k, Q, w]) + G[c, k, K2, w] * (qd - Tc[c, k, QD, w])
+                cost, q_next, qd_next = _store_stage(Tt, G, S, c, k, w, q, qd, u)
+                S[c, TOTAL, w] += cost
+                Tt[c, k + 1, Q, w] = q_next
+                Tt[c, k + 1, QD, w] = qd_next
+        for w in range(WIDTH):
+            total = S[c, TOTAL, w] + _store_terminal(Tt, G, S, c, n, w, Tt[c, n, Q, w],
+                                                     Tt[c, n, QD, w])
+            S[c, TOTAL, w] = total if np.isfinite(total) else np.inf
 
 
 @numba.njit(**JIT)
-def _backward(L, S, cur, n, j0, j1):
-    """Riccati sweep of every lane of [j0, j1) with its own mu (controller.ilqr.backward);
-    writes the gains only of lanes with scratch[NEEDS_SWEEP] set. A lane whose regularised
-    Quu is not positive at some step ends with scratch[SWEEP_OK] = 0 (its later steps are
-    computed and ignored, as the scalar sweep would have stopped there)."""
-    for j in range(j0, j1):
-        S[VX1, j] = L[cur + LQ, n, j]
-        S[VX2, j] = L[cur + LQD, n, j]
-        S[V11, j] = L[cur + LQQ, n, j]
-        S[V12, j] = 0.0
-        S[V22, j] = L[cur + LQDQD, n, j]
-        S[DV1, j] = 0.0
-        S[DV2, j] = 0.0
-        S[SWEEP_OK, j] = 1.0
-    for k in range(n - 1, -1, -1):
-        for j in range(j0, j1):
-            mu = S[MU, j]
-            box = S[BOX, j]
-            vx1, vx2 = S[VX1, j], S[VX2, j]
-            v11, v12, v22 = S[V11, j], S[V12, j], S[V22, j]
-            a11, a12 = L[cur + A11, k, j], L[cur + A12, k, j]
-            a21, a22 = L[cur + A21, k, j], L[cur + A22, k, j]
-            b1, b2 = L[cur + B1, k, j], L[cur + B2, k, j]
-            luu = L[cur + LUU, k, j]
-            qx1 = L[cur + LQ, k, j] + a11 * vx1 + a21 * vx2
-            qx2 = L[cur + LQD, k, j] + a12 * vx1 + a22 * vx2
-            qu = L[cur + LU, k, j] + b1 * vx1 + b2 * vx2
-            vb1 = v11 * b1 + v12 * b2
-            vb2 = v12 * b1 + v22 * b2
-            quu = luu + b1 * vb1 + b2 * vb2
-            qux1 = vb1 * a11 + vb2 * a21
-            qux2 = vb1 * a12 + vb2 * a22
-            rb1 = vb1 + mu * b1
-            rb2 = vb2 + mu * b2
-            quu_r = luu + b1 * rb1 + b2 * rb2
-            ok = quu_r > 0.0
-            S[SWEEP_OK, j] = S[SWEEP_OK, j] if ok else 0.0
-            qux1_r = rb1 * a11 + rb2 * a21
-            qux2_r = rb1 * a12 + rb2 * a22
-            va11 = v11 * a11 + v12 * a21
-            va12 = v11 * a12 + v12 * a22
-            va21 = v12 * a11 + v22 * a21
-            va22 = v12 * a12 + v22 * a22
-            qxx11 = L[cur + LQQ, k, j] + a11 * va11 + a21 * va21
-            qxx12 = a11 * va12 + a21 * va22
-            qxx22 = L[cur + LQDQD, k, j] + a12 * va12 + a22 * va22
-            kk = -qu / quu_r
-            k1 = -qux1_r / quu_r
-            k2 = -qux2_r / quu_r
-            u = L[cur + U, k, j]
-            clamped = abs(u + kk) > box
-            kk = ((box if u + kk > 0.0 else -box) - u) if clamped else kk
-            k1 = 0.0 if clamped else k1
-            k2 = 0.0 if clamped else k2
-            writes = S[NEEDS_SWEEP, j] != 0.0
-            L[KFF, k, j] = kk if writes else L[KFF, k, j]
-            L[K1, k, j] = k1 if writes else L[K1, k, j]
-            L[K2, k, j] = k2 if writes else L[K2, k, j]
-            S[VX1, j] = qx1 + k1 * quu * kk + k1 * qu + qux1 * kk
-            S[VX2, j] = qx2 + k2 * quu * kk + k2 * qu + qux2 * kk
-            S[V11, j] = qxx11 + k1 * quu * k1 + 2.0 * k1 * qux1
-            S[V12, j] = qxx12 + k1 * quu * k2 + k1 * qux2 + qux1 * k2
-            S[V22, j] = qxx22 + k2 * quu * k2 + 2.0 * k2 * qux2
-            S[DV1, j] += kk * qu
-            S[DV2, j] += 0.5 * kk * kk * quu
+def _backward(current, gains, scratch, n, c0, c1):
+    """Riccati sweep of every lane of chunks [c0, c1) with its own mu
+    (controller.ilqr.backward); writes the gains only of lanes with scratch[NEEDS_SWEEP] set. A
+    lane whose regularised Quu is not positive at some step ends with scratch[SWEEP_OK] = 0
+    (its later steps are computed and ignored: the scalar sweep would have stopped there)."""
+    Tc, G, S = _steps(current, TRAJECTORY_FIELDS), _steps(gains, GAIN_FIELDS), _rows(scratch)
+    for c in range(c0, c1):
+        for w in range(WIDTH):
+            S[c, VX1, w] = Tc[c, n, LQ, w]
+            S[c, VX2, w] = Tc[c, n, LQD, w]
+            S[c, V11, w] = Tc[c, n, LQQ, w]
+            S[c, V12, w] = 0.0
+            S[c, V22, w] = Tc[c, n, LQDQD, w]
+            S[c, DV1, w] = 0.0
+            S[c, DV2, w] = 0.0
+            S[c, SWEEP_OK, w] = 1.0
+        for k in range(n - 1, -1, -1):
+            for w in range(WIDTH):
+                mu = S[c, MU, w]
+                box = S[c, BOX, w]
+                vx1, vx2 = S[c, VX1, w], S[c, VX2, w]
+                v11, v12, v22 = S[c, V11, w], S[c, V12, w], S[c, V22, w]
+                a11, a12 = Tc[c, k, A11, w], Tc[c, k, A12, w]
+                a21, a22 = Tc[c, k, A21, w], Tc[c, k, A22, w]
+                b1, b2 = Tc[c, k, B1, w], Tc[c, k, B2, w]
+                luu = Tc[c, k, LUU, w]
+                qx1 = Tc[c, k, LQ, w] + a11 * vx1 + a21 * vx2
+                qx2 = Tc[c, k, LQD, w] + a12 * vx1 + a22 * vx2
+                qu = Tc[c, k, LU, w] + b1 * vx1 + b2 * vx2
+                vb1 = v11 * b1 + v12 * b2
+                vb2 = v12 * b1 + v22 * b2
+                quu = luu + b1 * vb1 + b2 * vb2
+                qux1 = vb1 * a11 + vb2 * a21
+                qux2 = vb1 * a12 + vb2 * a22
+                rb1 = vb1 + mu * b1
+                rb2 = vb2 + mu * b2
+                quu_r = luu + b1 * rb1 + b2 * rb2
+                S[c, SWEEP_OK, w] = S[c, SWEEP_OK, w] if quu_r > 0.0 else 0.0
+                qux1_r = rb1 * a11 + rb2 * a21
+                qux2_r = rb1 * a12 + rb2 * a22
+                va11 = v11 * a11 + v12 * a21
+                va12 = v11 * a12 + v12 * a22
+                va21 = v12 * a11 + v22 * a21
+                va22 = v12 * a12 + v22 * a22
+                qxx11 = Tc[c, k, LQQ, w] + a11 * va11 + a21 * va21
+                qxx12 = a11 * va12 + a21 * va22
+                qxx22 = Tc[c, k, LQDQD, w] + a12 * va12 + a22 * va22
+                kk = -qu / quu_r
+                k1 = -qux1_r / quu_r
+                k2 = -qux2_r / quu_r
+                u = Tc[c, k, U, w]
+                clamped = abs(u + kk) > box
+                kk = ((box if u + kk > 0.0 else -box) - u) if clamped else kk
+                k1 = 0.0 if clamped else k1
+                k2 = 0.0 if clamped else k2
+                writes = S[c, NEEDS_SWEEP, w] != 0.0
+                G[c, k, KFF, w] = kk if writes else G[c, k, KFF, w]
+                G[c, k, K1, w] = k1 if writes else G[c, k, K1, w]
+                G[c, k, K2, w] = k2 if writes else G[c, k, K2, w]
+                S[c, VX1, w] = qx1 + k1 * quu * kk + k1 * qu + qux1 * kk
+                S[c, VX2, w] = qx2 + k2 * quu * kk + k2 * qu + qux2 * kk
+                S[c, V11, w] = qxx11 + k1 * quu * k1 + 2.0 * k1 * qux1
+                S[c, V12, w] = qxx12 + k1 * quu * k2 + k1 * qux2 + qux1 * k2
+                S[c, V22, w] = qxx22 + k2 * quu * k2 + 2.0 * k2 * qux2
+                S[c, DV1, w] += kk * qu
+                S[c, DV2, w] += 0.5 * kk * kk * quu
 
 
 @numba.njit(**JIT)
-def _shift(L, S, cur, n, j0, j1):
+def _shift(current, gains, scratch, n, c0, c1):
     """Lanes with scratch[SHIFTS] set advance their stored solution one step
     (controller.mpc._shift): everything moves up by one, the last control is repeated, the last
-    stage and the terminal state are evaluated anew. The other lanes are left as they are."""
-    for f in (Q, QD, LQ, LQD, LQQ, LQDQD, LC):
+    stage and the terminal state are evaluated anew; then every lane's shifted cost is summed
+    into scratch[SUM], in the scalar tick's order. Other lanes keep their trajectory."""
+    Tc, G, S = _steps(current, TRAJECTORY_FIELDS), _steps(gains, GAIN_FIELDS), _rows(scratch)
+    for c in range(c0, c1):
         for k in range(n):
-            for j in range(j0, j1):
-                L[cur + f, k, j] = L[cur + f, k + 1, j] if S[SHIFTS, j] != 0.0 else L[
-                    cur + f, k, j]
-    for f in (cur + U, cur + A11, cur + A12, cur + A21, cur + A22, cur + B1, cur + B2,
-              cur + LU, cur + LUU, K1, K2):
-        for k in range(n - 1):
-            for j in range(j0, j1):
-                L[f, k, j] = L[f, k + 1, j] if S[SHIFTS, j] != 0.0 else L[f, k, j]
-    for j in range(j0, j1):
-        if S[SHIFTS, j] != 0.0:
-            c = to_fixed_tuple(S[COSTS:COSTS + N_COST, j], N_COST)
-            _, q_next, qd_next = _store_stage(L, cur, n - 1, j, L[cur + Q, n - 1, j],
-                                              L[cur + QD, n - 1, j], L[cur + U, n - 2, j], S, c)
-            _store_terminal(L, cur, n, j, q_next, qd_next, c)
+            for w in range(WIDTH):
+                moves = S[c, SHIFTS, w] != 0.0
+                Tc[c, k, Q, w] = Tc[c, k + 1, Q, w] if moves else Tc[c, k, Q, w]
+                Tc[c, k, QD, w] = Tc[c, k + 1, QD, w] if moves else Tc[c, k, QD, w]
+                Tc[c, k, LQ, w] = Tc[c, k + 1, LQ, w] if moves else Tc[c, k, LQ, w]
+                Tc[c, k, LQD, w] = Tc[c, k + 1, LQD, w] if moves else Tc[c, k, LQD, w]
+                Tc[c, k, LQQ, w] = Tc[c, k + 1, LQQ, w] if moves else Tc[c, k, LQQ, w]
+                Tc[c, k, LQDQD, w] = Tc[c, k + 1, LQDQD, w] if moves else Tc[c, k, LQDQD, w]
+                Tc[c, k, LC, w] = Tc[c, k + 1, LC, w] if moves else Tc[c, k, LC, w]
+        for k in range(n - 1):  # the gains need no shift: every sweep writes them all
+            for w in range(WIDTH):
+                moves = S[c, SHIFTS, w] != 0.0
+                Tc[c, k, U, w] = Tc[c, k + 1, U, w] if moves else Tc[c, k, U, w]
+                Tc[c, k, A11, w] = Tc[c, k + 1, A11, w] if moves else Tc[c, k, A11, w]
+                Tc[c, k, A12, w] = Tc[c, k + 1, A12, w] if moves else Tc[c, k, A12, w]
+                Tc[c, k, A21, w] = Tc[c, k + 1, A21, w] if moves else Tc[c, k, A21, w]
+                Tc[c, k, A22, w] = Tc[c, k + 1, A22, w] if moves else Tc[c, k, A22, w]
+                Tc[c, k, B1, w] = Tc[c, k + 1, B1, w] if moves else Tc[c, k, B1, w]
+                Tc[c, k, B2, w] = Tc[c, k + 1, B2, w] if moves else Tc[c, k, B2, w]
+                Tc[c, k, LU, w] = Tc[c, k + 1, LU, w] if moves else Tc[c, k, LU, w]
+                Tc[c, k, LUU, w] = Tc[c, k + 1, LUU, w] if moves else Tc[c, k, LUU, w]
+        for w in range(WIDTH):
+            if S[c, SHIFTS, w] != 0.0:
+                _, q_next, qd_next = _store_stage(Tc, G, S, c, n - 1, w, Tc[c, n - 1, Q, w],
+                                                  Tc[c, n - 1, QD, w],
+                                                  Tc[c, n - 2, U, w])
+                _store_terminal(Tc, G, S, c, n, w, q_next, qd_next)
+            S[c, SUM, w] = 0.0
+        for k in range(n + 1):
+            for w in range(WIDTH):
+                S[c, SUM, w] += Tc[c, k, LC, w]
 
 
 @numba.njit(**JIT)
-def _take(L, S, current, block, n, j0, j1):
-    """The trial becomes the current solution of lanes with scratch[TAKES] set: a swap of the
-    two trajectories' roles when every lane of the block takes it, a copy of the takers' lanes
-    otherwise."""
+def _take(trajectories, scratch, current, block, n, joints, c0, c1):
+    """The trial becomes the current solution of the lanes with scratch[TAKES] set: the two
+    trajectories swap roles when every joint of the block takes it, the takers' lanes are
+    copied otherwise."""
+    S = _rows(scratch)
     takers = 0
-    for j in range(j0, j1):
-        takers += S[TAKES, j] != 0.0
+    for c in range(c0, c1):
+        for w in range(WIDTH):
+            takers += S[c, TAKES, w] != 0.0
     if takers == 0:
         return
-    if takers == j1 - j0:
+    if takers == min(c1 * WIDTH, joints) - c0 * WIDTH:
         current[block] = 1 - current[block]
         return
-    cur = current[block] * TRAJECTORY_FIELDS
-    trial = (1 - current[block]) * TRAJECTORY_FIELDS
-    for f in range(TRAJECTORY_FIELDS):
+    Tc = _steps(trajectories[current[block]], TRAJECTORY_FIELDS)
+    Tt = _steps(trajectories[1 - current[block]], TRAJECTORY_FIELDS)
+    for c in range(c0, c1):
         for k in range(n + 1):
-            for j in range(j0, j1):
-                L[cur + f, k, j] = L[trial + f, k, j] if S[TAKES, j] != 0.0 else L[cur + f, k, j]
+            for f in range(TRAJECTORY_FIELDS):
+                for w in range(WIDTH):
+                    takes = S[c, TAKES, w] != 0.0
+                    Tc[c, k, f, w] = Tt[c, k, f, w] if takes else Tc[c, k, f, w]
 
 
 @numba.njit(**JIT)
-def _finish(state, S, j, status):
+def _finish(state, c, w, status):
     """A lane's iLQR ended with `status` (its iterations, cost and mu are in its state)."""
-    state[PHASE, j] = DONE
-    state[STATUS_, j] = status
+    state[c, PHASE, w] = DONE
+    state[c, STATUS, w] = status
 
 
 @numba.njit(**JIT)
-def _start_first_rollout(L, state, S, j, n):
+def _start_first_rollout(G, scratch, state, c, w, n):
     """Classic iLQR from the controls in the current trajectory (controller.ilqr
     solve_from_controls): no feedback, alpha 0."""
     for k in range(n):
-        L[K1, k, j] = 0.0
-        L[K2, k, j] = 0.0
-        L[KFF, k, j] = 0.0  # times alpha 0; the scalar solver's are finite leftovers, these
-        # may be a failed sweep's
-    S[ALPHA, j] = 0.0
-    state[PHASE, j] = FIRST_ROLLOUT
+        G[c, k, K1, w] = 0.0
+        G[c, k, K2, w] = 0.0
+        G[c, k, KFF, w] = 0.0  # times alpha 0 (the scalar solver's are finite leftovers,
+        # a lane's may be those of a failed sweep)
+    scratch[c, ALPHA, w] = 0.0
+    state[c, PHASE, w] = FIRST_ROLLOUT
 
 
 @numba.njit(**JIT)
-def _start_iterations(state, S, j, cost, max_iterations, iteration_offset, rollouts_offset):
+def _start_iterations(scratch, state, c, w, cost, max_iterations, iteration_offset,
+                      rollouts_offset):
     """controller.ilqr.iterate from a current trajectory of cost `cost`."""
-    S[COST, j] = cost
-    S[MU, j] = MU_MIN
-    state[ITERATION, j] = 0
-    state[MAX_ITER, j] = max_iterations
-    state[ITERATION_OFFSET, j] = iteration_offset
-    state[ROLLOUTS_OFFSET, j] = rollouts_offset
-    state[ROLLOUTS_, j] = 0
-    state[AFTER_WARM, j] = 0
-    state[PHASE, j] = SWEEP
+    scratch[c, COST, w] = cost
+    scratch[c, MU, w] = MU_MIN
+    state[c, ITERATION, w] = 0
+    state[c, MAX_ITER, w] = max_iterations
+    state[c, ITERATION_OFFSET, w] = iteration_offset
+    state[c, ROLLOUTS_OFFSET, w] = rollouts_offset
+    state[c, ROLLOUTS, w] = 0
+    state[c, AFTER_WARM, w] = 0
+    state[c, PHASE, w] = SWEEP
 
 
 @numba.njit(**JIT)
-def _start_search(state, S, j, merit):
-    state[PHASE, j] = SEARCH
-    state[ATTEMPT, j] = 0
-    S[ALPHA, j] = 1.0
-    S[MERIT, j] = merit
+def _start_search(scratch, state, c, w, merit):
+    state[c, PHASE, w] = SEARCH
+    state[c, ATTEMPT, w] = 0
+    scratch[c, ALPHA, w] = 1.0
+    scratch[c, MERIT, w] = merit
 
 
 @numba.njit(**JIT)
-def _bump_mu(state, S, j):
-    """Regularise more after a failed sweep or line search; False when it is out of range."""
-    S[MU, j] = max(S[MU, j] * 10.0, 1e-6)
-    if S[MU, j] > MU_MAX:
-        _finish(state, S, j, LINE_SEARCH_FAILED)
-        return False
-    return True
+def _bump_mu(scratch, state, c, w):
+    """Regularise more after a failed sweep or line search, or give up past MU_MAX."""
+    scratch[c, MU, w] = max(scratch[c, MU, w] * 10.0, 1e-6)
+    if scratch[c, MU, w] > MU_MAX:
+        _finish(state, c, w, LINE_SEARCH_FAILED)
 
 
 @numba.njit(**JIT)
-def _begin(rows, L, S, state, cur, t0, n, j0, j1):
+def _begin(rows, Tc, G, scratch, state, t0, n, c0, c1):
     """Read each joint's inputs and mode from its row and set it on its way (tick_joint's
     opening); returns whether any lane shifts its warm solution."""
+    joints = rows.shape[0]
     shifts = False
-    for j in range(j0, j1):
-        row = rows[j]
-        S[SHIFTS, j] = 0.0
-        S[NEEDS_SWEEP, j] = 0.0
-        mode = row[ws.MODE]
-        if mode == SKIP:
-            row[ws.MODE] = COLD
-            state[PHASE, j] = DONE
-            state[STATUS_, j] = -1
-            continue
-        for i in range(N_PARAMS):
-            S[PARAMETERS + i, j] = row[ws.PARAMETERS + i]
-        for i in range(N_COST):
-            S[COSTS + i, j] = row[ws.COST_VECTOR + i]
-        c = to_fixed_tuple(S[COSTS:COSTS + N_COST, j], N_COST)
-        S[BOX, j] = control_box(c)
-        S[Q0, j] = row[ws.POSITION]
-        S[QD0, j] = row[ws.VELOCITY]
-        max_iterations = int(row[ws.COLD_ITERATIONS] if mode == COLD else row[ws.WARM_ITERATIONS])
-        state[MAX_ITER, j] = max_iterations
-        S[TOLERANCE, j] = row[ws.TOLERANCE]
-        S[COST, j] = np.inf
-        S[MU, j] = MU_MIN
-        state[ITERATION, j] = 0
-        state[ROLLOUTS_, j] = 0
-        reference = row[ws.REFERENCE:ws.REFERENCE + 4]
-        dt = c[C_DT]
-        contiguous = abs(t0 - row[ws.LAST_T0] - dt) < 1e-6 * dt
-        row[ws.LAST_T0] = t0
-        if mode == WARM and contiguous:
-            for k in range(n):
-                L[REFERENCE_Q, k, j] = L[REFERENCE_Q, k + 1, j]
-                L[REFERENCE_QD, k, j] = L[REFERENCE_QD, k + 1, j]
-            L[REFERENCE_Q, n, j], L[REFERENCE_QD, n, j] = reference_at(reference, t0 + n * dt)
-            S[SHIFTS, j] = 1.0
-            shifts = True
-            state[PHASE, j] = WARM_SWEEP
-            state[ROLLOUTS_OFFSET, j] = 0
-        else:
+    for c in range(c0, c1):
+        for w in range(WIDTH):
+            j = c * WIDTH + w
+            row = rows[min(j, joints - 1)]
+            scratch[c, SHIFTS, w] = 0.0
+            scratch[c, NEEDS_SWEEP, w] = 0.0
+            scratch[c, TAKES, w] = 0.0
+            state[c, PHASE, w] = DONE
+            state[c, STATUS, w] = PADDING
+            mode = row[ws.MODE]
+            if j >= joints or mode == SKIP:
+                if j < joints:
+                    row[ws.MODE] = COLD
+                continue
+            for i in range(N_PARAMS):
+                scratch[c, PARAMETERS + i, w] = row[ws.PARAMETERS + i]
+            for i in range(N_COST):
+                scratch[c, COSTS + i, w] = row[ws.COST_VECTOR + i]
+            costs = lane_costs(scratch, c, w)
+            scratch[c, BOX, w] = control_box(costs)
+            scratch[c, Q0, w] = row[ws.POSITION]
+            scratch[c, QD0, w] = row[ws.VELOCITY]
+            state[c, MAX_ITER, w] = int(row[ws.COLD_ITERATIONS] if mode == COLD
+                                        else row[ws.WARM_ITERATIONS])
+            scratch[c, TOLERANCE, w] = row[ws.TOLERANCE]
+            scratch[c, MU, w] = MU_MIN
+            state[c, ITERATION, w] = 0
+            state[c, ROLLOUTS, w] = 0
+            state[c, ITERATION_OFFSET, w] = 0
+            state[c, ROLLOUTS_OFFSET, w] = 0
+            reference = row[ws.REFERENCE:ws.REFERENCE + 4]
+            dt = costs[C_DT]
+            contiguous = abs(t0 - row[ws.LAST_T0] - dt) < 1e-6 * dt
+            row[ws.LAST_T0] = t0
+            if mode == WARM and contiguous:
+                for k in range(n):
+                    G[c, k, REFERENCE_Q, w] = G[c, k + 1, REFERENCE_Q, w]
+                    G[c, k, REFERENCE_QD, w] = G[c, k + 1, REFERENCE_QD, w]
+                G[c, n, REFERENCE_Q, w], G[c, n, REFERENCE_QD, w] = reference_at(
+                    reference, t0 + n * dt)
+                scratch[c, SHIFTS, w] = 1.0
+                shifts = True
+                state[c, PHASE, w] = WARM_SWEEP
+                continue
             for k in range(n + 1):
-                L[REFERENCE_Q, k, j], L[REFERENCE_QD, k, j] = reference_at(reference,
-                                                                           t0 + k * dt)
+                G[c, k, REFERENCE_Q, w], G[c, k, REFERENCE_QD, w] = reference_at(
+                    reference, t0 + k * dt)
             if mode == COLD:
                 for k in range(n):
-                    L[cur + U, k, j] = row[ws.INITIAL_CURRENT]
+                    Tc[c, k, U, w] = row[ws.INITIAL_CURRENT]
             else:
                 for k in range(n - 1):
-                    L[cur + U, k, j] = L[cur + U, k + 1, j]
-            state[ROLLOUTS_OFFSET, j] = 0
-            _start_first_rollout(L, state, S, j, n)
+                    Tc[c, k, U, w] = Tc[c, k + 1, U, w]
+            _start_first_rollout(G, scratch, state, c, w, n)
+    # lanes past the last joint compute on its parameters (no overflow, no denormals), ignored
+    last_chunk, last_lane = divmod(joints - 1, WIDTH)
+    if c0 <= last_chunk < c1:
+        for w in range(last_lane + 1, WIDTH):
+            for i in range(COSTS + N_COST):
+                scratch[last_chunk, i, w] = scratch[last_chunk, i, last_lane]
+            scratch[last_chunk, Q0, w] = scratch[last_chunk, Q0, last_lane]
+            scratch[last_chunk, QD0, w] = scratch[last_chunk, QD0, last_lane]
     return shifts
 
 
 @numba.njit(**JIT)
-def _before_sweep(state, S, j0, j1):
+def _before_sweep(scratch, state, c0, c1):
     """Mark the lanes that sweep this round; an iterating lane first checks its iteration
     budget (the head of controller.ilqr.iterate's loop). Returns whether any lane sweeps."""
     any_sweep = False
-    for j in range(j0, j1):
-        phase = state[PHASE, j]
-        if phase == SWEEP:
-            if state[ITERATION, j] >= state[MAX_ITER, j]:
-                _finish(state, S, j, MAX_ITERATIONS)
+    for c in range(c0, c1):
+        for w in range(WIDTH):
+            phase = state[c, PHASE, w]
+            if phase == SWEEP:
+                if state[c, ITERATION, w] >= state[c, MAX_ITER, w]:
+                    _finish(state, c, w, MAX_ITERATIONS)
+                    continue
+                state[c, ITERATION, w] += 1
+            elif phase != WARM_SWEEP:
                 continue
-            state[ITERATION, j] += 1
-        elif phase != WARM_SWEEP:
-            continue
-        S[NEEDS_SWEEP, j] = 1.0
-        any_sweep = True
+            scratch[c, NEEDS_SWEEP, w] = 1.0
+            any_sweep = True
     return any_sweep
 
 
 @numba.njit(**JIT)
-def _after_sweep(L, S, state, cur, n, j0, j1):
+def _after_sweep(Tc, G, scratch, state, n, c0, c1):
     """Each lane that swept decides, as the scalar solver does after `backward`."""
-    for j in range(j0, j1):
-        if S[NEEDS_SWEEP, j] == 0.0:
-            continue
-        S[NEEDS_SWEEP, j] = 0.0
-        ok = S[SWEEP_OK, j] != 0.0
-        if state[PHASE, j] == WARM_SWEEP:
-            if not ok:
-                _start_first_rollout(L, state, S, j, n)
+    for c in range(c0, c1):
+        for w in range(WIDTH):
+            if scratch[c, NEEDS_SWEEP, w] == 0.0:
                 continue
-            d1, d2 = S[Q0, j] - L[cur + Q, 0, j], S[QD0, j] - L[cur + QD, 0, j]
-            merit = S[SUM, j] + S[VX1, j] * d1 + S[VX2, j] * d2 + 0.5 * (
-                S[V11, j] * d1 * d1 + 2.0 * S[V12, j] * d1 * d2 + S[V22, j] * d2 * d2)
-            _start_search(state, S, j, merit)
-            state[AFTER_WARM, j] = 1
-            continue
-        if not ok:
-            _bump_mu(state, S, j)
-            continue
-        cost = S[COST, j]
-        if -S[DV1, j] < S[TOLERANCE, j] * max(cost, 1.0) * 1e-3:
-            _finish(state, S, j, CONVERGED)  # the model predicts no meaningful improvement
-            continue
-        _start_search(state, S, j, cost)
+            scratch[c, NEEDS_SWEEP, w] = 0.0
+            ok = scratch[c, SWEEP_OK, w] != 0.0
+            if state[c, PHASE, w] == WARM_SWEEP:
+                if not ok:
+                    _start_first_rollout(G, scratch, state, c, w, n)
+                    continue
+                d1 = scratch[c, Q0, w] - Tc[c, 0, Q, w]
+                d2 = scratch[c, QD0, w] - Tc[c, 0, QD, w]
+                merit = scratch[c, SUM, w] + scratch[c, VX1, w] * d1 + scratch[c, VX2, w] * d2 + (
+                    0.5 * (scratch[c, V11, w] * d1 * d1 + 2.0 * scratch[c, V12, w] * d1 * d2
+                           + scratch[c, V22, w] * d2 * d2))
+                _start_search(scratch, state, c, w, merit)
+                state[c, AFTER_WARM, w] = 1
+                continue
+            if not ok:
+                _bump_mu(scratch, state, c, w)
+                continue
+            cost = scratch[c, COST, w]
+            if -scratch[c, DV1, w] < scratch[c, TOLERANCE, w] * max(cost, 1.0) * 1e-3:
+                _finish(state, c, w, CONVERGED)  # the model predicts no meaningful improvement
+                continue
+            _start_search(scratch, state, c, w, cost)
 
 
 @numba.njit(**JIT)
-def _after_rollout(L, S, state, j0, j1):
+def _after_rollout(G, scratch, state, n, c0, c1):
     """Each lane that simulated decides (solve_from_controls after its first simulation, the
     line search after a trial); sets scratch[TAKES] on the lanes whose trial becomes their
-    current solution."""
-    for j in range(j0, j1):
-        S[TAKES, j] = 0.0
-        phase = state[PHASE, j]
-        total = S[TOTAL, j]
-        if phase == FIRST_ROLLOUT:
-            S[TAKES, j] = 1.0  # simulated in place in the scalar solver, finite or not
-            rollouts_offset = state[ROLLOUTS_OFFSET, j] + 1
-            if not np.isfinite(total):
-                S[COST, j] = total
-                S[MU, j] = MU_MIN
-                state[ITERATION, j] = 0
-                state[ROLLOUTS_, j] = 0
-                state[ITERATION_OFFSET, j] = 0
-                state[ROLLOUTS_OFFSET, j] = rollouts_offset
-                _finish(state, S, j, NOT_FINITE)
+    current solution. Returns whether any lane still has work."""
+    for c in range(c0, c1):
+        for w in range(WIDTH):
+            scratch[c, TAKES, w] = 0.0
+            phase = state[c, PHASE, w]
+            total = scratch[c, TOTAL, w]
+            if phase == FIRST_ROLLOUT:
+                scratch[c, TAKES, w] = 1.0  # simulated in place by the scalar solver, finite or not
+                rollouts_offset = state[c, ROLLOUTS_OFFSET, w] + 1
+                if not np.isfinite(total):
+                    scratch[c, COST, w] = total
+                    scratch[c, MU, w] = MU_MIN
+                    state[c, ITERATION, w] = 0
+                    state[c, ROLLOUTS, w] = 0
+                    state[c, ITERATION_OFFSET, w] = 0
+                    state[c, ROLLOUTS_OFFSET, w] = rollouts_offset
+                    _finish(state, c, w, NOT_FINITE)
+                    continue
+                _start_iterations(scratch, state, c, w, total, state[c, MAX_ITER, w], 0,
+                                  rollouts_offset)
                 continue
-            _start_iterations(state, S, j, total, state[MAX_ITER, j], 0, rollouts_offset)
-            continue
-        if phase != SEARCH:
-            continue
-        state[ATTEMPT, j] += 1
-        alpha = S[ALPHA, j]
-        expected = -(alpha * S[DV1, j] + alpha * alpha * S[DV2, j])
-        accepted = np.isfinite(total) and S[MERIT, j] - total > ARMIJO * expected
-        if accepted:
-            S[TAKES, j] = 1.0
-            trials = state[ATTEMPT, j]
-            if state[AFTER_WARM, j] == 1:
-                if state[MAX_ITER, j] == 1:
-                    S[COST, j] = total
-                    S[MU, j] = MU_MIN
-                    state[ITERATION, j] = 1
-                    state[ROLLOUTS_, j] = trials
-                    state[ITERATION_OFFSET, j] = 0
-                    state[ROLLOUTS_OFFSET, j] = 0
-                    _finish(state, S, j, MAX_ITERATIONS)
-                else:
-                    _start_iterations(state, S, j, total, state[MAX_ITER, j] - 1, 1, trials)
+            if phase != SEARCH:
                 continue
-            state[ROLLOUTS_, j] += trials
-            improvement = S[COST, j] - total
-            S[COST, j] = total
-            mu = S[MU, j]
-            S[MU, j] = mu / 10.0 if mu > MU_MIN * 10.0 else MU_MIN
-            state[PHASE, j] = SWEEP
-            if improvement < S[TOLERANCE, j] * max(total, 1.0):
-                _finish(state, S, j, CONVERGED)
-            continue
-        if state[ATTEMPT, j] < LINE_SEARCH_STEPS:
-            S[ALPHA, j] = alpha * 0.5
-            continue
-        if state[AFTER_WARM, j] == 1:  # the warm step failed: solve anew from the controls
-            state[AFTER_WARM, j] = 0
-            state[ROLLOUTS_OFFSET, j] = LINE_SEARCH_STEPS
-            _start_first_rollout(L, state, S, j, L.shape[1] - 1)
-            continue
-        state[ROLLOUTS_, j] += LINE_SEARCH_STEPS
-        _bump_mu(state, S, j)
-        if state[PHASE, j] == SEARCH:
-            state[PHASE, j] = SWEEP
+            state[c, ATTEMPT, w] += 1
+            alpha = scratch[c, ALPHA, w]
+            expected = -(alpha * scratch[c, DV1, w] + alpha * alpha * scratch[c, DV2, w])
+            if np.isfinite(total) and scratch[c, MERIT, w] - total > ARMIJO * expected:
+                scratch[c, TAKES, w] = 1.0
+                trials = state[c, ATTEMPT, w]
+                if state[c, AFTER_WARM, w] == 1:
+                    if state[c, MAX_ITER, w] == 1:
+                        scratch[c, COST, w] = total
+                        scratch[c, MU, w] = MU_MIN
+                        state[c, ITERATION, w] = 1
+                        state[c, ROLLOUTS, w] = trials
+                        _finish(state, c, w, MAX_ITERATIONS)
+                    else:
+                        _start_iterations(scratch, state, c, w, total,
+                                          state[c, MAX_ITER, w] - 1, 1, trials)
+                    continue
+                state[c, ROLLOUTS, w] += trials
+                improvement = scratch[c, COST, w] - total
+                scratch[c, COST, w] = total
+                mu = scratch[c, MU, w]
+                scratch[c, MU, w] = mu / 10.0 if mu > MU_MIN * 10.0 else MU_MIN
+                state[c, PHASE, w] = SWEEP
+                if improvement < scratch[c, TOLERANCE, w] * max(total, 1.0):
+                    _finish(state, c, w, CONVERGED)
+                continue
+            if state[c, ATTEMPT, w] < LINE_SEARCH_STEPS:
+                scratch[c, ALPHA, w] = alpha * 0.5
+                continue
+            if state[c, AFTER_WARM, w] == 1:  # the warm step failed: solve anew from the controls
+                state[c, AFTER_WARM, w] = 0
+                state[c, ROLLOUTS_OFFSET, w] = LINE_SEARCH_STEPS
+                _start_first_rollout(G, scratch, state, c, w, n)
+                continue
+            state[c, ROLLOUTS, w] += LINE_SEARCH_STEPS
+            state[c, PHASE, w] = SWEEP
+            _bump_mu(scratch, state, c, w)
 
 
 @numba.njit(**JIT)
-def _shifted_costs(L, S, state, cur, n, j0, j1):
-    """The shifted trajectory's cost of each warm lane, summed in the scalar tick's order."""
-    for j in range(j0, j1):
-        S[SUM, j] = 0.0
-    for k in range(n + 1):
-        for j in range(j0, j1):
-            S[SUM, j] += L[cur + LC, k, j]
-
-
-@numba.njit(**JIT)
-def _end(rows, L, S, state, cur, j0, j1):
+def _end(rows, Tc, G, state, scratch, c0, c1):
     """Each ticked joint's outcome into its row's header, and its next mode."""
-    for j in range(j0, j1):
-        status = state[STATUS_, j]
-        if status < 0:
-            continue  # skipped
-        row = rows[j]
-        row[ws.STATUS] = status
-        row[ws.ITERATIONS] = state[ITERATION, j] + state[ITERATION_OFFSET, j]
-        row[ws.COST] = S[COST, j]
-        row[ws.MU] = S[MU, j]
-        row[ws.ROLLOUTS] = state[ROLLOUTS_, j] + state[ROLLOUTS_OFFSET, j]
-        planned = L[cur + U, 0, j]
-        row[ws.PLANNED_CURRENT] = planned
-        row[ws.REFERENCE_POSITION] = L[REFERENCE_Q, 0, j]
-        row[ws.REFERENCE_VELOCITY] = L[REFERENCE_QD, 0, j]
-        usable = status == CONVERGED or status == MAX_ITERATIONS
-        row[ws.MODE] = WARM if usable and np.isfinite(planned) else COLD
+    for c in range(c0, c1):
+        for w in range(WIDTH):
+            status = state[c, STATUS, w]
+            if status == PADDING:
+                continue
+            row = rows[c * WIDTH + w]
+            row[ws.STATUS] = status
+            row[ws.ITERATIONS] = state[c, ITERATION, w] + state[c, ITERATION_OFFSET, w]
+            row[ws.COST] = scratch[c, COST, w]
+            row[ws.MU] = scratch[c, MU, w]
+            row[ws.ROLLOUTS] = state[c, ROLLOUTS, w] + state[c, ROLLOUTS_OFFSET, w]
+            planned = Tc[c, 0, U, w]
+            row[ws.PLANNED_CURRENT] = planned
+            row[ws.REFERENCE_POSITION] = G[c, 0, REFERENCE_Q, w]
+            row[ws.REFERENCE_VELOCITY] = G[c, 0, REFERENCE_QD, w]
+            usable = status == CONVERGED or status == MAX_ITERATIONS
+            row[ws.MODE] = WARM if usable and np.isfinite(planned) else COLD
 
 
 @numba.njit(**JIT)
-def tick_block(rows, L, S, state, current, block, t0, n, j0, j1):
-    """Every joint of lanes [j0, j1) at time t0: rounds of one masked backward pass and one
+def _simulates(state, c0, c1):
+    for c in range(c0, c1):
+        for w in range(WIDTH):
+            if state[c, PHASE, w] == FIRST_ROLLOUT or state[c, PHASE, w] == SEARCH:
+                return True
+    return False
+
+
+@numba.njit(**JIT)
+def tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n, c0, c1):
+    """Every joint of chunks [c0, c1) at time t0: rounds of one masked backward pass and one
     simulation until each joint's iLQR has ended (see the module docstring)."""
-    cur = current[block] * TRAJECTORY_FIELDS
-    if _begin(rows, L, S, state, cur, t0, n, j0, j1):
-        _shift(L, S, cur, n, j0, j1)
-        _shifted_costs(L, S, state, cur, n, j0, j1)
+    if _begin(rows, trajectories[current[block]], gains, scratch, state, t0, n, c0, c1):
+        _shift(trajectories[current[block]], gains, scratch, n, c0, c1)
     while True:
-        cur = current[block] * TRAJECTORY_FIELDS
-        swept = _before_sweep(state, S, j0, j1)
+        cur = trajectories[current[block]]
+        swept = _before_sweep(scratch, state, c0, c1)
         if swept:
-            _backward(L, S, cur, n, j0, j1)
-            _after_sweep(L, S, state, cur, n, j0, j1)
-        simulates = False
-        for j in range(j0, j1):
-            phase = state[PHASE, j]
-            simulates = simulates or phase == FIRST_ROLLOUT or phase == SEARCH
+            _backward(cur, gains, scratch, n, c0, c1)
+            _after_sweep(cur, gains, scratch, state, n, c0, c1)
+        simulates = _simulates(state, c0, c1)
         if simulates:
-            _rollout(L, S, cur, TRAJECTORY_FIELDS - cur, n, j0, j1)
-            _after_rollout(L, S, state, j0, j1)
-            _take(L, S, current, block, n, j0, j1)
+            _rollout(cur, trajectories[1 - current[block]], gains, scratch, n, c0, c1)
+            _after_rollout(gains, scratch, state, n, c0, c1)
+            _take(trajectories, scratch, current, block, n, rows.shape[0], c0, c1)
         if not swept and not simulates:
             break
-    _end(rows, L, S, state, current[block] * TRAJECTORY_FIELDS, j0, j1)
+    _end(rows, trajectories[current[block]], gains, state, scratch, c0, c1)
 
 
 @numba.njit(parallel=True, **JIT)
-def tick_lanes(rows, L, S, state, current, t0, n):
-    """Every joint's MPC step at time t0, the joints in len(current) blocks of lanes, one per
-    thread (one block: no thread team is woken)."""
-    joints = rows.shape[0]
+def tick_lanes(rows, trajectories, gains, scratch, state, current, t0, n):
+    """Every joint's MPC step at time t0, the chunks of lanes split in len(current) blocks, one
+    per thread (one block: no thread team is woken)."""
+    count = gains.shape[0]
     blocks = current.shape[0]
     if blocks == 1:
-        tick_block(rows, L, S, state, current, 0, t0, n, 0, joints)
+        tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count)
         return
     for block in numba.prange(blocks):
-        tick_block(rows, L, S, state, current, block, t0, n, block * joints // blocks,
-                   (block + 1) * joints // blocks)
+        tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n,
+                   block * count // blocks, (block + 1) * count // blocks)

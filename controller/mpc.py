@@ -298,11 +298,8 @@ class BatchMpc:
             raise ValueError("the lanes kernel computes the paper's model only; a joint's model "
                              "carries an extra effect: use kernel='scalar'")
         self.kernel = self._kernel_asked or ("lanes" if supported else "scalar")
-        blocks = min(self.threads, len(problems))
+        blocks = min(self.threads, lanes.chunks(len(problems)))
         self._lanes = lanes.allocate(len(problems), n, blocks)
-        self._lane_block = [block for block in range(blocks)
-                            for _ in range(block * len(problems) // blocks,
-                                           (block + 1) * len(problems) // blocks)]
         # load the compiled code now, not in the first control cycle: one iteration each
         for joint in self.joints:
             joint.row[ws.COLD_ITERATIONS] = 1
@@ -355,12 +352,13 @@ class BatchMpc:
     def plan(self, joint: JointRow, t: float) -> PlanSnapshot:
         if self.kernel == "lanes":
             j = self.joints.index(joint)
-            trajectories, _, _, current = self._lanes
-            cur = current[self._lane_block[j]] * lanes.TRAJECTORY_FIELDS
-            return PlanSnapshot(t, joint.settings.dt, trajectories[cur + lanes.Q, :, j].copy(),
-                                trajectories[cur + lanes.QD, :, j].copy(),
-                                trajectories[cur + lanes.U, :-1, j].copy(),
-                                trajectories[lanes.REFERENCE_Q, :, j].copy())
+            trajectories, gains, _, _, current = self._lanes
+            which = current[lanes.block_of(j, len(self.joints), len(current))]
+            chunk, lane = divmod(j, lanes.WIDTH)
+            solution = trajectories[which, chunk, :, :, lane]
+            return PlanSnapshot(t, joint.settings.dt, solution[:, lanes.Q].copy(),
+                                solution[:, lanes.QD].copy(), solution[:-1, lanes.U].copy(),
+                                gains[chunk, :, lanes.REFERENCE_Q, lane].copy())
         solution = joint.solution()
         return PlanSnapshot(t, joint.settings.dt, solution.X[:, 0].copy(),
                             solution.X[:, 1].copy(), solution.U.copy(),
