@@ -104,8 +104,9 @@ GAIN_FIELDS = 5
 PARAMETERS = 0
 COSTS = N_PARAMS
 (Q0, QD0, BOX, TOLERANCE, MU, COST, MERIT, DV1, DV2, ALPHA, VX1, VX2, V11, V12, V22, SWEEP_OK,
- TOTAL, NEEDS_SWEEP, TAKES, SHIFTS, SUM) = range(COSTS + N_COST, COSTS + N_COST + 21)
-SCRATCH = COSTS + N_COST + 21
+ TOTAL, NEEDS_SWEEP, TAKES, SHIFTS, SUM, SIMULATED_Q, SIMULATED_QD) = range(COSTS + N_COST,
+                                                                          COSTS + N_COST + 23)
+SCRATCH = COSTS + N_COST + 23
 
 # phases of a joint within a tick
 DONE, WARM_SWEEP, FIRST_ROLLOUT, SWEEP, SEARCH = range(5)
@@ -114,6 +115,9 @@ DONE, WARM_SWEEP, FIRST_ROLLOUT, SWEEP, SEARCH = range(5)
  ROLLOUTS) = range(9)
 STATE = 9
 PADDING = -1  # STATUS of a lane that is skipped this tick or holds no joint
+# columns of current[block, column]: which trajectory is the current one, and the ring slot
+# of step 0 (both trajectories and the gains are rings of n + 1 steps)
+WHICH, RING = 0, 1
 
 
 def supports(packed_parameters: np.ndarray) -> bool:
@@ -137,14 +141,14 @@ def chunks(joints: int) -> int:
 
 def allocate(joints: int, n: int, blocks: int) -> tuple[np.ndarray, ...]:
     """The lane workspace of a batch: (trajectories, gains, scratch, state, current), where
-    current[b] says which of the two trajectories is the current one in block b (at most one
-    block per chunk). Separate arrays, so a loop's reads and writes fall in few groups the
-    compiler can check for overlap once."""
+    current[b] says which of the two trajectories is the current one in block b and where its
+    step 0 sits in the ring (at most one block per chunk). Separate arrays, so a loop's reads
+    and writes fall in few groups the compiler can check for overlap once."""
     count = chunks(joints)
     return (np.zeros((2, count, n + 1, TRAJECTORY_FIELDS, WIDTH)),
             np.zeros((count, n + 1, GAIN_FIELDS, WIDTH)), np.zeros((count, SCRATCH, WIDTH)),
             np.zeros((count, STATE, WIDTH), dtype=np.int64),
-            np.zeros(min(max(blocks, 1), count), dtype=np.int64))
+            np.zeros((min(max(blocks, 1), count), 2), dtype=np.int64))
 
 
 def block_of(joint: int, joints: int, blocks: int) -> int:
@@ -194,6 +198,14 @@ def _rows(a):
 
 
 @register_jitable(forceinline=True)
+def _at(k, r, n):
+    """The slot of step k in a ring of n + 1 slots whose step 0 is in slot r: a tick advances
+    the ring by one instead of moving every stored step (controller.mpc._shift's copy)."""
+    slot = k + r
+    return slot - (n + 1) if slot > n else slot
+
+
+@register_jitable(forceinline=True)
 def _acceleration(q, qd, u, S, c, w):
     """`model.dynamics.smooth_acceleration` for a joint without extra effects, with the lane
     maths: qdd and its partial derivatives in q, qd and u."""
@@ -215,7 +227,7 @@ def _acceleration(q, qd, u, S, c, w):
 
 @register_jitable(forceinline=True)
 def _store_stage(T, G, S, c, k, w, q, qd, u):
-    """Step k of lane w into trajectory T: state, control, linearisation
+    """Step k (a slot) of lane w into trajectory T: state, control, linearisation
     and cost derivatives (controller.ilqr.store_stage). Returns the stage cost and x+."""
     costs = lane_costs(S, c, w)
     a, a_q, a_qd, a_u = _acceleration(q, qd, u, S, c, w)
@@ -260,7 +272,7 @@ def _store_terminal(T, G, S, c, n, w, q, qd):
 
 
 @numba.njit(**JIT)
-def _rollout(current, trial, gains, scratch, n, c0, c1):
+def _rollout(current, trial, gains, scratch, n, r, c0, c1):
     """Simulate u = U_cur + alpha kff + K (x - X_cur) from x0 into the trial trajectory, for
     every lane of chunks [c0, c1) with its own alpha and gains (controller.ilqr.rollout); the
     total cost, inf when not finite, goes to scratch[TOTAL]."""
@@ -268,42 +280,48 @@ def _rollout(current, trial, gains, scratch, n, c0, c1):
     G, S = _steps(gains, GAIN_FIELDS), _rows(scratch)
     for c in range(c0, c1):
         for w in range(WIDTH):
-            Tt[c, 0, Q, w] = S[c, Q0, w]
-            Tt[c, 0, QD, w] = S[c, QD0, w]
+            S[c, SIMULATED_Q, w] = S[c, Q0, w]
+            S[c, SIMULATED_QD, w] = S[c, QD0, w]
             S[c, TOTAL, w] = 0.0
         for k in range(n):
+            # the state carried in scratch, not read back from the next slot of the ring (its
+            # distance from this one changes at the wrap, which LLVM would check each step)
+            i = _at(k, r, n)
             for w in range(WIDTH):
-                q, qd = Tt[c, k, Q, w], Tt[c, k, QD, w]
-                u = Tc[c, k, U, w] + S[c, ALPHA, w] * G[c, k, KFF, w] + G[c, k, K1, w] * (
-                    q - Tc[c, k, Q, w]) + G[c, k, K2, w] * (qd - Tc[c, k, QD, w])
-                cost, q_next, qd_next = _store_stage(Tt, G, S, c, k, w, q, qd, u)
+                q, qd = S[c, SIMULATED_Q, w], S[c, SIMULATED_QD, w]
+                u = Tc[c, i, U, w] + S[c, ALPHA, w] * G[c, i, KFF, w] + G[c, i, K1, w] * (
+                    q - Tc[c, i, Q, w]) + G[c, i, K2, w] * (qd - Tc[c, i, QD, w])
+                cost, q_next, qd_next = _store_stage(Tt, G, S, c, i, w, q, qd, u)
                 S[c, TOTAL, w] += cost
-                Tt[c, k + 1, Q, w] = q_next
-                Tt[c, k + 1, QD, w] = qd_next
+                S[c, SIMULATED_Q, w] = q_next
+                S[c, SIMULATED_QD, w] = qd_next
+        last = _at(n, r, n)
         for w in range(WIDTH):
-            total = S[c, TOTAL, w] + _store_terminal(Tt, G, S, c, n, w, Tt[c, n, Q, w],
-                                                     Tt[c, n, QD, w])
+            total = S[c, TOTAL, w] + _store_terminal(Tt, G, S, c, last, w, S[c, SIMULATED_Q, w],
+                                                     S[c, SIMULATED_QD, w])
             S[c, TOTAL, w] = total if np.isfinite(total) else np.inf
 
 
 @numba.njit(**JIT)
-def _backward(current, gains, scratch, n, c0, c1):
+def _backward(current, gains, scratch, n, r, c0, c1):
     """Riccati sweep of every lane of chunks [c0, c1) with its own mu
     (controller.ilqr.backward); writes the gains only of lanes with scratch[NEEDS_SWEEP] set. A
     lane whose regularised Quu is not positive at some step ends with scratch[SWEEP_OK] = 0
     (its later steps are computed and ignored: the scalar sweep would have stopped there)."""
     Tc, G, S = _steps(current, TRAJECTORY_FIELDS), _steps(gains, GAIN_FIELDS), _rows(scratch)
     for c in range(c0, c1):
+        last = _at(n, r, n)
         for w in range(WIDTH):
-            S[c, VX1, w] = Tc[c, n, LQ, w]
-            S[c, VX2, w] = Tc[c, n, LQD, w]
-            S[c, V11, w] = Tc[c, n, LQQ, w]
+            S[c, VX1, w] = Tc[c, last, LQ, w]
+            S[c, VX2, w] = Tc[c, last, LQD, w]
+            S[c, V11, w] = Tc[c, last, LQQ, w]
             S[c, V12, w] = 0.0
-            S[c, V22, w] = Tc[c, n, LQDQD, w]
+            S[c, V22, w] = Tc[c, last, LQDQD, w]
             S[c, DV1, w] = 0.0
             S[c, DV2, w] = 0.0
             S[c, SWEEP_OK, w] = 1.0
-        for k in range(n - 1, -1, -1):
+        for step in range(n - 1, -1, -1):
+            k = _at(step, r, n)
             for w in range(WIDTH):
                 mu = S[c, MU, w]
                 box = S[c, BOX, w]
@@ -356,45 +374,23 @@ def _backward(current, gains, scratch, n, c0, c1):
 
 
 @numba.njit(**JIT)
-def _shift(current, gains, scratch, n, c0, c1):
-    """Lanes with scratch[SHIFTS] set advance their stored solution one step
-    (controller.mpc._shift): everything moves up by one, the last control is repeated, the last
-    stage and the terminal state are evaluated anew; then every lane's shifted cost is summed
-    into scratch[SUM], in the scalar tick's order. Other lanes keep their trajectory."""
+def _shift(current, gains, scratch, n, r, c0, c1):
+    """The rest of controller.mpc._shift for lanes with scratch[SHIFTS] set, once the ring has
+    advanced: the last control repeated, the last stage and the terminal state evaluated anew.
+    Then every lane's shifted cost summed into scratch[SUM], in the scalar tick's order."""
     Tc, G, S = _steps(current, TRAJECTORY_FIELDS), _steps(gains, GAIN_FIELDS), _rows(scratch)
+    before_last, last, terminal = _at(n - 2, r, n), _at(n - 1, r, n), _at(n, r, n)
     for c in range(c0, c1):
-        for k in range(n):
-            for w in range(WIDTH):
-                moves = S[c, SHIFTS, w] != 0.0
-                Tc[c, k, Q, w] = Tc[c, k + 1, Q, w] if moves else Tc[c, k, Q, w]
-                Tc[c, k, QD, w] = Tc[c, k + 1, QD, w] if moves else Tc[c, k, QD, w]
-                Tc[c, k, LQ, w] = Tc[c, k + 1, LQ, w] if moves else Tc[c, k, LQ, w]
-                Tc[c, k, LQD, w] = Tc[c, k + 1, LQD, w] if moves else Tc[c, k, LQD, w]
-                Tc[c, k, LQQ, w] = Tc[c, k + 1, LQQ, w] if moves else Tc[c, k, LQQ, w]
-                Tc[c, k, LQDQD, w] = Tc[c, k + 1, LQDQD, w] if moves else Tc[c, k, LQDQD, w]
-                Tc[c, k, LC, w] = Tc[c, k + 1, LC, w] if moves else Tc[c, k, LC, w]
-        for k in range(n - 1):  # the gains need no shift: every sweep writes them all
-            for w in range(WIDTH):
-                moves = S[c, SHIFTS, w] != 0.0
-                Tc[c, k, U, w] = Tc[c, k + 1, U, w] if moves else Tc[c, k, U, w]
-                Tc[c, k, A11, w] = Tc[c, k + 1, A11, w] if moves else Tc[c, k, A11, w]
-                Tc[c, k, A12, w] = Tc[c, k + 1, A12, w] if moves else Tc[c, k, A12, w]
-                Tc[c, k, A21, w] = Tc[c, k + 1, A21, w] if moves else Tc[c, k, A21, w]
-                Tc[c, k, A22, w] = Tc[c, k + 1, A22, w] if moves else Tc[c, k, A22, w]
-                Tc[c, k, B1, w] = Tc[c, k + 1, B1, w] if moves else Tc[c, k, B1, w]
-                Tc[c, k, B2, w] = Tc[c, k + 1, B2, w] if moves else Tc[c, k, B2, w]
-                Tc[c, k, LU, w] = Tc[c, k + 1, LU, w] if moves else Tc[c, k, LU, w]
-                Tc[c, k, LUU, w] = Tc[c, k + 1, LUU, w] if moves else Tc[c, k, LUU, w]
         for w in range(WIDTH):
             if S[c, SHIFTS, w] != 0.0:
-                _, q_next, qd_next = _store_stage(Tc, G, S, c, n - 1, w, Tc[c, n - 1, Q, w],
-                                                  Tc[c, n - 1, QD, w],
-                                                  Tc[c, n - 2, U, w])
-                _store_terminal(Tc, G, S, c, n, w, q_next, qd_next)
+                _, q_next, qd_next = _store_stage(Tc, G, S, c, last, w, Tc[c, last, Q, w],
+                                                  Tc[c, last, QD, w], Tc[c, before_last, U, w])
+                _store_terminal(Tc, G, S, c, terminal, w, q_next, qd_next)
             S[c, SUM, w] = 0.0
         for k in range(n + 1):
+            i = _at(k, r, n)
             for w in range(WIDTH):
-                S[c, SUM, w] += Tc[c, k, LC, w]
+                S[c, SUM, w] += Tc[c, i, LC, w]
 
 
 @numba.njit(**JIT)
@@ -410,10 +406,10 @@ def _take(trajectories, scratch, current, block, n, joints, c0, c1):
     if takers == 0:
         return
     if takers == min(c1 * WIDTH, joints) - c0 * WIDTH:
-        current[block] = 1 - current[block]
+        current[block, WHICH] = 1 - current[block, WHICH]
         return
-    Tc = _steps(trajectories[current[block]], TRAJECTORY_FIELDS)
-    Tt = _steps(trajectories[1 - current[block]], TRAJECTORY_FIELDS)
+    Tc = _steps(trajectories[current[block, WHICH]], TRAJECTORY_FIELDS)
+    Tt = _steps(trajectories[1 - current[block, WHICH]], TRAJECTORY_FIELDS)
     for c in range(c0, c1):
         for k in range(n + 1):
             for f in range(TRAJECTORY_FIELDS):
@@ -433,10 +429,10 @@ def _finish(state, c, w, status):
 def _start_first_rollout(G, scratch, state, c, w, n):
     """Classic iLQR from the controls in the current trajectory (controller.ilqr
     solve_from_controls): no feedback, alpha 0."""
-    for k in range(n):
-        G[c, k, K1, w] = 0.0
-        G[c, k, K2, w] = 0.0
-        G[c, k, KFF, w] = 0.0  # times alpha 0 (the scalar solver's are finite leftovers,
+    for i in range(n + 1):  # every slot of the ring: the order does not matter
+        G[c, i, K1, w] = 0.0
+        G[c, i, K2, w] = 0.0
+        G[c, i, KFF, w] = 0.0  # times alpha 0 (the scalar solver's are finite leftovers,
         # a lane's may be those of a failed sweep)
     scratch[c, ALPHA, w] = 0.0
     state[c, PHASE, w] = FIRST_ROLLOUT
@@ -474,9 +470,10 @@ def _bump_mu(scratch, state, c, w):
 
 
 @numba.njit(**JIT)
-def _begin(rows, Tc, G, scratch, state, t0, n, c0, c1):
+def _begin(rows, Tc, G, scratch, state, t0, n, r, c0, c1):
     """Read each joint's inputs and mode from its row and set it on its way (tick_joint's
-    opening); returns whether any lane shifts its warm solution."""
+    opening), the ring having advanced one step; returns whether any lane shifts its warm
+    solution."""
     joints = rows.shape[0]
     shifts = False
     for c in range(c0, c1):
@@ -514,24 +511,22 @@ def _begin(rows, Tc, G, scratch, state, t0, n, c0, c1):
             contiguous = abs(t0 - row[ws.LAST_T0] - dt) < 1e-6 * dt
             row[ws.LAST_T0] = t0
             if mode == WARM and contiguous:
-                for k in range(n):
-                    G[c, k, REFERENCE_Q, w] = G[c, k + 1, REFERENCE_Q, w]
-                    G[c, k, REFERENCE_QD, w] = G[c, k + 1, REFERENCE_QD, w]
-                G[c, n, REFERENCE_Q, w], G[c, n, REFERENCE_QD, w] = reference_at(
+                last = _at(n, r, n)
+                G[c, last, REFERENCE_Q, w], G[c, last, REFERENCE_QD, w] = reference_at(
                     reference, t0 + n * dt)
                 scratch[c, SHIFTS, w] = 1.0
                 shifts = True
                 state[c, PHASE, w] = WARM_SWEEP
                 continue
             for k in range(n + 1):
-                G[c, k, REFERENCE_Q, w], G[c, k, REFERENCE_QD, w] = reference_at(
+                i = _at(k, r, n)
+                G[c, i, REFERENCE_Q, w], G[c, i, REFERENCE_QD, w] = reference_at(
                     reference, t0 + k * dt)
             if mode == COLD:
                 for k in range(n):
-                    Tc[c, k, U, w] = row[ws.INITIAL_CURRENT]
-            else:
-                for k in range(n - 1):
-                    Tc[c, k, U, w] = Tc[c, k + 1, U, w]
+                    Tc[c, _at(k, r, n), U, w] = row[ws.INITIAL_CURRENT]
+            else:  # the ring moved the controls up by one; the last one stays
+                Tc[c, _at(n - 1, r, n), U, w] = Tc[c, _at(n - 2, r, n), U, w]
             _start_first_rollout(G, scratch, state, c, w, n)
     # lanes past the last joint compute on its parameters (no overflow, no denormals), ignored
     last_chunk, last_lane = divmod(joints - 1, WIDTH)
@@ -565,7 +560,7 @@ def _before_sweep(scratch, state, c0, c1):
 
 
 @numba.njit(**JIT)
-def _after_sweep(Tc, G, scratch, state, n, c0, c1):
+def _after_sweep(Tc, G, scratch, state, n, r, c0, c1):
     """Each lane that swept decides, as the scalar solver does after `backward`."""
     for c in range(c0, c1):
         for w in range(WIDTH):
@@ -577,8 +572,9 @@ def _after_sweep(Tc, G, scratch, state, n, c0, c1):
                 if not ok:
                     _start_first_rollout(G, scratch, state, c, w, n)
                     continue
-                d1 = scratch[c, Q0, w] - Tc[c, 0, Q, w]
-                d2 = scratch[c, QD0, w] - Tc[c, 0, QD, w]
+                first = _at(0, r, n)
+                d1 = scratch[c, Q0, w] - Tc[c, first, Q, w]
+                d2 = scratch[c, QD0, w] - Tc[c, first, QD, w]
                 merit = scratch[c, SUM, w] + scratch[c, VX1, w] * d1 + scratch[c, VX2, w] * d2 + (
                     0.5 * (scratch[c, V11, w] * d1 * d1 + 2.0 * scratch[c, V12, w] * d1 * d2
                            + scratch[c, V22, w] * d2 * d2))
@@ -662,8 +658,9 @@ def _after_rollout(G, scratch, state, n, c0, c1):
 
 
 @numba.njit(**JIT)
-def _end(rows, Tc, G, state, scratch, c0, c1):
+def _end(rows, Tc, G, state, scratch, n, r, c0, c1):
     """Each ticked joint's outcome into its row's header, and its next mode."""
+    first = _at(0, r, n)
     for c in range(c0, c1):
         for w in range(WIDTH):
             status = state[c, STATUS, w]
@@ -675,10 +672,10 @@ def _end(rows, Tc, G, state, scratch, c0, c1):
             row[ws.COST] = scratch[c, COST, w]
             row[ws.MU] = scratch[c, MU, w]
             row[ws.ROLLOUTS] = state[c, ROLLOUTS, w] + state[c, ROLLOUTS_OFFSET, w]
-            planned = Tc[c, 0, U, w]
+            planned = Tc[c, first, U, w]
             row[ws.PLANNED_CURRENT] = planned
-            row[ws.REFERENCE_POSITION] = G[c, 0, REFERENCE_Q, w]
-            row[ws.REFERENCE_VELOCITY] = G[c, 0, REFERENCE_QD, w]
+            row[ws.REFERENCE_POSITION] = G[c, first, REFERENCE_Q, w]
+            row[ws.REFERENCE_VELOCITY] = G[c, first, REFERENCE_QD, w]
             usable = status == CONVERGED or status == MAX_ITERATIONS
             row[ws.MODE] = WARM if usable and np.isfinite(planned) else COLD
 
@@ -696,22 +693,26 @@ def _simulates(state, c0, c1):
 def tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n, c0, c1):
     """Every joint of chunks [c0, c1) at time t0: rounds of one masked backward pass and one
     simulation until each joint's iLQR has ended (see the module docstring)."""
-    if _begin(rows, trajectories[current[block]], gains, scratch, state, t0, n, c0, c1):
-        _shift(trajectories[current[block]], gains, scratch, n, c0, c1)
+    r = current[block, RING] + 1  # every mode wants the stored steps moved up by one
+    r = 0 if r > n else r
+    current[block, RING] = r
+    if _begin(rows, trajectories[current[block, WHICH]], gains, scratch, state, t0, n, r, c0,
+              c1):
+        _shift(trajectories[current[block, WHICH]], gains, scratch, n, r, c0, c1)
     while True:
-        cur = trajectories[current[block]]
+        cur = trajectories[current[block, WHICH]]
         swept = _before_sweep(scratch, state, c0, c1)
         if swept:
-            _backward(cur, gains, scratch, n, c0, c1)
-            _after_sweep(cur, gains, scratch, state, n, c0, c1)
+            _backward(cur, gains, scratch, n, r, c0, c1)
+            _after_sweep(cur, gains, scratch, state, n, r, c0, c1)
         simulates = _simulates(state, c0, c1)
         if simulates:
-            _rollout(cur, trajectories[1 - current[block]], gains, scratch, n, c0, c1)
+            _rollout(cur, trajectories[1 - current[block, WHICH]], gains, scratch, n, r, c0, c1)
             _after_rollout(gains, scratch, state, n, c0, c1)
             _take(trajectories, scratch, current, block, n, rows.shape[0], c0, c1)
         if not swept and not simulates:
             break
-    _end(rows, trajectories[current[block]], gains, state, scratch, c0, c1)
+    _end(rows, trajectories[current[block, WHICH]], gains, state, scratch, n, r, c0, c1)
 
 
 @numba.njit(parallel=True, **JIT)

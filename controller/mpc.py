@@ -353,12 +353,13 @@ class BatchMpc:
         if self.kernel == "lanes":
             j = self.joints.index(joint)
             trajectories, gains, _, _, current = self._lanes
-            which = current[lanes.block_of(j, len(self.joints), len(current))]
+            which, ring = current[lanes.block_of(j, len(self.joints), len(current))]
             chunk, lane = divmod(j, lanes.WIDTH)
-            solution = trajectories[which, chunk, :, :, lane]
-            return PlanSnapshot(t, joint.settings.dt, solution[:, lanes.Q].copy(),
-                                solution[:, lanes.QD].copy(), solution[:-1, lanes.U].copy(),
-                                gains[chunk, :, lanes.REFERENCE_Q, lane].copy())
+            # the steps in order from the ring (np.roll copies)
+            solution = np.roll(trajectories[which, chunk, :, :, lane], -ring, axis=0)
+            reference = np.roll(gains[chunk, :, lanes.REFERENCE_Q, lane], -ring)
+            return PlanSnapshot(t, joint.settings.dt, solution[:, lanes.Q],
+                                solution[:, lanes.QD], solution[:-1, lanes.U], reference)
         solution = joint.solution()
         return PlanSnapshot(t, joint.settings.dt, solution.X[:, 0].copy(),
                             solution.X[:, 1].copy(), solution.U.copy(),
