@@ -313,6 +313,16 @@ class BatchMpc:
     def __len__(self) -> int:
         return len(self.joints)
 
+    def lane_blocks(self) -> list[range]:
+        """The joints each thread of the lanes kernel ticks (empty for the scalar kernel): runs
+        of whole chunks of lanes, so fewer blocks than threads when there are few joints."""
+        if self.kernel != "lanes":
+            return []
+        count, blocks = lanes.chunks(len(self.joints)), len(self._lanes[-1])
+        return [range(b * count // blocks * lanes.WIDTH,
+                      min((b + 1) * count // blocks * lanes.WIDTH, len(self.joints)))
+                for b in range(blocks)]
+
     def prepare(self, joint: JointRow, position: float, velocity: float) -> None:
         """Write one joint's measured state for the next tick; a cold start begins from the
         current that holds the joint where it is."""
