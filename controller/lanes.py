@@ -38,7 +38,7 @@ import os
 import llvmlite.binding as llvm
 import numba
 import numpy as np
-from numba import types
+from numba import literally, types
 from numba.extending import intrinsic, register_jitable
 
 from controller import workspace as ws
@@ -135,8 +135,14 @@ def default_threads() -> int:
     return 1 if (cores or 1) <= 2 else 2
 
 
+def width(joints: int) -> int:
+    """Lanes per chunk: WIDTH, or one for a joint alone (a vector of one real joint and seven
+    idle lanes costs more than the joint alone)."""
+    return 1 if joints == 1 else WIDTH
+
+
 def chunks(joints: int) -> int:
-    return -(-joints // WIDTH)
+    return -(-joints // width(joints))
 
 
 def allocate(joints: int, n: int, blocks: int) -> tuple[np.ndarray, ...]:
@@ -145,16 +151,17 @@ def allocate(joints: int, n: int, blocks: int) -> tuple[np.ndarray, ...]:
     step 0 sits in the ring (at most one block per chunk). Separate arrays, so a loop's reads
     and writes fall in few groups the compiler can check for overlap once."""
     count = chunks(joints)
-    return (np.zeros((2, count, n + 1, TRAJECTORY_FIELDS, WIDTH)),
-            np.zeros((count, n + 1, GAIN_FIELDS, WIDTH)), np.zeros((count, SCRATCH, WIDTH)),
-            np.zeros((count, STATE, WIDTH), dtype=np.int64),
+    lanes = width(joints)
+    return (np.zeros((2, count, n + 1, TRAJECTORY_FIELDS, lanes)),
+            np.zeros((count, n + 1, GAIN_FIELDS, lanes)), np.zeros((count, SCRATCH, lanes)),
+            np.zeros((count, STATE, lanes), dtype=np.int64),
             np.zeros((min(max(blocks, 1), count), 2), dtype=np.int64))
 
 
 def block_of(joint: int, joints: int, blocks: int) -> int:
     """The block whose thread ticks this joint (blocks are runs of whole chunks)."""
     count = chunks(joints)
-    chunk = joint // WIDTH
+    chunk = joint // width(joints)
     return next(b for b in range(blocks) if chunk < (b + 1) * count // blocks)
 
 
@@ -183,18 +190,18 @@ def _data(typingctx, a):
 
 
 @register_jitable(forceinline=True)
-def _steps(a, fields):
+def _steps(a, fields, width):
     """A (chunk, k, field, lane) array seen with its inner extents as compile-time constants:
     the offsets of fields within a step are then constants the compiler sees, so it can prove
     that the fields a loop writes are not the ones it reads and vectorise the loop over lanes.
     A view without reference counting: valid while `a` is."""
-    return numba.carray(_data(a), (a.shape[0], a.shape[1], fields, WIDTH))
+    return numba.carray(_data(a), (a.shape[0], a.shape[1], fields, width))
 
 
 @register_jitable(forceinline=True)
-def _rows(a):
+def _rows(a, width):
     """scratch[chunk, row, lane] seen with its inner extents as compile-time constants."""
-    return numba.carray(_data(a), (a.shape[0], SCRATCH, WIDTH))
+    return numba.carray(_data(a), (a.shape[0], SCRATCH, width))
 
 
 @register_jitable(forceinline=True)
@@ -272,14 +279,15 @@ def _store_terminal(T, G, S, c, n, w, q, qd):
 
 
 @numba.njit(**JIT)
-def _rollout(current, trial, gains, scratch, n, r, c0, c1):
+def _rollout(current, trial, gains, scratch, n, r, c0, c1, width):
     """Simulate u = U_cur + alpha kff + K (x - X_cur) from x0 into the trial trajectory, for
     every lane of chunks [c0, c1) with its own alpha and gains (controller.ilqr.rollout); the
     total cost, inf when not finite, goes to scratch[TOTAL]."""
-    Tc, Tt = _steps(current, TRAJECTORY_FIELDS), _steps(trial, TRAJECTORY_FIELDS)
-    G, S = _steps(gains, GAIN_FIELDS), _rows(scratch)
+    literally(width)  # a compile-time lane count: one compiled kernel per width
+    Tc, Tt = _steps(current, TRAJECTORY_FIELDS, width), _steps(trial, TRAJECTORY_FIELDS, width)
+    G, S = _steps(gains, GAIN_FIELDS, width), _rows(scratch, width)
     for c in range(c0, c1):
-        for w in range(WIDTH):
+        for w in range(width):
             S[c, SIMULATED_Q, w] = S[c, Q0, w]
             S[c, SIMULATED_QD, w] = S[c, QD0, w]
             S[c, TOTAL, w] = 0.0
@@ -287,7 +295,7 @@ def _rollout(current, trial, gains, scratch, n, r, c0, c1):
             # the state carried in scratch, not read back from the next slot of the ring (its
             # distance from this one changes at the wrap, which LLVM would check each step)
             i = _at(k, r, n)
-            for w in range(WIDTH):
+            for w in range(width):
                 q, qd = S[c, SIMULATED_Q, w], S[c, SIMULATED_QD, w]
                 u = Tc[c, i, U, w] + S[c, ALPHA, w] * G[c, i, KFF, w] + G[c, i, K1, w] * (
                     q - Tc[c, i, Q, w]) + G[c, i, K2, w] * (qd - Tc[c, i, QD, w])
@@ -296,22 +304,24 @@ def _rollout(current, trial, gains, scratch, n, r, c0, c1):
                 S[c, SIMULATED_Q, w] = q_next
                 S[c, SIMULATED_QD, w] = qd_next
         last = _at(n, r, n)
-        for w in range(WIDTH):
+        for w in range(width):
             total = S[c, TOTAL, w] + _store_terminal(Tt, G, S, c, last, w, S[c, SIMULATED_Q, w],
                                                      S[c, SIMULATED_QD, w])
             S[c, TOTAL, w] = total if np.isfinite(total) else np.inf
 
 
 @numba.njit(**JIT)
-def _backward(current, gains, scratch, n, r, c0, c1):
+def _backward(current, gains, scratch, n, r, c0, c1, width):
     """Riccati sweep of every lane of chunks [c0, c1) with its own mu
     (controller.ilqr.backward); writes the gains only of lanes with scratch[NEEDS_SWEEP] set. A
     lane whose regularised Quu is not positive at some step ends with scratch[SWEEP_OK] = 0
     (its later steps are computed and ignored: the scalar sweep would have stopped there)."""
-    Tc, G, S = _steps(current, TRAJECTORY_FIELDS), _steps(gains, GAIN_FIELDS), _rows(scratch)
+    literally(width)  # a compile-time lane count: one compiled kernel per width
+    Tc = _steps(current, TRAJECTORY_FIELDS, width)
+    G, S = _steps(gains, GAIN_FIELDS, width), _rows(scratch, width)
     for c in range(c0, c1):
         last = _at(n, r, n)
-        for w in range(WIDTH):
+        for w in range(width):
             S[c, VX1, w] = Tc[c, last, LQ, w]
             S[c, VX2, w] = Tc[c, last, LQD, w]
             S[c, V11, w] = Tc[c, last, LQQ, w]
@@ -322,7 +332,7 @@ def _backward(current, gains, scratch, n, r, c0, c1):
             S[c, SWEEP_OK, w] = 1.0
         for step in range(n - 1, -1, -1):
             k = _at(step, r, n)
-            for w in range(WIDTH):
+            for w in range(width):
                 mu = S[c, MU, w]
                 box = S[c, BOX, w]
                 vx1, vx2 = S[c, VX1, w], S[c, VX2, w]
@@ -374,14 +384,16 @@ def _backward(current, gains, scratch, n, r, c0, c1):
 
 
 @numba.njit(**JIT)
-def _shift(current, gains, scratch, n, r, c0, c1):
+def _shift(current, gains, scratch, n, r, c0, c1, width):
     """The rest of controller.mpc._shift for lanes with scratch[SHIFTS] set, once the ring has
     advanced: the last control repeated, the last stage and the terminal state evaluated anew.
     Then every lane's shifted cost summed into scratch[SUM], in the scalar tick's order."""
-    Tc, G, S = _steps(current, TRAJECTORY_FIELDS), _steps(gains, GAIN_FIELDS), _rows(scratch)
+    literally(width)  # a compile-time lane count: one compiled kernel per width
+    Tc = _steps(current, TRAJECTORY_FIELDS, width)
+    G, S = _steps(gains, GAIN_FIELDS, width), _rows(scratch, width)
     before_last, last, terminal = _at(n - 2, r, n), _at(n - 1, r, n), _at(n, r, n)
     for c in range(c0, c1):
-        for w in range(WIDTH):
+        for w in range(width):
             if S[c, SHIFTS, w] != 0.0:
                 _, q_next, qd_next = _store_stage(Tc, G, S, c, last, w, Tc[c, last, Q, w],
                                                   Tc[c, last, QD, w], Tc[c, before_last, U, w])
@@ -389,31 +401,32 @@ def _shift(current, gains, scratch, n, r, c0, c1):
             S[c, SUM, w] = 0.0
         for k in range(n + 1):
             i = _at(k, r, n)
-            for w in range(WIDTH):
+            for w in range(width):
                 S[c, SUM, w] += Tc[c, i, LC, w]
 
 
 @numba.njit(**JIT)
-def _take(trajectories, scratch, current, block, n, joints, c0, c1):
+def _take(trajectories, scratch, current, block, n, joints, c0, c1, width):
     """The trial becomes the current solution of the lanes with scratch[TAKES] set: the two
     trajectories swap roles when every joint of the block takes it, the takers' lanes are
     copied otherwise."""
-    S = _rows(scratch)
+    literally(width)  # a compile-time lane count: one compiled kernel per width
+    S = _rows(scratch, width)
     takers = 0
     for c in range(c0, c1):
-        for w in range(WIDTH):
+        for w in range(width):
             takers += S[c, TAKES, w] != 0.0
     if takers == 0:
         return
-    if takers == min(c1 * WIDTH, joints) - c0 * WIDTH:
+    if takers == min(c1 * width, joints) - c0 * width:
         current[block, WHICH] = 1 - current[block, WHICH]
         return
-    Tc = _steps(trajectories[current[block, WHICH]], TRAJECTORY_FIELDS)
-    Tt = _steps(trajectories[1 - current[block, WHICH]], TRAJECTORY_FIELDS)
+    Tc = _steps(trajectories[current[block, WHICH]], TRAJECTORY_FIELDS, width)
+    Tt = _steps(trajectories[1 - current[block, WHICH]], TRAJECTORY_FIELDS, width)
     for c in range(c0, c1):
         for k in range(n + 1):
             for f in range(TRAJECTORY_FIELDS):
-                for w in range(WIDTH):
+                for w in range(width):
                     takes = S[c, TAKES, w] != 0.0
                     Tc[c, k, f, w] = Tt[c, k, f, w] if takes else Tc[c, k, f, w]
 
@@ -470,15 +483,15 @@ def _bump_mu(scratch, state, c, w):
 
 
 @numba.njit(**JIT)
-def _begin(rows, Tc, G, scratch, state, t0, n, r, c0, c1):
+def _begin(rows, Tc, G, scratch, state, t0, n, r, c0, c1, width):
     """Read each joint's inputs and mode from its row and set it on its way (tick_joint's
     opening), the ring having advanced one step; returns whether any lane shifts its warm
     solution."""
     joints = rows.shape[0]
     shifts = False
     for c in range(c0, c1):
-        for w in range(WIDTH):
-            j = c * WIDTH + w
+        for w in range(width):
+            j = c * width + w
             row = rows[min(j, joints - 1)]
             scratch[c, SHIFTS, w] = 0.0
             scratch[c, NEEDS_SWEEP, w] = 0.0
@@ -529,9 +542,9 @@ def _begin(rows, Tc, G, scratch, state, t0, n, r, c0, c1):
                 Tc[c, _at(n - 1, r, n), U, w] = Tc[c, _at(n - 2, r, n), U, w]
             _start_first_rollout(G, scratch, state, c, w, n)
     # lanes past the last joint compute on its parameters (no overflow, no denormals), ignored
-    last_chunk, last_lane = divmod(joints - 1, WIDTH)
+    last_chunk, last_lane = divmod(joints - 1, width)
     if c0 <= last_chunk < c1:
-        for w in range(last_lane + 1, WIDTH):
+        for w in range(last_lane + 1, width):
             for i in range(COSTS + N_COST):
                 scratch[last_chunk, i, w] = scratch[last_chunk, i, last_lane]
             scratch[last_chunk, Q0, w] = scratch[last_chunk, Q0, last_lane]
@@ -540,12 +553,12 @@ def _begin(rows, Tc, G, scratch, state, t0, n, r, c0, c1):
 
 
 @numba.njit(**JIT)
-def _before_sweep(scratch, state, c0, c1):
+def _before_sweep(scratch, state, c0, c1, width):
     """Mark the lanes that sweep this round; an iterating lane first checks its iteration
     budget (the head of controller.ilqr.iterate's loop). Returns whether any lane sweeps."""
     any_sweep = False
     for c in range(c0, c1):
-        for w in range(WIDTH):
+        for w in range(width):
             phase = state[c, PHASE, w]
             if phase == SWEEP:
                 if state[c, ITERATION, w] >= state[c, MAX_ITER, w]:
@@ -560,10 +573,10 @@ def _before_sweep(scratch, state, c0, c1):
 
 
 @numba.njit(**JIT)
-def _after_sweep(Tc, G, scratch, state, n, r, c0, c1):
+def _after_sweep(Tc, G, scratch, state, n, r, c0, c1, width):
     """Each lane that swept decides, as the scalar solver does after `backward`."""
     for c in range(c0, c1):
-        for w in range(WIDTH):
+        for w in range(width):
             if scratch[c, NEEDS_SWEEP, w] == 0.0:
                 continue
             scratch[c, NEEDS_SWEEP, w] = 0.0
@@ -592,12 +605,12 @@ def _after_sweep(Tc, G, scratch, state, n, r, c0, c1):
 
 
 @numba.njit(**JIT)
-def _after_rollout(G, scratch, state, n, c0, c1):
+def _after_rollout(G, scratch, state, n, c0, c1, width):
     """Each lane that simulated decides (solve_from_controls after its first simulation, the
     line search after a trial); sets scratch[TAKES] on the lanes whose trial becomes their
     current solution. Returns whether any lane still has work."""
     for c in range(c0, c1):
-        for w in range(WIDTH):
+        for w in range(width):
             scratch[c, TAKES, w] = 0.0
             phase = state[c, PHASE, w]
             total = scratch[c, TOTAL, w]
@@ -658,15 +671,15 @@ def _after_rollout(G, scratch, state, n, c0, c1):
 
 
 @numba.njit(**JIT)
-def _end(rows, Tc, G, state, scratch, n, r, c0, c1):
+def _end(rows, Tc, G, state, scratch, n, r, c0, c1, width):
     """Each ticked joint's outcome into its row's header, and its next mode."""
     first = _at(0, r, n)
     for c in range(c0, c1):
-        for w in range(WIDTH):
+        for w in range(width):
             status = state[c, STATUS, w]
             if status == PADDING:
                 continue
-            row = rows[c * WIDTH + w]
+            row = rows[c * width + w]
             row[ws.STATUS] = status
             row[ws.ITERATIONS] = state[c, ITERATION, w] + state[c, ITERATION_OFFSET, w]
             row[ws.COST] = scratch[c, COST, w]
@@ -681,49 +694,55 @@ def _end(rows, Tc, G, state, scratch, n, r, c0, c1):
 
 
 @numba.njit(**JIT)
-def _simulates(state, c0, c1):
+def _simulates(state, c0, c1, width):
     for c in range(c0, c1):
-        for w in range(WIDTH):
+        for w in range(width):
             if state[c, PHASE, w] == FIRST_ROLLOUT or state[c, PHASE, w] == SEARCH:
                 return True
     return False
 
 
 @numba.njit(**JIT)
-def tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n, c0, c1):
+def tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n, c0, c1, width):
     """Every joint of chunks [c0, c1) at time t0: rounds of one masked backward pass and one
     simulation until each joint's iLQR has ended (see the module docstring)."""
+    literally(width)  # a compile-time lane count: one compiled kernel per width
     r = current[block, RING] + 1  # every mode wants the stored steps moved up by one
     r = 0 if r > n else r
     current[block, RING] = r
     if _begin(rows, trajectories[current[block, WHICH]], gains, scratch, state, t0, n, r, c0,
-              c1):
-        _shift(trajectories[current[block, WHICH]], gains, scratch, n, r, c0, c1)
+              c1, width):
+        _shift(trajectories[current[block, WHICH]], gains, scratch, n, r, c0, c1, width)
     while True:
         cur = trajectories[current[block, WHICH]]
-        swept = _before_sweep(scratch, state, c0, c1)
+        swept = _before_sweep(scratch, state, c0, c1, width)
         if swept:
-            _backward(cur, gains, scratch, n, r, c0, c1)
-            _after_sweep(cur, gains, scratch, state, n, r, c0, c1)
-        simulates = _simulates(state, c0, c1)
+            _backward(cur, gains, scratch, n, r, c0, c1, width)
+            _after_sweep(cur, gains, scratch, state, n, r, c0, c1, width)
+        simulates = _simulates(state, c0, c1, width)
         if simulates:
-            _rollout(cur, trajectories[1 - current[block, WHICH]], gains, scratch, n, r, c0, c1)
-            _after_rollout(gains, scratch, state, n, c0, c1)
-            _take(trajectories, scratch, current, block, n, rows.shape[0], c0, c1)
+            _rollout(cur, trajectories[1 - current[block, WHICH]], gains, scratch, n, r, c0, c1,
+                     width)
+            _after_rollout(gains, scratch, state, n, c0, c1, width)
+            _take(trajectories, scratch, current, block, n, rows.shape[0], c0, c1, width)
         if not swept and not simulates:
             break
-    _end(rows, trajectories[current[block, WHICH]], gains, state, scratch, n, r, c0, c1)
+    _end(rows, trajectories[current[block, WHICH]], gains, state, scratch, n, r, c0, c1, width)
 
 
 @numba.njit(parallel=True, **JIT)
 def tick_lanes(rows, trajectories, gains, scratch, state, current, t0, n):
     """Every joint's MPC step at time t0, the chunks of lanes split in len(current) blocks, one
-    per thread (one block: no thread team is woken)."""
+    per thread (one block: no thread team is woken). A joint alone is a chunk of one lane."""
     count = gains.shape[0]
     blocks = current.shape[0]
     if blocks == 1:
-        tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count)
+        if gains.shape[3] == 1:
+            tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count, 1)
+        else:
+            tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count,
+                       WIDTH)
         return
     for block in numba.prange(blocks):
         tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n,
-                   block * count // blocks, (block + 1) * count // blocks)
+                   block * count // blocks, (block + 1) * count // blocks, WIDTH)

@@ -318,9 +318,9 @@ class BatchMpc:
         of whole chunks of lanes, so fewer blocks than threads when there are few joints."""
         if self.kernel != "lanes":
             return []
-        count, blocks = lanes.chunks(len(self.joints)), len(self._lanes[-1])
-        return [range(b * count // blocks * lanes.WIDTH,
-                      min((b + 1) * count // blocks * lanes.WIDTH, len(self.joints)))
+        joints = len(self.joints)
+        count, blocks, width = lanes.chunks(joints), len(self._lanes[-1]), lanes.width(joints)
+        return [range(b * count // blocks * width, min((b + 1) * count // blocks * width, joints))
                 for b in range(blocks)]
 
     def prepare(self, joint: JointRow, position: float, velocity: float) -> None:
@@ -364,7 +364,7 @@ class BatchMpc:
             j = self.joints.index(joint)
             trajectories, gains, _, _, current = self._lanes
             which, ring = current[lanes.block_of(j, len(self.joints), len(current))]
-            chunk, lane = divmod(j, lanes.WIDTH)
+            chunk, lane = divmod(j, lanes.width(len(self.joints)))
             # the steps in order from the ring (np.roll copies)
             solution = np.roll(trajectories[which, chunk, :, :, lane], -ring, axis=0)
             reference = np.roll(gains[chunk, :, lanes.REFERENCE_Q, lane], -ring)
