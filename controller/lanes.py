@@ -1,34 +1,37 @@
 """The batched MPC tick with the joints side by side in SIMD lanes: the same iLQR as
 `controller.ilqr` and `controller.mpc.tick_joint` (read those first), with every innermost loop
 running over joints so that LLVM vectorises the backward pass, the forward simulation and the
-barrier terms across them (AVX2/FMA, or AVX-512 where the CPU has it).
+barrier terms across them (AVX2 with FMA, AVX-512 where the CPU has it).
 
-Layout: a joint-major structure of arrays, `trajectories[which, chunk, k, field, lane]` for
-step k of joint chunk x WIDTH + lane, so the values of one step for consecutive joints are
-contiguous. Per-joint scalars (the parameters,
-the cost vector, the solver's state) live in `scratch[row, j]` the same way. The tick's inputs
-and outputs stay in the joints' workspace rows (`controller.workspace` header), so Python's side
-of the batch does not change; the trajectories of a lane batch live only here.
+Layout: a joint-major structure of arrays. Joints go in chunks of `width` lanes (WIDTH, or one
+for a joint alone); `trajectories[which, chunk, k, field, lane]` holds step k of joint
+chunk x width + lane, so the values of one step for consecutive joints are contiguous, and
+`gains`, `scratch` (per-joint parameters, cost vector and solver state) and `state` follow the
+same pattern. The steps are a ring of n + 1 slots: a tick advances it by one instead of moving
+the stored solution (see `_at`). The tick's inputs and outputs stay in the joints' workspace
+rows (the `controller.workspace` header), so Python's side of the batch does not change; the
+trajectory part of those rows is unused by this kernel.
 
 Control flow: every joint keeps its own iLQR. A joint is in a phase (needs a backward pass, a
 first simulation, a line-search trial, or is done) and the tick runs rounds of one masked
 backward pass and one forward simulation over all joints until every joint is done. Each joint
 thus goes through exactly the sequence of passes and decisions it goes through alone in
-`tick_joint`: its own modes (cold, warm, resample, skip), regularisation, and line search that
+`tick_joint`: its own mode (cold, warm, resample, skip), regularisation, and line search that
 accepts or rejects its own step. A simulation writes every lane of the trial trajectory; the
 joints that accept it take it as their current solution (the two trajectories swap roles when
 every joint of the block takes it, as in the scalar solver; otherwise the takers' lanes are
-copied), and the trial lanes of the others are scratch.
+copied), and the trial lanes of the others are scratch. A round costs the same whatever the
+number of joints still working in a chunk: a chunk is as slow as its slowest joint.
 
 The transcendental functions are `controller.lane_math` (the scalar kernel's are libm's), so a
 lane joint's decisions equal the scalar kernel's to rounding, not bit for bit (tested to 1e-9
-relative in tests/test_batch_lanes.py). The cost algebra and the discrete step are shared with
-the scalar kernel (`controller.cost`, `controller.action_model`); the acceleration is the
-paper's joint model of `model.dynamics.smooth_acceleration` written out for lanes, so a batch
-whose joints carry an extra effect (`model.effects`) runs the scalar kernel instead
-(`supports`).
+relative in tests/test_batch_lanes.py); a joint decides the same bit for bit whatever its chunk
+and width. The cost algebra and the discrete step are shared with the scalar kernel
+(`controller.cost`, `controller.action_model`); the acceleration is the paper's joint model of
+`model.dynamics.smooth_acceleration` written out for lanes, so a batch whose joints carry an
+extra effect (`model.effects`) runs the scalar kernel instead (`supports`).
 
-Threads: the joints are split in contiguous blocks, one per thread of a numba prange; each
+Threads: the chunks are split in contiguous blocks, one per thread of a numba prange; each
 block runs the whole tick on its own lanes. One block is the default where the machine has two
 cores or fewer (see `default_threads`).
 """

@@ -8,8 +8,11 @@ them directly, and the forward pass from the measured state is the line search. 
 must beat is the shifted cost corrected to the measured state by the value function's quadratic
 model, so the Armijo test stays meaningful. One simulation per tick instead of two.
 
-Joints run in parallel across cores (numba prange, one workspace row each); a single joint runs
-in the calling thread, where waking a thread team would cost more than it saves.
+Two compiled kernels tick a batch: `controller.lanes` puts the joints side by side in SIMD
+lanes (the default), `tick_joints` below runs each joint's scalar iLQR in turn, in parallel
+across cores (numba prange, one workspace row each; a single joint runs in the calling thread,
+where waking a thread team would cost more than it saves). The scalar one is the reference the
+lanes are tested against, and the kernel of joints whose model carries an extra effect.
 """
 
 import os
