@@ -1,5 +1,6 @@
 """`bench`: the speed of the MPC tick and the cold solve against a plain numpy iLQR, and the
-batched MPC for 7 and 32 joints (the measuring is `controller.benchmark`)."""
+batched MPC for 1, 7 and 32 joints on one and two threads, the vectorised kernel beside the
+scalar one (the measuring is `controller.benchmark`)."""
 
 import json
 import sys
@@ -16,7 +17,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--ticks", type=int_range(1, 10_000_000), default=20000)
     parser.add_argument("--numpy-ticks", type=int_range(1, 10_000_000), default=300)
     parser.add_argument("--joint-ticks", type=int_range(1, 10_000_000), default=5000,
-                        help="ticks of the batched MPC per joint count")
+                        help="ticks of the batched MPC per joint count, thread count and kernel")
     add_logging_argument(parser)
     args = parser.parse_args(argv)
     configure_logging(parser.prog, args.log_level)
