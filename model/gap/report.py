@@ -23,6 +23,8 @@ class GapResult:
     horizon: float
     candidates: dict
     steps: list[dict]  # the forward selection: what joined and the held-out error after it
+    discrimination: list[dict]  # effects that explained the same residual as one that joined
+    instruments: dict  # the motor side and the torque sensor, each on its own
     held_out_rmsd: float  # of the chosen effects (N.m)
     unexplained: dict  # structure left in the residual, and where
     correction: dict | None  # data-driven map for it (never a named effect), if any
@@ -59,8 +61,10 @@ def build_report(result: GapResult, model_path: str) -> dict:
         "held_out_rmsd": result.held_out_rmsd,
         "candidates": result.candidates,
         "steps": result.steps,
+        "discrimination": result.discrimination,
         "unexplained": result.unexplained,
         "correction": result.correction,
+        "instruments": result.instruments,
         "selection": f"forward selection on the held-out torque RMSD over {FOLDS} contiguous "
                      "time blocks: an effect joins only if it lowers it by >= "
                      f"{100 * MIN_IMPROVEMENT:.0f} % and every fitted effect stays plausible",
@@ -91,9 +95,20 @@ def summary(result: GapResult) -> str:
     worst = max(result.localisation_before["by_speed_rad_s"], key=lambda b: b["rmsd"])
     lines.append(f"largest disagreement before: |qd| in [{worst['from']}, {worst['to']}) "
                  f"rad/s, {worst['rmsd']:.3f} N.m")
+    for contest in result.discrimination:
+        lines.append(f"{contest['says']}; to tell them apart record "
+                     f"{contest['recording_that_would_tell_them_apart']}")
     for place in result.unexplained["where"]:
         bins = ", ".join(f"[{b['from']}, {b['to']}) mean {b['mean']:+.3f} N.m"
                          for b in place["bins"])
         lines.append(f"unexplained by the library: along {place['axis']} (a map lowers the "
                      f"held-out error by {100 * place['gain']:.0f} %): {bins}")
+    drift = result.unexplained["drift"]
+    if drift["found"]:
+        lines.append(f"unexplained drift over each recording: a {drift['kind']} "
+                     f"{drift['excess_at_start_nm']:+.3f} N.m at the start, time constant "
+                     f"{drift['time_constant_s']:g} s"
+                     + (" (slower than the recordings)" if drift["slower_than_the_recordings"]
+                        else ""))
+    lines.append(f"instruments: {result.instruments['verdict_before']}")
     return "\n".join(lines)
