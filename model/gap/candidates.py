@@ -3,12 +3,13 @@ squares, with effects from the registry (`model.effects`) added as regressor col
 effect's nonlinear shape parameter (Stribeck velocity, ripple frequency) found by scanning its
 grid and refining around the best point.
 
-A drive-side effect re-opens the drive gain: a baseline identified without a saturating
-torque constant has a compromise gain between low and high currents, and the effect's fall
-with current cannot be fitted around it. With such an effect in a fit, a column of the
-measured motor torque (drive_gain x current) joins the refit: its coefficient a is the
-gain's relative change (new gain = (1 - a) x old), and the effect's coefficients, fitted
-against the old gain, are divided by (1 - a)."""
+The drive gain is refitted too: a baseline identified without an effect has compromised on
+its gain (a saturating torque constant most of all: between low and high currents), and an
+effect cannot be fitted around a wrong gain. It is refitted in every candidate, "none"
+included, so no effect wins by the gain alone. Its column is the measured motor torque
+(drive_gain x current): its coefficient a is the gain's relative change (new gain =
+(1 - a) x old), and drive-side effects' coefficients, fitted against the old gain, are
+divided by (1 - a)."""
 
 from dataclasses import dataclass, replace
 
@@ -18,7 +19,7 @@ from model.effects import Effect, Effects
 from model.gap.evidence import FOLDS, Signals, predicted_motor_torque, regressors, unit_columns
 from model.parameters import ActuatorParameters
 
-REFIT = ("viscous_friction_motor", "dry_friction_motor", "torque_offset_motor")
+REFIT = ("viscous_friction_motor", "dry_friction_motor", "torque_offset_motor")  # + the gain
 REFINE_POINTS = 21  # between the best grid point's neighbours
 
 
@@ -51,13 +52,8 @@ class Problem:
         return term.effect.columns(self.rows, term.shape)
 
     def design(self, terms: tuple[Term, ...]) -> np.ndarray:
-        gain = [self.s.motor_torque] if reopens_gain(terms) else []
-        return np.column_stack([self.base, *gain, *(self.columns(term) for term in terms)])
-
-
-def reopens_gain(terms: tuple[Term, ...]) -> bool:
-    """Whether a fit with these terms refits the drive gain (see the module docstring)."""
-    return any(term.effect.side == "drive" for term in terms)
+        return np.column_stack([self.base, self.s.motor_torque,
+                                *(self.columns(term) for term in terms)])
 
 
 @dataclass
@@ -67,11 +63,11 @@ class Fit:
 
     @property
     def gain_ratio(self) -> float:
-        """The refitted drive gain over the old one (1 when the gain was not refitted)."""
-        return 1.0 - self.coefficients[len(REFIT)] if reopens_gain(self.terms) else 1.0
+        """The refitted drive gain over the old one."""
+        return 1.0 - self.coefficients[len(REFIT)]
 
     def effect_coefficients(self) -> list[np.ndarray]:
-        out, start = [], len(REFIT) + reopens_gain(self.terms)
+        out, start = [], len(REFIT) + 1
         for term in self.terms:
             coefficients = self.coefficients[start:start + term.effect.coefficients]
             if term.effect.side == "drive":
@@ -131,8 +127,8 @@ def best_terms(problem: Problem, fixed: tuple[Term, ...], effect: Effect,
 
 
 def improved_parameters(fit: Fit, parameters: ActuatorParameters) -> ActuatorParameters:
-    """The model with the refitted motor-side friction and offset (and drive gain, when a
-    drive-side effect re-opened it) and exactly the fitted effects."""
+    """The model with the refitted motor-side friction, offset and drive gain and exactly the
+    fitted effects."""
     return replace(parameters, effects=Effects(fit.tables()),
                    drive_gain=parameters.drive_gain * fit.gain_ratio,
                    **{name: float(value) for name, value in zip(REFIT, fit.coefficients,

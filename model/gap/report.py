@@ -79,7 +79,8 @@ def improved_provenance(result: GapResult, sources: list[str], date: str) -> dic
     note = (f"{origin}: held-out torque RMSD {result.held_out_rmsd:.4f} vs "
             f"{result.candidates['none']['held_out_rmsd']:.4f} N.m without {result.effect}")
     return {**{f"effects.{name}": note for name in result.effects},
-            **{name: f"refitted with {result.effect} by {origin}" for name in REFIT}}
+            **{name: f"refitted with {result.effect} by {origin}"
+               for name in (*REFIT, "drive_gain")}}
 
 
 def summary(result: GapResult) -> str:

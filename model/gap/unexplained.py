@@ -15,7 +15,7 @@ from above.
 
 Time gets one more look (`drift`): an exponential in the time since the start of each
 recording, a exp(-t / tau), as a torque or as a friction level, fitted together with the motor
-side's refit columns (friction and offset: a baseline identified on drifting data has already
+side's refit columns (friction, offset and gain: a baseline identified on drifting data has already
 folded part of the drift into them), its time constant chosen on the training chunks. A drift
 lives in the first seconds of each recording, so it is judged by how surely it predicts
 held-out chunks better than the refit alone (the mean per-chunk drop in squared error over its
@@ -178,9 +178,10 @@ def drift(problem: Problem, residual: np.ndarray) -> dict:
     chunks = s.recording * 1_000_000 + np.floor(s.t / CHUNK).astype(int)
     span = max(float(s.elapsed.max()), 1e-3)
     grid = np.geomspace(0.1, SLOWEST * span, TIME_CONSTANTS)
+    refit = problem.design(())
     best: dict = {}
     for kind, weight in (("torque", np.ones(len(s.t))), ("friction level", s.sign)):
-        designs = [np.column_stack([weight * np.exp(-s.elapsed / tau), problem.base])
+        designs = [np.column_stack([weight * np.exp(-s.elapsed / tau), refit])
                    for tau in grid]
         with_drift = np.zeros_like(residual)
         without = np.zeros_like(residual)
@@ -190,8 +191,8 @@ def drift(problem: Problem, residual: np.ndarray) -> dict:
             k = int(np.argmin([float(np.sum((x[train] @ f[0] - residual[train]) ** 2))
                                for x, f in zip(designs, fits, strict=True)]))
             with_drift[test] = designs[k][test] @ fits[k][0]
-            base, *_ = np.linalg.lstsq(problem.base[train], residual[train], rcond=None)
-            without[test] = problem.base[test] @ base
+            base, *_ = np.linalg.lstsq(refit[train], residual[train], rcond=None)
+            without[test] = refit[test] @ base
         gain = 1.0 - rmsd(residual - with_drift) / rmsd(residual - without)
         _, inverse = np.unique(chunks, return_inverse=True)
         better = np.bincount(inverse, (residual - without) ** 2 - (residual - with_drift) ** 2)
