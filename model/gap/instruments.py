@@ -65,16 +65,18 @@ def verdict(motor: bool, sensor: bool) -> str:
 
 
 def instruments(problem: Problem, motor_before: np.ndarray, motor_after: np.ndarray,
-                sensor: np.ndarray) -> dict:
+                sensor: np.ndarray, named: bool) -> dict:
     """The `instruments` report section: each residual's structure (after its own side's
-    refit) and what it says."""
+    refit) and what it says. `named`: library effects were found, all of which act on the
+    motor side, so its residual had structure before them even where no map resolves it (a
+    ripple of many periods)."""
     before, after, joint = (structure(problem, own_fit(problem, r, side)) for r, side in
                             ((motor_before, 0), (motor_after, 0), (sensor, 1)))
     return {
         "motor_before": _summary(before),
         "motor_after": _summary(after),
         "sensor": {**_summary(joint), "where": joint["where"]},
-        "verdict_before": verdict(before["found"], joint["found"]),
+        "verdict_before": verdict(before["found"] or named, joint["found"]),
         "verdict_after": verdict(after["found"], joint["found"]),
         "method": "the structure search of `unexplained` run on each residual apart, after "
                   "refitting that side's own linear parameters to it: the motor side (the "

@@ -106,10 +106,11 @@ def summary(result: GapResult) -> str:
                      f"held-out error by {100 * place['gain']:.0f} %): {bins}")
     drift = result.unexplained["drift"]
     if drift["found"]:
-        lines.append(f"unexplained drift over each recording: a {drift['kind']} "
-                     f"{drift['excess_at_start_nm']:+.3f} N.m at the start, time constant "
-                     f"{drift['time_constant_s']:g} s"
-                     + (" (slower than the recordings)" if drift["slower_than_the_recordings"]
-                        else ""))
+        low, high = drift["time_constant_range_s"]
+        lines.append(f"unexplained drift over each recording: a {drift['kind']} decaying by "
+                     f"{drift['decay_over_longest_recording_nm']:+.3f} N.m over "
+                     f"{drift['longest_recording_s']:g} s, time constant {low:g}-{high:g} s"
+                     + (" or longer (record longer to bound it)"
+                        if drift["slower_than_the_recordings"] else ""))
     lines.append(f"instruments: {result.instruments['verdict_before']}")
     return "\n".join(lines)

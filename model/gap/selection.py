@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from model.effects import EFFECTS, LIBRARY, FitContext
+from model.effects import EFFECTS, LIBRARY, Effect, FitContext
 from model.gap.candidates import REFIT, Fit, Problem, Term, best_terms, solve
 from model.gap.evidence import FOLDS
 
@@ -111,6 +111,19 @@ def select(problem: Problem) -> Selection:
     joined = {term.effect.name for term in chosen}
     return Selection(_reshaped(problem, chosen), current, candidates, steps,
                      [c for c in contests if c.rival.effect.name not in joined])
+
+
+def contest(problem: Problem, fixed: tuple[Term, ...], winner: Effect, rival: Effect
+            ) -> Contest:
+    """Two effects weighed against each other beside `fixed`, each shaped on the data, with
+    the held-out errors the selection would give them (for a pair the user names)."""
+    scores = []
+    terms = []
+    for effect in (winner, rival):
+        *per_fold, term = best_terms(problem, fixed, effect, [*range(FOLDS), None])
+        scores.append(held_out_rmsd(problem, fixed, per_fold))
+        terms.append(term)
+    return Contest(fixed, terms[0], terms[1], held_out_rmsd(problem, fixed), *scores)
 
 
 def _reshaped(problem: Problem, terms: tuple[Term, ...]) -> tuple[Term, ...]:

@@ -13,15 +13,19 @@ bins that carry the structure). The best such map is offered as a correction, la
 data-driven, with the held-out gap it closes; the error left after it bounds the noise floor
 from above.
 
-Time gets one more look (`drift`): an exponential in the time since the start of each
-recording, a exp(-t / tau), as a torque or as a friction level, fitted together with the motor
-side's refit columns (friction, offset and gain: a baseline identified on drifting data has already
-folded part of the drift into them), its time constant chosen on the training chunks. A drift
-lives in the first seconds of each recording, so it is judged by how surely it predicts
-held-out chunks better than the refit alone (the mean per-chunk drop in squared error over its
-standard error, DRIFT_Z) rather than by the whole recording's RMSD; where it passes, the model
-drifts over a recording (a gear warming up, an offset settling) and the report gives the time
-constant and the excess at the start.
+Time gets one more look (`drift`): a drift lives in the first seconds of each recording, so
+the whole recording's RMSD is a blunt judge of it. Instead the residual's level is taken per
+CHUNK of each recording (as a torque, and along the direction of motion: a friction level,
+which a bin of time would average out), and those levels are fitted against the time since
+the start of their recording by a exp(-t / tau) + b, tau on a grid, beside the chunk's mean
+speed (exciting trajectories change speed as they go, so a speed-dependent misfit would pass
+for a drift); the scatter of the levels about the fit gives the standard error of a. The
+first STARTING seconds (the joint leaving rest, tracking settling) are left out, and time
+constants start at FASTEST_DRIFT. Where a is DRIFT_Z standard errors from zero and the decay
+it makes over the longest recording is at least DRIFT_SIZE residual RMSDs, the model drifts
+over a recording (a gear warming up, an offset settling) and the report gives the time
+constant with the range the data cannot tell from it, and the decay within the recordings
+(the level at the start only when the range is bounded).
 
 The same maps serve each instrument on its own (`structure`): the motor side (drive gain x
 current) and the joint torque sensor.
@@ -42,9 +46,10 @@ SHARE = 0.10  # a bin is named where it carries 10 % of the structure or more
 SPEED_EDGES = np.array([0.005, 0.01, 0.02, 0.04, 0.08, 0.16, 0.32, 0.64, 1.28, 2.56, 50.0])
 TIME_CONSTANTS = 40  # points of the drift's time-constant grid
 SLOWEST = 10.0  # the grid's longest time constant, in recording lengths
-DRIFT_Z = 4.0  # mean / standard error of the per-chunk held-out gain a drift needs
-DRIFT_GAIN = 0.05  # ... and the held-out RMSD drop
-CORRELATED_ROWS = 4  # rows per independent error (25 Hz low-pass, rows at 100 Hz)
+DRIFT_Z = 5.0  # standard errors a drift's amplitude needs
+DRIFT_SIZE = 1.0  # ... and its decay over the longest recording, in residual RMSDs
+STARTING = 1.0  # s: the start of each recording, motion leaving rest, is no drift evidence
+FASTEST_DRIFT = 2.0  # s: the shortest time constant taken for a drift, not a start-up
 
 
 @dataclass(frozen=True)
@@ -170,58 +175,57 @@ def scores(problem: Problem, residual: np.ndarray) -> list[Score]:
 
 
 def drift(problem: Problem, residual: np.ndarray) -> dict:
-    """The best exponential in the time since the start of each recording (as a torque or as a
-    friction level), fitted with the motor side's refit columns and scored on interleaved
-    chunks against those columns alone (see the module docstring)."""
+    """The best exponential in the time since the start of each recording, as a torque or as
+    a friction level, fitted to the residual's level per CHUNK (see the module docstring)."""
     s = problem.s
-    folds = _folds(problem, True)
-    chunks = s.recording * 1_000_000 + np.floor(s.t / CHUNK).astype(int)
+    _, chunk = np.unique(s.recording * 1_000_000 + np.floor(s.t / CHUNK).astype(int),
+                         return_inverse=True)
+    t = np.bincount(chunk, s.elapsed) / np.bincount(chunk)
+    speed = np.bincount(chunk, np.abs(s.qd)) / np.bincount(chunk)
     span = max(float(s.elapsed.max()), 1e-3)
-    grid = np.geomspace(0.1, SLOWEST * span, TIME_CONSTANTS)
-    refit = problem.design(())
+    grid = np.geomspace(FASTEST_DRIFT, max(SLOWEST * span, 2 * FASTEST_DRIFT), TIME_CONSTANTS)
     best: dict = {}
     for kind, weight in (("torque", np.ones(len(s.t))), ("friction level", s.sign)):
-        designs = [np.column_stack([weight * np.exp(-s.elapsed / tau), refit])
-                   for tau in grid]
-        with_drift = np.zeros_like(residual)
-        without = np.zeros_like(residual)
-        for fold in range(FOLDS):
-            train, test = folds != fold, folds == fold
-            fits = [np.linalg.lstsq(x[train], residual[train], rcond=None) for x in designs]
-            k = int(np.argmin([float(np.sum((x[train] @ f[0] - residual[train]) ** 2))
-                               for x, f in zip(designs, fits, strict=True)]))
-            with_drift[test] = designs[k][test] @ fits[k][0]
-            base, *_ = np.linalg.lstsq(refit[train], residual[train], rcond=None)
-            without[test] = refit[test] @ base
-        gain = 1.0 - rmsd(residual - with_drift) / rmsd(residual - without)
-        _, inverse = np.unique(chunks, return_inverse=True)
-        better = np.bincount(inverse, (residual - without) ** 2 - (residual - with_drift) ** 2)
-        z = float(better.mean() / (better.std(ddof=1) / np.sqrt(len(better)) + 1e-300))
-        if best and z <= best["z"]:
-            continue
-        errors = np.array([float(np.sum((x @ np.linalg.lstsq(x, residual, rcond=None)[0]
-                                         - residual) ** 2)) for x in designs])
+        norm = np.bincount(chunk, weight**2)
+        used = (norm > 0) & (t >= STARTING)
+        level = np.bincount(chunk, residual * weight)[used] / norm[used]
+        fits = []
+        for tau in grid:
+            x = np.column_stack([np.exp(-t[used] / tau), np.ones(used.sum()), speed[used]])
+            beta, *_ = np.linalg.lstsq(x, level, rcond=None)
+            fits.append((float(np.sum((x @ beta - level) ** 2)), beta, x))
+        errors = np.array([error for error, _, _ in fits])
         k = int(np.argmin(errors))
-        (excess, *_), *_ = np.linalg.lstsq(designs[k], residual, rcond=None)
-        # the time constants the data cannot tell from the best (about 95 %: a squared error
-        # within 4 noise variances, the rows counted as CORRELATED_ROWS to an independent one)
-        variance = errors[k] / len(residual) * CORRELATED_ROWS
+        _, (amplitude, *_), x = fits[k]
+        dof = max(len(level) - 4, 1)  # amplitude, constant, speed, time constant
+        variance = errors[k] / dof
+        covariance = variance * np.linalg.inv(x.T @ x)
+        z = float(amplitude / np.sqrt(covariance[0, 0]))
+        if best and abs(z) <= abs(best["z"]):
+            continue
+        # the time constants the data cannot tell from the best (about 95 %); one the data do
+        # not bound leaves the level at the start unknown (only the decay within is measured)
         alike = grid[errors <= errors[k] + 4.0 * variance]
-        best = {"kind": kind, "gain": round(gain, 3), "z": round(z, 2),
+        unbounded = bool(alike.max() >= grid[-1])
+        best = {"kind": kind, "z": round(z, 2),
                 "time_constant_s": round(float(grid[k]), 2),
                 "time_constant_range_s": [round(float(alike.min()), 2),
                                           round(float(alike.max()), 2)],
-                "excess_at_start_nm": round(float(excess), 4),
-                "slower_than_the_recordings": bool(alike.max() >= grid[-1]),
-                "longest_recording_s": round(span, 2)}
-    best["found"] = best["z"] >= DRIFT_Z and best["gain"] >= DRIFT_GAIN
-    best["method"] = (f"a exp(-t / tau) over the time t since the start of each recording, as a "
-                      "torque or along the direction of motion (a friction level), fitted with "
-                      f"the motor side's refit columns, tau on a grid up to {SLOWEST:g} "
-                      f"recording lengths chosen on {FOLDS - 1} of {FOLDS} interleaved {CHUNK} "
-                      "s chunk folds and scored on the other, against the refit columns alone; "
-                      f"found where the held-out squared error per chunk drops with z >= "
-                      f"{DRIFT_Z:g} and the held-out RMSD by >= {100 * DRIFT_GAIN:.0f} %")
+                "decay_over_longest_recording_nm": round(
+                    float(amplitude * (1.0 - np.exp(-span / grid[k]))), 4),
+                "excess_at_start_nm": None if unbounded else round(float(amplitude), 4),
+                "slower_than_the_recordings": unbounded,
+                "longest_recording_s": round(span, 2), "chunks": int(len(level))}
+    best["found"] = bool(abs(best["z"]) >= DRIFT_Z and abs(
+        best["decay_over_longest_recording_nm"]) >= DRIFT_SIZE * rmsd(residual))
+    best["method"] = (f"the residual's level in each {CHUNK} s chunk (as a torque, or along the "
+                      "direction of motion: a friction level) from "
+                      f"{STARTING:g} s after the start of its recording, fitted by "
+                      "a exp(-t / tau) + b + c |qd| (the chunk's mean speed) with tau on a grid "
+                      f"from {FASTEST_DRIFT:g} s to {SLOWEST:g} recording lengths; found where a "
+                      f"is {DRIFT_Z:g} or more standard errors from zero (the chunks' scatter "
+                      f"about the fit) and the decay it makes over the longest recording is "
+                      f"{DRIFT_SIZE:g} residual RMSD or more")
     return best
 
 
