@@ -44,8 +44,10 @@ def build_parser() -> CommandParser:
     add_payload_arguments(parser, mass_default=None,
                           mass_help="payload of LOAD (kg; default: from LOAD's metadata)")
     parser.add_argument("-o", "--output", required=True, metavar="MODEL.toml")
-    add_model_argument(parser, help="nominal model: limits, and the defaults shown beside the "
-                                    "identified values (default: packaged)")
+    add_model_argument(parser, help="nominal model: limits, the defaults shown beside the "
+                                    "identified values, and drive-side effects to keep (e.g. "
+                                    "torque_constant_saturation found by model-gap; default: "
+                                    "packaged)")
     parser.add_argument("--cutoff", type=positive_float, default=CUTOFF_HZ, metavar="HZ",
                         help="zero-phase low-pass cutoff, below the recordings' Nyquist "
                              "frequency (default: %(default)s Hz)")
@@ -81,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
                                  "--payload-position, or record with them (metadata)")
         no_load_payload = no_load.payload() or parse_payload(0.0, None)
         result = identify(_experiment(no_load, no_load_payload), _experiment(load, payload),
-                          args.cutoff)
+                          args.cutoff, nominal.parameters.effects)
     except (ModelFileError, RecordingError, IdentificationError, ValueError) as exc:
         return usage_error(PROG, str(exc))
     try:

@@ -1,10 +1,11 @@
 """The joint's physics, once: forward dynamics (smooth for the optimiser, set-valued for the
 integrator) and inverse dynamics, with the effects of `model.effects`.
 
-    I qdd = drive_gain i - Fv qd - F(q, qd) sign(qd) - off - G(q) - T(q, qd)
+    I qdd = drive_gain (i - L(i)) - Fv qd - F(q, qd) sign(qd) - off - G(q) - T(q, qd)
     G(q) = g (MY sin q + MX cos q)                                  gravity (payload included)
     F(q, qd) = Fs + the effects' dry-friction levels                 dry friction magnitude
     T(q, qd) = the effects' torques                                  e.g. position ripple
+    L(i) = the drive-side effects' current losses                    e.g. saturation
     joint torque (sensor) = I_j qdd + G(q) + Fvj qd + Fsj sign(qd) + off_j
 
 With no effect enabled this is the paper's model exactly. All functions are pure and written
@@ -24,7 +25,7 @@ from numba.extending import register_jitable
 
 from model import effects
 from model.compiled_cache import drop_stale
-from model.effects import PHYSICS
+from model.effects import DRIVE, PHYSICS, TIME_DEPENDENT, TRANSMISSION
 
 # compiled code that chained an older registry (other slots, other terms) must not load
 drop_stale(Path(__file__).parent / "__pycache__", "dynamics.*.nb[ic]",
@@ -76,8 +77,57 @@ def _chain(blocks: list) -> object:
     return chained
 
 
-# (level, d level/dq, d level/dqd, torque, d torque/dq, d torque/dqd) of every effect
-effect_terms = _chain([(effect.term, EFFECT_OFFSET[effect.name]) for effect in PHYSICS])
+def _chain_losses(blocks: list) -> object:
+    """One jitable function summing the current losses of the drive-side effects' (term,
+    first slot) pairs, built like `_chain`."""
+    if not blocks:
+        @register_jitable
+        def nothing(current, p):
+            return 0.0 * current, 0.0 * current
+
+        return nothing
+    (term, k), rest = blocks[0], _chain_losses(blocks[1:])
+
+    @register_jitable
+    def chained(current, p):
+        a = term(current, p, k)
+        b = rest(current, p)
+        return a[0] + b[0], a[1] + b[1]
+
+    return chained
+
+
+# (level, d level/dq, d level/dqd, torque, d torque/dq, d torque/dqd) of every transmission
+# effect, and (loss, d loss/di) of every drive-side one
+effect_terms = _chain([(effect.term, EFFECT_OFFSET[effect.name]) for effect in TRANSMISSION])
+current_losses = _chain_losses([(effect.current_term, EFFECT_OFFSET[effect.name])
+                                for effect in DRIVE])
+
+
+@register_jitable
+def motor_torque(current, p: np.ndarray):
+    """The torque a current makes at joint level, drive_gain (i - L(i)): what the inverse
+    dynamics' motor torque is compared with. Works on scalars and numpy arrays alike."""
+    loss, _ = current_losses(current, p)
+    return p[P_DRIVE_GAIN] * (current - loss)
+
+
+def drifts(p: np.ndarray) -> bool:
+    """Whether these packed parameters carry an effect that changes with elapsed time."""
+    return any(p[EFFECT_OFFSET[effect.name]] != 0.0 for effect in TIME_DEPENDENT)
+
+
+def at_elapsed(p: np.ndarray, elapsed: float) -> np.ndarray:
+    """The packed parameters `elapsed` seconds after the start (a copy; the same when nothing
+    drifts). Time-dependent effects are set here, outside the compiled code, which treats
+    them as constant over a step or a prediction horizon."""
+    if not drifts(p):
+        return p
+    out = p.copy()
+    for effect in TIME_DEPENDENT:
+        k = EFFECT_OFFSET[effect.name]
+        effect.at_elapsed(out[k:k + effect.slots], elapsed)
+    return out
 
 
 @register_jitable
@@ -104,18 +154,19 @@ def smooth_acceleration(q, qd, current, p: np.ndarray, friction_sharpness: float
     level, level_q, level_qd, extra, extra_q, extra_qd = effect_terms(
         q, qd, p, p[P_DRY], gravity, d_gravity)
     level = level + p[P_DRY]
-    torque = (p[P_DRIVE_GAIN] * current - p[P_VISCOUS] * qd - level * th - p[P_OFFSET]
+    loss, d_loss = current_losses(current, p)
+    torque = (p[P_DRIVE_GAIN] * (current - loss) - p[P_VISCOUS] * qd - level * th - p[P_OFFSET]
               - gravity - extra)
     d_friction = (p[P_VISCOUS] + level * friction_sharpness * (1.0 - th * th)
                   + level_qd * th + extra_qd)
     return (torque * inv_inertia, -(d_gravity + extra_q + level_q * th) * inv_inertia,
-            -d_friction * inv_inertia, p[P_DRIVE_GAIN] * inv_inertia)
+            -d_friction * inv_inertia, p[P_DRIVE_GAIN] * (1.0 - d_loss) * inv_inertia)
 
 
 @register_jitable
 def inverse_dynamics(q, qd, qdd, direction, p: np.ndarray) -> tuple:
     """(motor torque, joint torque) that produce the motion (q, qd, qdd): the motor torque is
-    what drive_gain x current must be, the joint torque what the torque sensor sees (the
+    what the current must make (`motor_torque`), the joint torque what the torque sensor sees (the
     link-side share of inertia and friction; gravity and payload in full). `direction` is the
     dry friction's: sign(qd) while sliding, the held share of the level when stuck (the
     integrator's dry / level), or a filtered sign where the signals are filtered. Runs
@@ -157,13 +208,14 @@ def step(q: float, qd: float, current: float, p: np.ndarray, dt: float,
     qdd = 0.0
     dry = 0.0
     level = p[P_DRY]
+    made = motor_torque(current, p)
     for _ in range(substeps):
         q_mid = q + 0.5 * h * qd
         gravity, d_gravity = gravity_and_slope(q_mid, p)
         extra_level, _, _, extra, _, _ = effect_terms(q_mid, qd, p, p[P_DRY], gravity,
                                                       d_gravity)
         level = max(p[P_DRY] + extra_level, 0.0)
-        drive = p[P_DRIVE_GAIN] * current - p[P_OFFSET] - gravity - extra
+        drive = made - p[P_OFFSET] - gravity - extra
         free_velocity = (undamping * qd + h * drive) / damping
         max_velocity_change = h * level / damping
         if abs(free_velocity) <= max_velocity_change:

@@ -20,6 +20,12 @@ linear equation alike and cannot bias the fit. The paper's 5 Hz filter smears th
 reversal at qd = 0 over ~0.2 s; at 25 Hz (default) the reversal survives and, with samples
 below 0.05 rad/s dropped, dry friction is not mistaken for something else. Decimation to 100 Hz
 after filtering keeps the rows nearly independent for the statistics.
+
+Drive-side effects already named (a torque constant that saturates, found by model-gap) are
+used when given: the current column becomes the current that makes torque, i - L(i), taken on
+the raw samples before filtering (the loss is nonlinear). Their parameters are per ampere, so
+they do not depend on the drive gain being identified. Transmission effects are not fitted
+here: model-gap refits friction with them.
 """
 
 import math
@@ -28,7 +34,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import signal
 
+from model import dynamics
 from model.dynamics import inverse_dynamics
+from model.effects import EFFECTS, Effects
 from model.parameters import ActuatorParameters, Payload
 
 # the inverse dynamics' parameters, then the two measurement gains (current, torque sensor)
@@ -172,10 +180,29 @@ def _refuse_one_experiment(no_load: Experiment, load: Experiment) -> None:
             f"{_describe(load.payload)}: record LOAD with the payload on the link")
 
 
-def identify(no_load: Experiment, load: Experiment,
-             cutoff_hz: float = CUTOFF_HZ) -> Identified:
-    """The paper's total least squares over the two experiments; IdentificationError when
-    they cannot identify the model (why, in one line)."""
+def drive_side(effects: Effects) -> Effects:
+    """The drive-side effects among `effects` (those identification uses)."""
+    return Effects({name: effects.section(name) for name in effects.enabled()
+                    if EFFECTS[name].side == "drive"})
+
+
+def _torque_making_current(experiment: Experiment, drive: Effects) -> Experiment:
+    """The experiment with its current replaced by the part that makes torque, i - L(i)."""
+    unit_gain = ActuatorParameters(**{**dict.fromkeys(PARAMETERS, 0.0), "drive_gain": 1.0},
+                                   effects=drive)
+    p = unit_gain.packed()
+    return replace(experiment, current=dynamics.motor_torque(
+        np.asarray(experiment.current, float), p))
+
+
+def identify(no_load: Experiment, load: Experiment, cutoff_hz: float = CUTOFF_HZ,
+             effects: Effects | None = None) -> Identified:
+    """The paper's total least squares over the two experiments, with the drive-side effects
+    among `effects` applied to the currents (and carried by the result); IdentificationError
+    when they cannot identify the model (why, in one line)."""
+    drive = drive_side(effects or Effects())
+    if drive.enabled():
+        no_load, load = (_torque_making_current(e, drive) for e in (no_load, load))
     if load.payload.mass <= 0:
         raise IdentificationError(f"{load.name}: the load experiment carries no payload; the "
                                   "scale of the parameters cannot be identified without one")
@@ -205,7 +232,7 @@ def identify(no_load: Experiment, load: Experiment,
     covariance = sigma2 * np.linalg.inv(W.T @ W)
     std = np.sqrt(np.diag(covariance))
     values = dict(zip(PARAMETERS, chi, strict=True))
-    parameters = ActuatorParameters(**values)
+    parameters = ActuatorParameters(**values, effects=drive)
     relative = {name: 100.0 * s / abs(values[name]) if values[name] != 0 else math.inf
                 for name, s in zip(PARAMETERS, std, strict=True)}
     unphysical = [f"{name} {values[name]:.4g}" for name in

@@ -50,11 +50,11 @@ class Plant:
         self._rng = np.random.default_rng(noise.seed)
         self._draws: list[float] = []
         self._next_draw = 0
+        self.time = 0.0  # s since power-on
         self.set_payload(payload)
         self.position = (dynamics.rest_position(self._packed) if initial_position is None
                          else initial_position)
         self.velocity = 0.0
-        self.time = 0.0
         self._dry = 0.0
         self._dry_level = parameters.dry_friction
         self._current = 0.0
@@ -65,7 +65,14 @@ class Plant:
     def set_payload(self, payload: Payload) -> None:
         self.payload = payload
         self.parameters = self.base_parameters.with_payload(payload)
-        self._packed = self.parameters.packed()
+        self._packed_start = self.parameters.packed()
+        self._drifts = dynamics.drifts(self._packed_start)
+        self._set_packed(self.time)
+
+    def _set_packed(self, elapsed: float) -> None:
+        """The parameters at `elapsed` s since power-on (effects that drift over time, such
+        as warm-up friction, change them), without and with the brake."""
+        self._packed = dynamics.at_elapsed(self._packed_start, elapsed)
         self._packed_braked = self._packed.copy()
         self._packed_braked[dynamics.P_DRY] += BRAKE_HOLDING_TORQUE
 
@@ -80,6 +87,8 @@ class Plant:
         """One period under `current`. The holding brake sits in the transmission with the
         other effects, on the motor side of the torque sensor: the joint torque is the
         unbraked inverse dynamics' joint side, so the sensor does not see the brake."""
+        if self._drifts:
+            self._set_packed(self.time)
         (self.position, self.velocity, self._dry, self._dry_level,
          self._joint_torque) = dynamics.step_sensed(
             self.position, self.velocity, current,

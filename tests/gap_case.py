@@ -1,9 +1,11 @@
 """model-gap cases, one after the other in one process (python -m tests.gap_case CASES.json,
-a list of [DIR, SEED, [TRUTH, ...]]): per case, two short exciting trajectories recorded in
-lock-step on the virtual drive carrying the hidden truth (without and with 5 kg at
-(0, 0.1) m), a baseline identified from them, and model-gap's report on them in DIR/gap.json
-(or what went wrong in DIR/error.txt). One process for many cases pays the imports and the
-compiled code once."""
+a list of [DIR, SEED, [TRUTH, ...]], optionally followed by MODEL.toml (or null) and the
+seconds of a slow sinusoid): per case, two short exciting trajectories recorded in lock-step
+on the virtual drive (the packaged elbow, or MODEL) carrying the hidden truth (without and with
+5 kg at (0, 0.1) m), a baseline identified from them, and model-gap's report on them (and on
+the sinusoid, when asked: a recording whose speeds do not change with time, long enough for a
+drift) in DIR/gap.json (or what went wrong in DIR/error.txt). One process for many cases pays
+the imports and the compiled code once."""
 
 import contextlib
 import io
@@ -20,11 +22,11 @@ TRAJECTORY = ["--velocity-min", "1.0", "--velocity-max", "2.4", "--steps", "2"]
 
 
 def main(argv: list[str]) -> int:
-    for folder, seed, truths in json.loads(Path(argv[0]).read_text()):
+    for folder, seed, truths, *options in json.loads(Path(argv[0]).read_text()):
         errors = io.StringIO()
         try:
             with contextlib.redirect_stderr(errors):
-                code = run_case(Path(folder), seed, truths)
+                code = run_case(Path(folder), seed, truths, *options)
         except Exception:
             code, errors = 1, io.StringIO(traceback.format_exc())
         if code:
@@ -32,11 +34,13 @@ def main(argv: list[str]) -> int:
     return 0
 
 
-def run_case(folder: Path, seed: int, truths: list[str]) -> int:
+def run_case(folder: Path, seed: int, truths: list[str], model: str | None = None,
+             sinusoid: float = 0.0) -> int:
     hidden = [arg for truth in truths for arg in ("--truth-effect", truth)]
+    nominal = ["--model", model] if model else []
     files = {name: str(folder / f"{name}.mcap") for name in ("noload", "load")}
     common = ["--exciting-trajectory", "--sim", "--lockstep", "--no-progress", *TRAJECTORY,
-              *hidden]
+              *hidden, *nominal]
     for name, noise_seed, extra in (
             ("noload", 2 * int(seed), []),
             ("load", 2 * int(seed) + 1, ["--payload-mass", "5", "--payload-position", "0,0.1"])):
@@ -44,11 +48,19 @@ def run_case(folder: Path, seed: int, truths: list[str]) -> int:
         if code:
             return code
     baseline = str(folder / "baseline.toml")
-    code = identify.main([files["noload"], files["load"], "-o", baseline])
+    code = identify.main([files["noload"], files["load"], "-o", baseline, *nominal])
     if code:
         return code
-    return model_gap.main([files["noload"], files["load"], "--model", baseline, "--report",
-                         str(folder / "gap.json")])
+    recordings = [files["noload"], files["load"]]
+    if sinusoid:
+        recordings.append(str(folder / "sinusoid.mcap"))
+        code = cli.main(["--sinusoid", "--sim", "--lockstep", "--no-progress", *hidden,
+                         *nominal, "--duration", str(sinusoid), "--seed",
+                         str(2 * int(seed) + 2), "-o", recordings[-1]])
+        if code:
+            return code
+    return model_gap.main([*recordings, "--model", baseline, "--report",
+                           str(folder / "gap.json")])
 
 
 if __name__ == "__main__":

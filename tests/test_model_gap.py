@@ -6,14 +6,24 @@ import subprocess
 import sys
 import tomllib
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 import tomli_w
 
 from controller.mpc import Mpc
 from model import dynamics
-from model.parameters import load_model
+from model.effects import EFFECTS
+from model.gap import find_gap
+from model.gap.candidates import Problem
+from model.gap.discrimination import discriminate
+from model.gap.evidence import collect
+from model.gap.selection import contest
+from model.identify import Experiment
+from model.parameters import Payload, load_model
+from recorder.reader import load_recording
 
 pytestmark = pytest.mark.subprocess  # runs the commands as processes
 
@@ -21,6 +31,8 @@ HIDDEN = {
     "stribeck": "stribeck:breakaway_friction=1.5,velocity=0.05",
     "position_ripple": "position_ripple:amplitude=0.6,spatial_frequency=8,phase=0.3",
     "load_dependent_friction": "load_dependent_friction:coefficient=0.1",
+    "torque_constant_saturation": "torque_constant_saturation:coefficient=0.06,knee_current=1.5",
+    "warm_up_friction": "warm_up_friction:excess_friction=0.5,time_constant=20",
     "none": None,
 }
 SHORT = ["--velocity-min", "0.8", "--steps", "3", "--no-progress"]
@@ -72,7 +84,8 @@ def model_gap(files: dict[str, Path], *extra: str) -> tuple[subprocess.Completed
     return proc, json.loads(report.read_text()) if report.exists() else {}
 
 
-@pytest.mark.parametrize("effect", ["stribeck", "position_ripple", "load_dependent_friction"])
+@pytest.mark.parametrize("effect", ["stribeck", "position_ripple", "load_dependent_friction",
+                                    "torque_constant_saturation"])
 def test_hidden_effect_is_named_and_the_gap_shrinks(scenarios, effect, tmp_path):
     files = scenarios[effect]
     improved = tmp_path / "improved.toml"
@@ -139,3 +152,85 @@ def test_bad_recording_is_refused(tmp_path, scenarios):
     proc = run("commands.model_gap", str(bad), "--model", str(scenarios["none"]["baseline"]))
     assert proc.returncode == 2
     assert "header" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+
+
+def experiments(files: dict[str, Path]) -> list[Experiment]:
+    out = []
+    for name in ("noload", "load", "sinusoid"):
+        recording = load_recording(files[name]).with_joint_torque()
+        out.append(Experiment(recording.t, recording.q, recording.current,
+                              recording.joint_torque, recording.payload() or Payload(), name))
+    return out
+
+
+def test_saturation_is_told_from_load_dependent_friction_and_identification_uses_it(
+        scenarios, tmp_path):
+    """Both explain a residual that grows with the load; they part where the drive brakes it
+    (friction then lowers the current, saturation still raises it). The data decide for the
+    hidden one, either way round; once named, identification on the same recordings finds
+    the drive's true gain again."""
+    files = scenarios["torque_constant_saturation"]
+    improved = tmp_path / "improved.toml"
+    _, report = model_gap(files, "-o", str(improved))
+    found = report["effect_parameters"]["torque_constant_saturation"]
+    assert found["coefficient"] == pytest.approx(0.06, rel=0.15)
+    assert found["knee_current"] == pytest.approx(1.5, rel=0.15)
+    saturation, friction = EFFECTS["torque_constant_saturation"], EFFECTS[
+        "load_dependent_friction"]
+    for hidden, winner, rival in (("torque_constant_saturation", saturation, friction),
+                                  ("load_dependent_friction", friction, saturation)):
+        baseline = load_model(scenarios[hidden]["baseline"])
+        problem = Problem(collect(experiments(scenarios[hidden]), baseline),
+                          baseline.parameters)
+        weighed = discriminate(problem, contest(problem, (), winner, rival))
+        assert weighed["verdict"] == "supported", weighed["says"]
+        assert weighed["says"].startswith(f"the data support {hidden}")
+        regions = {r["region"].split(" (")[0]: r["samples"] for r in weighed["regions"]}
+        assert set(regions) == {"motoring", "braking"} and min(regions.values()) > 0
+        assert "braking" in weighed["recording_that_would_tell_them_apart"]
+    for weighed in report["discrimination"]:  # whatever else the selection weighed
+        assert weighed["chosen"] == "torque_constant_saturation"
+
+    baseline = load_model(files["baseline"]).parameters
+    again = tmp_path / "again.toml"
+    proc = run("commands.identify", str(files["noload"]), str(files["load"]), "--model",
+               str(improved), "-o", str(again))
+    assert proc.returncode == 0, proc.stderr
+    identified = load_model(again).parameters
+    assert identified.effects.enabled() == ["torque_constant_saturation"]
+    truth = load_model().parameters
+    assert abs(baseline.drive_gain / truth.drive_gain - 1) > 0.03  # the compromise without it
+    for name in ("drive_gain", "first_moment_y", "motor_inertia", "torque_sensor_gain"):
+        assert getattr(identified, name) == pytest.approx(getattr(truth, name), rel=0.005), name
+
+
+def test_warm_up_friction_is_reported_with_its_time_scale_not_named(scenarios):
+    proc, report = model_gap(scenarios["warm_up_friction"])
+    assert proc.returncode == 0, proc.stderr
+    assert report["effect"] == "none"
+    drift = report["unexplained"]["drift"]
+    assert report["unexplained"]["found"] and drift["found"] and drift["z"] >= 4
+    assert drift["kind"] == "friction level"
+    low, high = drift["time_constant_range_s"]
+    assert low <= 20.0 <= high
+    assert "unexplained drift" in proc.stdout
+
+
+def test_each_instrument_is_examined_on_its_own(scenarios):
+    """Structure in one instrument's residual that the other lacks names the side: a torque
+    sensor that reads 0.3 N.m too much or too little with angle is the sensor's fault (and no
+    transmission effect is named for it); a saturating drive is the motor side's."""
+    model = load_model(scenarios["none"]["baseline"])
+    faulty = [replace(e, joint_torque=e.joint_torque + 0.3 * np.sin(4.0 * e.q))
+              for e in experiments(scenarios["none"])]
+    result = find_gap(faulty, model)
+    assert result.effects == []
+    assert result.instruments["verdict_before"].startswith("the torque sensor side is wrong")
+    assert not result.instruments["motor_before"]["found"]
+    assert result.instruments["sensor"]["strongest_axis"] == "position_rad"
+
+    files = scenarios["torque_constant_saturation"]
+    result = find_gap(experiments(files), load_model(files["baseline"]))
+    assert result.instruments["verdict_before"].startswith("the motor side is wrong")
+    assert not result.instruments["sensor"]["found"]
+    assert result.instruments["verdict_after"] == "both instruments agree with the model"

@@ -3,19 +3,23 @@ the model with them added.
 
 One module per job: `evidence` (the recordings as rows, the model's predictions, residuals,
 simulation error, where the residual lives), `candidates` (fits of the refit friction with
-effects from the registry), `selection` (the held-out choice of effects), `unexplained` (the
-structure no library effect explains, and a data-driven correction for it), `report` (the
-result and its JSON report). `find_gap` runs them in that order.
+effects from the registry), `selection` (the held-out choice of effects), `discrimination`
+(effects that explain the same residual: which the data support, what recording would tell),
+`unexplained` (the structure no library effect explains, drift over time included, and a
+data-driven correction for it), `instruments` (the motor side and the torque sensor each on
+its own), `report` (the result and its JSON report). `find_gap` runs them in that order.
 """
 
 from model.gap.candidates import Problem, improved_parameters, solve
+from model.gap.discrimination import discriminate
 from model.gap.evidence import (
     collect,
     localise,
-    predicted_torques,
+    residuals,
     rmsd,
     simulation_rmsd,
 )
+from model.gap.instruments import instruments
 from model.gap.report import GapResult, build_report, improved_provenance, summary
 from model.gap.selection import select
 from model.gap.unexplained import unexplained
@@ -40,8 +44,7 @@ def find_gap(experiments: list[Experiment], model: ActuatorModel,
     except IdentificationError as exc:
         raise GapError(str(exc)) from None
     parameters = model.parameters
-    motor_before, joint_before = predicted_torques(s, parameters)
-    residual_before = s.motor_torque - motor_before
+    residual_before, sensor_before = residuals(s, parameters)
     rmsd_before = rmsd(residual_before)
     scale = rmsd(s.motor_torque)
     if rmsd_before > MISFIT * scale:
@@ -56,17 +59,19 @@ def find_gap(experiments: list[Experiment], model: ActuatorModel,
     fit = solve(problem, terms)
     improved = improved_parameters(fit, parameters) if terms else parameters
     structure, correction = unexplained(problem, problem.target - fit.predict(problem))
-    motor_after, joint_after = predicted_torques(s, improved)
-    residual_after = s.motor_torque - motor_after
+    residual_after, sensor_after = residuals(s, improved)
+    ordered = residuals(problem.s, parameters)  # the problem's row order
     sim_before, traces_before = simulation_rmsd(experiments, parameters, horizon)
     sim_after, traces_after = simulation_rmsd(experiments, improved, horizon)
     return GapResult(
         effects=[term.effect.name for term in terms],
         rmsd_before=rmsd_before, rmsd_after=rmsd(residual_after),
         sim_rmsd_before=sim_before, sim_rmsd_after=sim_after,
-        rmsd_sensor_before=rmsd(s.joint_torque - joint_before),
-        rmsd_sensor_after=rmsd(s.joint_torque - joint_after),
+        rmsd_sensor_before=rmsd(sensor_before), rmsd_sensor_after=rmsd(sensor_after),
         horizon=horizon, candidates=selection.candidates, steps=selection.steps,
+        discrimination=[discriminate(problem, contest) for contest in selection.contests],
+        instruments=instruments(problem, ordered[0], problem.target - fit.predict(problem),
+                                ordered[1], bool(terms)),
         held_out_rmsd=selection.held_out_rmsd, unexplained=structure, correction=correction,
         parameters=improved,
         localisation_before=localise(s, residual_before, parameters),

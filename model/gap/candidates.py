@@ -1,17 +1,25 @@
 """Candidate explanations of a gap: the motor-side friction and offset refitted by least
 squares, with effects from the registry (`model.effects`) added as regressor columns; each
 effect's nonlinear shape parameter (Stribeck velocity, ripple frequency) found by scanning its
-grid and refining around the best point."""
+grid and refining around the best point.
+
+The drive gain is refitted too: a baseline identified without an effect has compromised on
+its gain (a saturating torque constant most of all: between low and high currents), and an
+effect cannot be fitted around a wrong gain. It is refitted in every candidate, "none"
+included, so no effect wins by the gain alone. Its column is the measured motor torque
+(drive_gain x current): its coefficient a is the gain's relative change (new gain =
+(1 - a) x old), and drive-side effects' coefficients, fitted against the old gain, are
+divided by (1 - a)."""
 
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from model.effects import Effect, Effects
-from model.gap.evidence import FOLDS, Signals, gravity, predicted_motor_torque, unit_columns
+from model.gap.evidence import FOLDS, Signals, predicted_motor_torque, regressors, unit_columns
 from model.parameters import ActuatorParameters
 
-REFIT = ("viscous_friction_motor", "dry_friction_motor", "torque_offset_motor")
+REFIT = ("viscous_friction_motor", "dry_friction_motor", "torque_offset_motor")  # + the gain
 REFINE_POINTS = 21  # between the best grid point's neighbours
 
 
@@ -38,15 +46,14 @@ class Problem:
         untouched = replace(parameters, effects=Effects(), **dict.fromkeys(REFIT, 0.0))
         self.target = s.motor_torque - predicted_motor_torque(s, untouched)
         self.base = unit_columns(s, parameters, REFIT)
-        self.gravity, self.slope = gravity(s, parameters)
+        self.rows = regressors(s, parameters)
 
     def columns(self, term: Term) -> np.ndarray:
-        s = self.s
-        return term.effect.columns(s.q, s.qd, s.sign, self.parameters.dry_friction,
-                                   self.gravity, self.slope, term.shape)
+        return term.effect.columns(self.rows, term.shape)
 
     def design(self, terms: tuple[Term, ...]) -> np.ndarray:
-        return np.column_stack([self.base, *(self.columns(term) for term in terms)])
+        return np.column_stack([self.base, self.s.motor_torque,
+                                *(self.columns(term) for term in terms)])
 
 
 @dataclass
@@ -54,10 +61,18 @@ class Fit:
     terms: tuple[Term, ...]
     coefficients: np.ndarray  # REFIT's values, then each term's coefficients in order
 
+    @property
+    def gain_ratio(self) -> float:
+        """The refitted drive gain over the old one."""
+        return 1.0 - self.coefficients[len(REFIT)]
+
     def effect_coefficients(self) -> list[np.ndarray]:
-        out, start = [], len(REFIT)
+        out, start = [], len(REFIT) + 1
         for term in self.terms:
-            out.append(self.coefficients[start:start + term.effect.coefficients])
+            coefficients = self.coefficients[start:start + term.effect.coefficients]
+            if term.effect.side == "drive":
+                coefficients = coefficients / self.gain_ratio
+            out.append(coefficients)
             start += term.effect.coefficients
         return out
 
@@ -88,12 +103,11 @@ def best_terms(problem: Problem, fixed: tuple[Term, ...], effect: Effect,
     refined between its neighbours."""
     if effect.shape is None:
         return [Term(effect, 0.0) for _ in left_out]
-    fixed_part = np.column_stack([problem.design(fixed), problem.target])
     pick = np.array([[fold != block for block in range(FOLDS)] for fold in left_out], float)
 
     def errors(shape: float) -> np.ndarray:
         """Squared error of each entry of `left_out` at this shape."""
-        z = np.column_stack([problem.columns(Term(effect, shape)), fixed_part])
+        z = np.column_stack([problem.design((*fixed, Term(effect, shape))), problem.target])
         grams = np.array([z[rows].T @ z[rows] for rows in problem.blocks])
         gram = np.einsum("fb,bij->fij", pick, grams)
         a, b = gram[:, :-1, :-1], gram[:, :-1, -1]
@@ -101,7 +115,7 @@ def best_terms(problem: Problem, fixed: tuple[Term, ...], effect: Effect,
         beta = np.linalg.solve(a + ridge, b[..., None])[..., 0]
         return gram[:, -1, -1] - np.einsum("fi,fi->f", b, beta)
 
-    grid = effect.shape_grid
+    grid = effect.grid(problem.rows)
     coarse = np.array([errors(shape) for shape in grid])
     best = np.argmin(coarse, axis=0)
     fine_grids = [np.linspace(grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)],
@@ -113,8 +127,9 @@ def best_terms(problem: Problem, fixed: tuple[Term, ...], effect: Effect,
 
 
 def improved_parameters(fit: Fit, parameters: ActuatorParameters) -> ActuatorParameters:
-    """The model with the refitted motor-side friction and offset and exactly the fitted
-    effects."""
+    """The model with the refitted motor-side friction, offset and drive gain and exactly the
+    fitted effects."""
     return replace(parameters, effects=Effects(fit.tables()),
+                   drive_gain=parameters.drive_gain * fit.gain_ratio,
                    **{name: float(value) for name, value in zip(REFIT, fit.coefficients,
                                                                 strict=False)})

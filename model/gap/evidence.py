@@ -2,8 +2,10 @@
 where model and measurement disagree.
 
 Two views of the same recordings:
-  * torque: the motor torque drive_gain x i against the inverse dynamics of the measured
-    motion (the signal the effects act on: they sit in the transmission);
+  * torque: the torque the measured current makes (drive_gain x i, less what drive-side
+    effects lose) against the inverse dynamics of the measured motion (the signal the effects
+    act on), and, on its own, the joint torque sensor against the inverse dynamics' joint
+    side: two instruments, so a residual in one and not the other says which side is wrong;
   * motion: the model simulated from the measured state with the measured current, restarted
     every `horizon` seconds, against the measured position.
 """
@@ -14,7 +16,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from model import dynamics
-from model.effects import Effects
+from model.effects import Effects, Regressors
 from model.identify import Experiment, prepare
 from model.parameters import ActuatorModel, ActuatorParameters, Payload
 
@@ -34,6 +36,8 @@ class Signals:
     qd: np.ndarray
     qdd: np.ndarray
     sign: np.ndarray  # filtered sign(qd): the dry friction's direction
+    current: np.ndarray  # A, filtered
+    elapsed: np.ndarray  # s since the start of the row's recording
     motor_torque: np.ndarray  # drive_gain x current (N.m)
     joint_torque: np.ndarray  # K_j x sensor reading (N.m)
     payloads: tuple[Payload, ...]
@@ -57,6 +61,7 @@ def collect(experiments: list[Experiment], model: ActuatorModel) -> Signals:
                                FOLDS - 1)[keep],
             recording=np.full(keep.sum(), index), q=columns.q[keep], qd=columns.qd[keep],
             qdd=columns.qdd[keep], sign=columns.friction_sign[keep],
+            current=columns.current[keep], elapsed=columns.t[keep] - float(experiment.t[0]),
             motor_torque=model.parameters.drive_gain * columns.current[keep],
             joint_torque=model.parameters.torque_sensor_gain * columns.joint_torque[keep]))
     return Signals(**{k: np.concatenate([part[k] for part in parts]) for k in parts[0]},
@@ -78,9 +83,35 @@ def _per_recording(s: Signals, parameters: ActuatorParameters, function) -> tupl
 
 
 def predicted_torques(s: Signals, parameters: ActuatorParameters) -> tuple:
-    """(motor, joint) torques of the model's inverse dynamics for the measured motion."""
-    return _per_recording(s, parameters, lambda rows, p: dynamics.inverse_dynamics(
-        s.q[rows], s.qd[rows], s.qdd[rows], s.sign[rows], p))
+    """(motor, joint) torques of the model's inverse dynamics for the measured motion, each
+    row at its time since the start when an effect drifts over time."""
+    def inverse(rows: np.ndarray, p: np.ndarray) -> tuple:
+        if not dynamics.drifts(p):
+            return dynamics.inverse_dynamics(s.q[rows], s.qd[rows], s.qdd[rows], s.sign[rows],
+                                             p)
+        out = np.array([dynamics.sample_inverse_dynamics(
+            q, qd, qdd, sign, dynamics.at_elapsed(p, elapsed)) for q, qd, qdd, sign, elapsed
+            in zip(s.q[rows], s.qd[rows], s.qdd[rows], s.sign[rows], s.elapsed[rows],
+                   strict=True)])
+        return out[:, 0], out[:, 1]
+
+    return _per_recording(s, parameters, inverse)
+
+
+def residuals(s: Signals, parameters: ActuatorParameters) -> tuple[np.ndarray, np.ndarray]:
+    """Each instrument's residual on its own: (the torque the measured current makes minus the
+    motor torque the model needs, the torque sensor minus the model's joint torque)."""
+    motor, joint = predicted_torques(s, parameters)
+    made = dynamics.motor_torque(s.current, parameters.packed())
+    return made - motor, s.joint_torque - joint
+
+
+def regressors(s: Signals, parameters: ActuatorParameters) -> Regressors:
+    """What effects' regressor columns are computed from on these rows."""
+    g, slope = gravity(s, parameters)
+    return Regressors(q=s.q, qd=s.qd, direction=s.sign, current=s.current, elapsed=s.elapsed,
+                      gravity=g, d_gravity=slope, coulomb=parameters.dry_friction,
+                      drive_gain=parameters.drive_gain)
 
 
 def predicted_motor_torque(s: Signals, parameters: ActuatorParameters) -> np.ndarray:
@@ -93,16 +124,16 @@ def gravity(s: Signals, parameters: ActuatorParameters) -> tuple:
                           lambda rows, p: dynamics.gravity_and_slope(s.q[rows], p))
 
 
-def unit_columns(s: Signals, parameters: ActuatorParameters, names: tuple[str, ...]
-                 ) -> np.ndarray:
-    """Motor-torque regressor columns of base parameters: the inverse dynamics is linear in
-    them, so each column is the torque of a unit value with every other parameter (and the
-    payload) zero."""
+def unit_columns(s: Signals, parameters: ActuatorParameters, names: tuple[str, ...],
+                 side: int = 0) -> np.ndarray:
+    """Regressor columns of base parameters for the motor torque (side 0) or the joint torque
+    (side 1): the inverse dynamics is linear in them, so each column is the torque of a unit
+    value with every other parameter (and the payload) zero."""
     nothing = replace(parameters, effects=Effects(),
                       **{f.name: 0.0 for f in fields(parameters) if f.name != "effects"})
     return np.column_stack([
         dynamics.inverse_dynamics(s.q, s.qd, s.qdd, s.sign,
-                                  replace(nothing, **{name: 1.0}).packed())[0]
+                                  replace(nothing, **{name: 1.0}).packed())[side]
         for name in names])
 
 
@@ -126,7 +157,9 @@ def simulation_rmsd(experiments: list[Experiment], parameters: ActuatorParameter
         for start in range(int(SETTLE / dt), len(t) - window, window):
             states = dynamics.simulate(float(e.q[start]), float(velocity[start]),
                                        np.asarray(e.current[start + 1:start + 1 + window],
-                                                  float), packed, dt, dynamics.SUBSTEPS)
+                                                  float),
+                                       dynamics.at_elapsed(packed, t[start] - t[0]), dt,
+                                       dynamics.SUBSTEPS)
             error = states[:, 0] - e.q[start + 1:start + 1 + window]
             if not np.all(np.isfinite(error)):
                 return math.inf, traces

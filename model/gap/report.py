@@ -23,6 +23,8 @@ class GapResult:
     horizon: float
     candidates: dict
     steps: list[dict]  # the forward selection: what joined and the held-out error after it
+    discrimination: list[dict]  # effects that explained the same residual as one that joined
+    instruments: dict  # the motor side and the torque sensor, each on its own
     held_out_rmsd: float  # of the chosen effects (N.m)
     unexplained: dict  # structure left in the residual, and where
     correction: dict | None  # data-driven map for it (never a named effect), if any
@@ -59,8 +61,10 @@ def build_report(result: GapResult, model_path: str) -> dict:
         "held_out_rmsd": result.held_out_rmsd,
         "candidates": result.candidates,
         "steps": result.steps,
+        "discrimination": result.discrimination,
         "unexplained": result.unexplained,
         "correction": result.correction,
+        "instruments": result.instruments,
         "selection": f"forward selection on the held-out torque RMSD over {FOLDS} contiguous "
                      "time blocks: an effect joins only if it lowers it by >= "
                      f"{100 * MIN_IMPROVEMENT:.0f} % and every fitted effect stays plausible",
@@ -75,7 +79,8 @@ def improved_provenance(result: GapResult, sources: list[str], date: str) -> dic
     note = (f"{origin}: held-out torque RMSD {result.held_out_rmsd:.4f} vs "
             f"{result.candidates['none']['held_out_rmsd']:.4f} N.m without {result.effect}")
     return {**{f"effects.{name}": note for name in result.effects},
-            **{name: f"refitted with {result.effect} by {origin}" for name in REFIT}}
+            **{name: f"refitted with {result.effect} by {origin}"
+               for name in (*REFIT, "drive_gain")}}
 
 
 def summary(result: GapResult) -> str:
@@ -91,9 +96,21 @@ def summary(result: GapResult) -> str:
     worst = max(result.localisation_before["by_speed_rad_s"], key=lambda b: b["rmsd"])
     lines.append(f"largest disagreement before: |qd| in [{worst['from']}, {worst['to']}) "
                  f"rad/s, {worst['rmsd']:.3f} N.m")
+    for contest in result.discrimination:
+        lines.append(f"{contest['says']}; to tell them apart record "
+                     f"{contest['recording_that_would_tell_them_apart']}")
     for place in result.unexplained["where"]:
         bins = ", ".join(f"[{b['from']}, {b['to']}) mean {b['mean']:+.3f} N.m"
                          for b in place["bins"])
         lines.append(f"unexplained by the library: along {place['axis']} (a map lowers the "
                      f"held-out error by {100 * place['gain']:.0f} %): {bins}")
+    drift = result.unexplained["drift"]
+    if drift["found"]:
+        low, high = drift["time_constant_range_s"]
+        lines.append(f"unexplained drift over each recording: a {drift['kind']} decaying by "
+                     f"{drift['decay_over_longest_recording_nm']:+.3f} N.m over "
+                     f"{drift['longest_recording_s']:g} s, time constant {low:g}-{high:g} s"
+                     + (" or longer (record longer to bound it)"
+                        if drift["slower_than_the_recordings"] else ""))
+    lines.append(f"instruments: {result.instruments['verdict_before']}")
     return "\n".join(lines)

@@ -6,6 +6,9 @@ together with those chosen; the one with the lowest held-out torque error joins 
 it lowers that error by at least MIN_IMPROVEMENT, and only if the joint fit is physically
 plausible for every effect in it (each effect's constraints in `model.effects`: a Stribeck
 "breakaway" below the Coulomb level is not Stribeck friction). Clean data gives no effect.
+Every other plausible effect that would have joined at that step too (it alone lowers the
+error by MIN_IMPROVEMENT) and does not join later is a rival explanation of the same residual:
+`Selection.contests` keeps them for `model.gap.discrimination`.
 """
 
 import math
@@ -13,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from model.effects import EFFECTS, LIBRARY, FitContext
+from model.effects import EFFECTS, LIBRARY, Effect, FitContext
 from model.gap.candidates import REFIT, Fit, Problem, Term, best_terms, solve
 from model.gap.evidence import FOLDS
 
@@ -41,7 +44,9 @@ def violations(problem: Problem, fit: Fit) -> dict[str, list[str]]:
     """Each fitted effect's broken constraints (only effects that break any)."""
     coulomb = fit.coefficients[REFIT.index("dry_friction_motor")] + (
         problem.parameters.dry_friction_joint)
-    context = FitContext(coulomb=float(coulomb), position_range=float(np.ptp(problem.s.q)))
+    context = FitContext(coulomb=float(coulomb), position_range=float(np.ptp(problem.s.q)),
+                         current_peak=float(np.max(np.abs(problem.s.current))),
+                         duration=float(np.max(problem.s.elapsed)))
     out = {}
     for name, table in fit.tables().items():
         broken = EFFECTS[name].violations(table, context)
@@ -50,12 +55,25 @@ def violations(problem: Problem, fit: Fit) -> dict[str, list[str]]:
     return out
 
 
+@dataclass(frozen=True)
+class Contest:
+    """Two effects that each explain the residual left by `fixed`: `winner` joined."""
+
+    fixed: tuple[Term, ...]
+    winner: Term
+    rival: Term
+    before: float  # held-out RMSD with `fixed` alone
+    winner_rmsd: float  # ... with the winner added
+    rival_rmsd: float  # ... with the rival added instead
+
+
 @dataclass
 class Selection:
     terms: tuple[Term, ...]
     held_out_rmsd: float  # of the chosen set
     candidates: dict  # every effect as last considered, and "none"
     steps: list[dict]  # what joined, in order, and the held-out error it brought
+    contests: list[Contest]  # rivals of each effect that joined (that never joined)
 
 
 def select(problem: Problem) -> Selection:
@@ -63,8 +81,10 @@ def select(problem: Problem) -> Selection:
     current = held_out_rmsd(problem, ())
     candidates: dict = {"none": {"held_out_rmsd": round(current, 5)}}
     steps: list[dict] = []
+    contests: list[Contest] = []
     while len(chosen) < len(LIBRARY):
         best = None
+        tried: list[tuple[float, Term]] = []  # the plausible ones
         for effect in LIBRARY:
             if any(term.effect is effect for term in chosen):
                 continue
@@ -75,13 +95,35 @@ def select(problem: Problem) -> Selection:
                 "with": [t.effect.name for t in chosen], "held_out_rmsd": round(score, 5),
                 "improvement": round(1 - score / current, 4), "shape": term.shape,
                 "plausible": not broken, "violations": broken}
-            if not broken and (best is None or score < best[0]):
-                best = (score, term)
+            if not broken:
+                tried.append((score, term))
+                if best is None or score < best[0]:
+                    best = (score, term)
         if best is None or 1 - best[0] / current < MIN_IMPROVEMENT:
             break
+        contests += [Contest(chosen, best[1], term, current, best[0], score)
+                     for score, term in tried
+                     if term is not best[1] and 1 - score / current >= MIN_IMPROVEMENT]
         chosen, current = (*chosen, best[1]), best[0]
-        steps.append({"added": best[1].effect.name, "held_out_rmsd": round(current, 5)})
-    return Selection(_reshaped(problem, chosen), current, candidates, steps)
+        steps.append({"added": best[1].effect.name, "held_out_rmsd": round(current, 5),
+                      "plausible_tried": {term.effect.name: round(score, 5)
+                                          for score, term in tried}})
+    joined = {term.effect.name for term in chosen}
+    return Selection(_reshaped(problem, chosen), current, candidates, steps,
+                     [c for c in contests if c.rival.effect.name not in joined])
+
+
+def contest(problem: Problem, fixed: tuple[Term, ...], winner: Effect, rival: Effect
+            ) -> Contest:
+    """Two effects weighed against each other beside `fixed`, each shaped on the data, with
+    the held-out errors the selection would give them (for a pair the user names)."""
+    scores = []
+    terms = []
+    for effect in (winner, rival):
+        *per_fold, term = best_terms(problem, fixed, effect, [*range(FOLDS), None])
+        scores.append(held_out_rmsd(problem, fixed, per_fold))
+        terms.append(term)
+    return Contest(fixed, terms[0], terms[1], held_out_rmsd(problem, fixed), *scores)
 
 
 def _reshaped(problem: Problem, terms: tuple[Term, ...]) -> tuple[Term, ...]:
