@@ -27,6 +27,7 @@ from commands.model_options import (
     payload_from_args,
 )
 from commands.parsing import CommandParser, int_range, positive_float, usage_error
+from commands.ros2_options import add_ros2_argument
 from commands.sim_options import add_virtual_drive_arguments, fault_schedule, with_truth_effects
 from commands.zenoh_options import add_zenoh_arguments, check_key_expr, open_session
 from controller.loop import ControlLoop, LoopOptions
@@ -82,6 +83,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_virtual_drive_arguments(parser)
     add_real_time_argument(parser)
     add_zenoh_arguments(parser)
+    add_ros2_argument(parser)
     add_logging_argument(parser)
     return parser
 
@@ -156,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
         return usage_error(PROG, str(exc))
     from controller.telemetry import TelemetryPublisher
 
-    publisher = TelemetryPublisher(session, args.prefix)
+    publisher = TelemetryPublisher(session, args.prefix, ros2_domain=args.ros2)
     mpc = Mpc(model, settings, payload, reference)  # compiled code loaded before the drive
     # real-time priority from here on (the drive's threads inherit it), not before: Zenoh's
     # and the publisher's threads stay off the cycle, and a start-up's heavy work at that
@@ -308,7 +310,8 @@ def _run_robot(args: argparse.Namespace) -> int:
         session = open_session(args)
     except ValueError as exc:
         return usage_error(PROG, str(exc))
-    publisher = TelemetryPublisher(session, args.prefix, telemetry.ROBOT_TOPICS)
+    publisher = TelemetryPublisher(session, args.prefix, telemetry.ROBOT_TOPICS,
+                                   ros2_domain=args.ros2)
     batch = BatchMpc(problems)  # compiled before any drive is opened
     apply_real_time(args, PROG)  # from here on, for the reason given in the one-joint run
     try:
