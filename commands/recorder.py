@@ -291,24 +291,15 @@ def _record_zenoh(args: argparse.Namespace, stop: threading.Event) -> int:
     try:
         while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
             try:
-                key, data, log_time = received.get(timeout=0.1)
+                key, data, arrival = received.get(timeout=0.1)
             except queue.Empty:
                 continue
-            message = telemetry.TOPICS.get(key.rsplit("/", 1)[-1])
-            if message is None:
-                skipped += 1
-                continue
-            writer.write(writer.channel(key, message), data, publish_time_ns=log_time,
-                         log_time_ns=log_time)
+            skipped += not writer.write_sample(key, data, arrival)
     finally:
         subscriber.undeclare()
         session.close()
         while not received.empty():
-            key, data, log_time = received.get()
-            message = telemetry.TOPICS.get(key.rsplit("/", 1)[-1])
-            if message is not None:
-                writer.write(writer.channel(key, message), data, publish_time_ns=log_time,
-                             log_time_ns=log_time)
+            skipped += not writer.write_sample(*received.get())
         writer.close()
     print(f"recorder: {writer.messages} messages ({skipped} on keys without a schema skipped) "
           f"-> {args.output}", flush=True)

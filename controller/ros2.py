@@ -10,6 +10,7 @@ import zenoh
 from zenoh.ext import Int64, z_serialize
 
 from protocol import ros2
+from protocol.telemetry import TimeBase
 
 
 def attachment(sequence: int, timestamp_ns: int, gid: bytes) -> bytes:
@@ -30,7 +31,7 @@ class JointStatePublisher:
         self.joint_name = joint_name
         self.sent = 0
         self._gid = uuid.uuid4().bytes  # unique per publisher, as rmw_zenoh's GIDs are
-        self._epoch_ns: int | None = None
+        self._time_base = TimeBase()
         zid = str(session.info.zid())
         node_id, entity_id = 0, 1  # this session's only node and its only publisher
         self._publisher = session.declare_publisher(
@@ -47,10 +48,7 @@ class JointStatePublisher:
         fields = ros2.joint_state_fields(message, self.joint_name)
         if fields is None:
             return
-        drive_ns = int(round(message.t * 1e9))
-        if self._epoch_ns is None:
-            self._epoch_ns = time.time_ns() - drive_ns
-        data = ros2.joint_state_cdr(self._epoch_ns + drive_ns, *fields)
+        data = ros2.joint_state_cdr(self._time_base.stamp(message.t), *fields)
         self.sent += 1
         self._publisher.put(data, attachment=attachment(self.sent, time.time_ns(), self._gid))
 

@@ -18,6 +18,7 @@ Key expressions live under a prefix, e.g. `actuators/elbow`:
                          when the process is (dashboards show it)
 """
 
+import time
 from functools import cache
 
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
@@ -117,6 +118,23 @@ WEIGHTS = "weights"
 AUDIT = "audit"
 LIVELINESS = "alive"
 DEFAULT_PREFIX = "actuators/elbow"
+
+
+class TimeBase:
+    """The run's time base: the wall clock (ns since the Unix epoch) at drive time 0, fixed at
+    the first message stamped and advanced by drive time (`t`) from then on. Stamps on it keep
+    the drive's rate and the experiment's duration however fast a lock-step run goes, and read
+    as dates, not as 1970 plus a few seconds."""
+
+    def __init__(self, epoch_ns: int | None = None):
+        self.epoch_ns = epoch_ns
+
+    def stamp(self, t: float) -> int:
+        """ns since the Unix epoch of drive time `t` (s)."""
+        drive_ns = int(round(t * 1e9))
+        if self.epoch_ns is None:
+            self.epoch_ns = time.time_ns() - drive_ns
+        return self.epoch_ns + drive_ns
 
 
 def key_expr(prefix: str, topic: str) -> str:
