@@ -307,20 +307,40 @@ def _record_zenoh(args: argparse.Namespace, stop: threading.Event) -> int:
 
 
 def _export(argv: list[str]) -> int:
-    parser = CommandParser(prog="recorder export",
-                           description="MCAP recording to the CSV contract")
+    parser = CommandParser(
+        prog=f"{PROG} export",
+        description="Write a recording in the CSV interchange format (t,q,current,"
+                    "joint_torque with # key=value metadata) or, with --ros2, as a ROS 2 "
+                    "bag: an MCAP file of profile ros2 with sensor_msgs/msg/JointState on "
+                    "/joint_states, which rosbags, ros2 bag and Foxglove read.")
     parser.add_argument("recording", metavar="FILE.mcap")
-    parser.add_argument("-o", "--output", required=True, metavar="FILE.csv")
+    parser.add_argument("-o", "--output", required=True, metavar="FILE.csv|FILE.mcap")
+    parser.add_argument("--ros2", action="store_true",
+                        help="write a ROS 2 MCAP (ROS 2 Jazzy types) instead of CSV; every "
+                             "joint-state sample, stamped at its drive time on the run's "
+                             "time base")
     add_logging_argument(parser)
     args = parser.parse_args(argv)
     configure_logging(PROG, args.log_level)
     from recorder.csv_io import write_csv
+    from recorder.reader import is_mcap
 
     try:
         check_output_file("-o", args.output, [("FILE.mcap", args.recording)])
+        if args.ros2:  # a robot's recording has no single-joint State: not load_recording
+            if not is_mcap(args.recording):
+                raise ValueError(f"--ros2: {args.recording} is CSV; the ROS 2 export reads "
+                                 "MCAP recordings (CSV carries no velocity)")
+            from recorder.ros2_export import export_ros2
+
+            exported = export_ros2(args.recording, args.output)
+            print(f"recorder: {exported.summary()} -> {args.output}")
+            return 0
         recording = load_recording(args.recording)
     except (RecordingError, ValueError) as exc:
         return usage_error(PROG, str(exc))
+    except OSError as exc:
+        return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
     try:
         write_csv(recording, Path(args.output))
     except OSError as exc:

@@ -185,6 +185,7 @@ class McapMessage(NamedTuple):
     schema: str  # schema name, e.g. 'actuator.State'
     log_time: int  # ns
     data: bytes
+    publish_time: int  # ns
 
 
 def _contents(path: Path) -> Iterator[McapMessage | Metadata]:
@@ -211,7 +212,7 @@ def _contents(path: Path) -> Iterator[McapMessage | Metadata]:
                     raise RecordingError(f"{path}: a message near byte {offset} is on channel "
                                          f"{item.channel_id}, which no Channel record defines")
                 topic, schema = channels[item.channel_id]
-                yield McapMessage(topic, schema, item.log_time, item.data)
+                yield McapMessage(topic, schema, item.log_time, item.data, item.publish_time)
             elif isinstance(item, Metadata):
                 yield item
 
@@ -222,6 +223,15 @@ def iter_mcap(path: Path) -> Iterator[McapMessage]:
     for item in _contents(path):
         if isinstance(item, McapMessage):
             yield item
+
+
+def recording_metadata(path: Path) -> dict[str, str]:
+    """The `recording` metadata record's entries (empty when there is none)."""
+    metadata: dict[str, str] = {}
+    for item in _contents(path):
+        if isinstance(item, Metadata) and item.name == METADATA_NAME:
+            metadata.update(item.metadata)
+    return metadata
 
 
 def read_mcap(path: Path) -> Recording:
