@@ -46,7 +46,9 @@ from recorder.recording import RecordingError
 from robot.wiring import DriveOpenError, open_joint
 
 PROG = "recorder"
-RECORDED_TOPICS = ("state", "command", "fault")  # what an experiment's recording keeps
+# what an experiment's recording keeps (loop_stats: the loop's jitter and the tracking law's
+# decide time, once a second, for the experiment layout's timing panel)
+RECORDED_TOPICS = ("state", "command", "fault", "loop_stats")
 ELBOW_MARGIN = 0.15  # rad: the exciting trajectory's default margin inside the elbow's limits
 
 

@@ -112,6 +112,20 @@ TOPICS = {"state": "State", "command": "Command", "plan": "Plan", "solver": "Sol
 # what `actuatord --robot` publishes: every joint in one message per cycle instead of the
 # single joint's state, command and solver topics
 ROBOT_TOPICS = {"joints": "JointStates", "fault": "Fault", "loop_stats": "LoopStats"}
+# the audit lines (JSON, controller.requests.audit_line) as a named JSON schema, so viewers
+# show `actuator.Audit` rather than a generated name
+AUDIT_SCHEMA_NAME = f"{PACKAGE}.Audit"
+AUDIT_SCHEMA = {
+    "title": AUDIT_SCHEMA_NAME, "type": "object",
+    "description": "one change request to actuatord, accepted or refused, at most 1 KiB",
+    "properties": {
+        "time": {"type": "string", "description": "UTC, ISO 8601, when it was handled"},
+        "t": {"type": "number", "description": "s, drive time"},
+        "request": {"type": "string", "description": "reference | weights | parameters"},
+        "payload_bytes": {"type": "integer", "description": "size of the request body"},
+        "payload": {"type": "string", "description": "the body, quoted as far as fits"},
+        "accepted": {"type": "boolean"},
+        "reason": {"type": "string", "description": "why it was refused (empty if not)"}}}
 PARAMETERS = "parameters"
 REFERENCE = "reference"
 WEIGHTS = "weights"
