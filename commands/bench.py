@@ -5,12 +5,12 @@ import json
 import sys
 
 from commands.log_options import add_logging_argument, configure_logging
-from commands.parsing import CommandParser, int_range
+from commands.parsing import CommandParser, doc_description, int_range
 from controller.benchmark import run
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = CommandParser(prog="bench", description=__doc__.splitlines()[0])
+    parser = CommandParser(prog="bench", description=doc_description(__doc__))
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--ticks", type=int_range(1, 10_000_000), default=20000)
     parser.add_argument("--numpy-ticks", type=int_range(1, 10_000_000), default=300)

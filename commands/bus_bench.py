@@ -19,7 +19,7 @@ import time
 import numpy as np
 
 from commands.log_options import add_logging_argument, configure_logging, job_error
-from commands.parsing import CommandParser, int_range
+from commands.parsing import CommandParser, doc_description, int_range
 from driver.canopen_drive import CanOpenDrive, open_network
 
 ETHERCAT_LINES = (1, 4)  # slaves on the measured lines
@@ -112,7 +112,7 @@ def _velocity_limit() -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = CommandParser(prog="bus-bench", description=__doc__.splitlines()[0])
+    parser = CommandParser(prog="bus-bench", description=doc_description(__doc__))
     parser.add_argument("--cycles", type=int_range(1, 10_000_000), default=5000,
                         help="cycles per measurement (default: %(default)s; the EtherCAT round "
                              "trips take that many ms of real time per line)")

@@ -1,9 +1,11 @@
-"""`recorder`: run the exciting trajectory and record it, record live Zenoh telemetry, or
-export a recording to CSV.
+"""`recorder`: run the exciting trajectory (or a slow sinusoid) on a drive and record it,
+record live Zenoh telemetry, export a recording to CSV or as a ROS 2 bag, or repair one.
 
     recorder --exciting-trajectory [--bus vcan0 | --sim [--lockstep]] -o FILE.mcap
+    recorder --sinusoid [--duration S] [--bus vcan0 | --sim [--lockstep]] -o FILE.mcap
     recorder --zenoh KEYEXPR -o FILE.mcap [--duration S]
     recorder export FILE.mcap -o FILE.csv
+    recorder export --ros2 FILE.mcap -o BAG.mcap
     recorder repair FILE.mcap -o REPAIRED.mcap
 """
 
@@ -34,7 +36,14 @@ from commands.model_options import (
     load_model_option,
     payload_from_args,
 )
-from commands.parsing import CommandParser, finite_float, int_range, positive_float, usage_error
+from commands.parsing import (
+    CommandParser,
+    doc_description,
+    finite_float,
+    int_range,
+    positive_float,
+    usage_error,
+)
 from commands.sim_options import add_virtual_drive_arguments, with_truth_effects
 from commands.zenoh_options import add_zenoh_arguments, check_key_expr, open_session
 from model.parameters import ModelFileError
@@ -54,10 +63,11 @@ ELBOW_MARGIN = 0.15  # rad: the exciting trajectory's default margin inside the 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = CommandParser(
-        prog=PROG, description=__doc__.splitlines()[0],
-        epilog="`recorder export FILE.mcap -o FILE.csv` writes the CSV interchange format; "
-               "`recorder repair FILE.mcap -o REPAIRED.mcap` rewrites a killed, truncated or "
-               "damaged recording as a complete MCAP file.")
+        prog=PROG, description=doc_description(__doc__),
+        epilog="`recorder export FILE.mcap -o FILE.csv` writes the CSV interchange format, "
+               "`recorder export --ros2 FILE.mcap -o BAG.mcap` a ROS 2 bag; `recorder repair "
+               "FILE.mcap -o REPAIRED.mcap` rewrites a killed, truncated or damaged recording "
+               "as a complete MCAP file.")
     job = parser.add_mutually_exclusive_group(required=True)
     job.add_argument("--exciting-trajectory", action="store_true",
                      help="run the paper's exciting trajectory on the drive and record it")
@@ -72,10 +82,20 @@ def build_parser() -> argparse.ArgumentParser:
                                     "--sim's drive)")
     add_payload_arguments(parser)
     defaults = ExcitingTrajectory()
-    parser.add_argument("--position-low", type=finite_float, default=defaults.position_low)
-    parser.add_argument("--position-high", type=finite_float, default=defaults.position_high)
-    parser.add_argument("--velocity-min", type=positive_float, default=defaults.velocity_min)
-    parser.add_argument("--velocity-max", type=positive_float, default=defaults.velocity_max)
+    parser.add_argument("--position-low", type=finite_float, default=defaults.position_low,
+                        metavar="RAD", help="the exciting trajectory's lower end (rad, default: "
+                                            "%(default)s; with --robot 0.15 rad inside the "
+                                            "joint's lower limit)")
+    parser.add_argument("--position-high", type=finite_float, default=defaults.position_high,
+                        metavar="RAD", help="its upper end (rad, default: %(default)s; with "
+                                            "--robot 0.15 rad inside the joint's upper limit)")
+    parser.add_argument("--velocity-min", type=positive_float, default=defaults.velocity_min,
+                        metavar="RAD/S", help="the first cruise velocity (rad/s, default: "
+                                              "%(default)s)")
+    parser.add_argument("--velocity-max", type=positive_float, default=defaults.velocity_max,
+                        metavar="RAD/S", help="the last cruise velocity (rad/s, default: "
+                                              "%(default)s; with --robot at most half the "
+                                              "joint's velocity limit)")
     parser.add_argument("--steps", type=int_range(1, 1000), default=defaults.steps,
                         help="cruise velocities from min to max (default: %(default)s)")
     add_virtual_drive_arguments(parser, faults=False)
