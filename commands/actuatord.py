@@ -17,6 +17,7 @@ from commands.bus_options import (
     open_drive,
 )
 from commands.file_options import check_output_folder
+from commands.first_run import CompileNotice
 from commands.log_options import add_logging_argument, configure_logging, job_error
 from commands.model_options import (
     add_model_argument,
@@ -159,7 +160,8 @@ def main(argv: list[str] | None = None) -> int:
     from controller.telemetry import TelemetryPublisher
 
     publisher = TelemetryPublisher(session, args.prefix, ros2_domain=args.ros2)
-    mpc = Mpc(model, settings, payload, reference)  # compiled code loaded before the drive
+    with CompileNotice(PROG):  # a first run compiles the solver here
+        mpc = Mpc(model, settings, payload, reference)  # compiled code loaded before the drive
     # real-time priority from here on (the drive's threads inherit it), not before: Zenoh's
     # and the publisher's threads stay off the cycle, and a start-up's heavy work at that
     # priority starved the drives and the other master on a 2-core host
@@ -312,7 +314,8 @@ def _run_robot(args: argparse.Namespace) -> int:
         return usage_error(PROG, str(exc))
     publisher = TelemetryPublisher(session, args.prefix, telemetry.ROBOT_TOPICS,
                                    ros2_domain=args.ros2)
-    batch = BatchMpc(problems)  # compiled before any drive is opened
+    with CompileNotice(PROG):
+        batch = BatchMpc(problems)  # compiled before any drive is opened
     apply_real_time(args, PROG)  # from here on, for the reason given in the one-joint run
     try:
         # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host

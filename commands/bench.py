@@ -4,6 +4,7 @@ batched MPC for 7 and 32 joints (the measuring is `controller.benchmark`)."""
 import json
 import sys
 
+from commands.first_run import CompileNotice
 from commands.log_options import add_logging_argument, configure_logging
 from commands.parsing import CommandParser, doc_description, int_range
 from controller.benchmark import run
@@ -19,7 +20,13 @@ def main(argv: list[str] | None = None) -> int:
     add_logging_argument(parser)
     args = parser.parse_args(argv)
     configure_logging(parser.prog, args.log_level)
-    result = run(args.ticks, args.numpy_ticks, args.joint_ticks)
+    # one tick of everything first: the compiling (a first run's 30 s and more) is said, and
+    # stays out of the figures
+    with CompileNotice(parser.prog):
+        run(1, 1, 1)
+    result = run(args.ticks, args.numpy_ticks, args.joint_ticks,
+                 progress=lambda stage: print(f"bench: {stage} ...", file=sys.stderr,
+                                              flush=True))
     if args.json:
         print(json.dumps(result))
     else:

@@ -28,6 +28,7 @@ from commands.bus_options import (
     open_drive,
 )
 from commands.file_options import check_distinct_outputs, check_output_file, option_inputs
+from commands.first_run import CompileNotice
 from commands.log_options import add_logging_argument, configure_logging, job_error
 from commands.model_options import (
     add_model_argument,
@@ -207,12 +208,18 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     from recorder.tracking import TrackingLaw
 
     apply_real_time(args, PROG)  # before the drive's threads start: they inherit it
+    # a first run compiles the physics (--sim's drive, while it opens) and the tracking law
+    # (its first sample); a real bus's opening is not counted
+    notice = CompileNotice(PROG) if args.sim else None
     try:
         connection = (open_drive(args, model, sim_model, payload) if joint is None else
                       open_joint(robot, joint, sim_model, payload, sim=args.sim,
                                  lockstep=args.lockstep, seed=args.seed))
     except DriveOpenError as exc:
+        if notice is not None:
+            notice.done()
         return job_error(PROG, str(exc))
+    notice = notice or CompileNotice(PROG)
     drive = connection.drive
     metadata = {
         "payload_mass": payload.mass, "payload_position": f"{payload.x},{payload.y}",
@@ -227,13 +234,19 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     try:  # before the drive runs
         writer = McapRecorder(args.output, metadata)
     except OSError as exc:
+        notice.done()
         connection.close()
         return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
     # channels named as the Zenoh keys, so a Foxglove layout serves live data and both recordings
     record = writer.subscriber(RECORDED_TOPICS, telemetry.DEFAULT_PREFIX)
     state_channel = writer.channel(telemetry.key_expr(telemetry.DEFAULT_PREFIX, "state"), "State")
     law = TrackingLaw(model.parameters.with_payload(payload), model.limits.current_max)
-    bar = _progress(args.no_progress, trajectory.duration)
+    shown = _progress(args.no_progress, trajectory.duration)
+
+    def bar(fraction: float | None) -> None:
+        notice.done()  # the first sample is in: the compiled code runs
+        shown(fraction)
+
     started = time.perf_counter()
     code = 0
     try:
