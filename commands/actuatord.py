@@ -18,6 +18,7 @@ from commands.bus_options import (
     open_drive,
 )
 from commands.file_options import check_output_folder
+from commands.first_run import CompileNotice
 from commands.log_options import (
     ThreadFailures,
     add_logging_argument,
@@ -35,6 +36,7 @@ from commands.model_options import (
     payload_from_args,
 )
 from commands.parsing import CommandParser, int_range, positive_float, usage_error
+from commands.ros2_options import add_ros2_argument
 from commands.sim_options import add_virtual_drive_arguments, fault_schedule, with_truth_effects
 from commands.zenoh_options import (
     add_zenoh_arguments,
@@ -95,6 +97,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_virtual_drive_arguments(parser)
     add_real_time_argument(parser)
     add_zenoh_arguments(parser)
+    add_ros2_argument(parser)
     add_logging_argument(parser)
     return parser
 
@@ -190,8 +193,9 @@ def _run_joint(args: argparse.Namespace, stop: threading.Event, threads: ThreadF
         return usage_error(PROG, str(exc))
     from controller.telemetry import TelemetryPublisher
 
-    publisher = TelemetryPublisher(session, args.prefix)
-    mpc = Mpc(model, settings, payload, reference)  # compiled code loaded before the drive
+    publisher = TelemetryPublisher(session, args.prefix, ros2_domain=args.ros2)
+    with CompileNotice(PROG):  # a first run compiles the solver here
+        mpc = Mpc(model, settings, payload, reference)  # compiled code loaded before the drive
     # real-time priority from here on (the drive's threads inherit it), not before: Zenoh's
     # and the publisher's threads stay off the cycle, and a start-up's heavy work at that
     # priority starved the drives and the other master on a 2-core host
@@ -362,8 +366,10 @@ def _run_robot(args: argparse.Namespace, stop: threading.Event,
         session = open_session(args)
     except ValueError as exc:
         return usage_error(PROG, str(exc))
-    publisher = TelemetryPublisher(session, args.prefix, telemetry.ROBOT_TOPICS)
-    batch = BatchMpc(problems)  # compiled before any drive is opened
+    publisher = TelemetryPublisher(session, args.prefix, telemetry.ROBOT_TOPICS,
+                                   ros2_domain=args.ros2)
+    with CompileNotice(PROG):
+        batch = BatchMpc(problems)  # compiled before any drive is opened
     apply_real_time(args, PROG)  # from here on, for the reason given in the one-joint run
     try:
         # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host

@@ -5,14 +5,15 @@ scalar one (the measuring is `controller.benchmark`)."""
 import json
 import sys
 
+from commands.first_run import CompileNotice
 from commands.log_options import add_logging_argument, configure_logging, reports_failures
-from commands.parsing import CommandParser, int_range
+from commands.parsing import CommandParser, doc_description, int_range
 from controller.benchmark import run
 
 
 @reports_failures("bench")
 def main(argv: list[str] | None = None) -> int:
-    parser = CommandParser(prog="bench", description=__doc__.splitlines()[0])
+    parser = CommandParser(prog="bench", description=doc_description(__doc__))
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--ticks", type=int_range(1, 10_000_000), default=20000)
     parser.add_argument("--numpy-ticks", type=int_range(1, 10_000_000), default=300)
@@ -21,7 +22,13 @@ def main(argv: list[str] | None = None) -> int:
     add_logging_argument(parser)
     args = parser.parse_args(argv)
     configure_logging(parser.prog, args.log_level)
-    result = run(args.ticks, args.numpy_ticks, args.joint_ticks)
+    # one tick of everything first: the compiling (a first run's 30 s and more) is said, and
+    # stays out of the figures
+    with CompileNotice(parser.prog):
+        run(1, 1, 1)
+    result = run(args.ticks, args.numpy_ticks, args.joint_ticks,
+                 progress=lambda stage: print(f"bench: {stage} ...", file=sys.stderr,
+                                              flush=True))
     if args.json:
         print(json.dumps(result))
     else:

@@ -24,10 +24,16 @@ from commands.log_options import (
     job_error,
     reports_failures,
 )
-from commands.parsing import CommandParser, int_range
+from commands.parsing import CommandParser, doc_description, int_range
 from driver.canopen_drive import CanOpenDrive, open_network
 
 ETHERCAT_LINES = (1, 4)  # slaves on the measured lines
+
+
+def _stage(text: str) -> None:
+    """One progress line on stderr per measurement (the JSON result alone goes to stdout): the
+    whole run takes 15-30 s."""
+    print(f"bus-bench: {text}", file=sys.stderr, flush=True)
 
 
 def _lockstep_in_process(cycles: int) -> float:
@@ -105,6 +111,8 @@ def _ethercat(cycles: int) -> list[dict] | None:
     results = []
     with link:
         for slaves in ETHERCAT_LINES:
+            _stage(f"EtherCAT line of {slaves} virtual slave{'s' * (slaves > 1)} over a veth, "
+                   f"{cycles} frames lock-step and {cycles} at 1 kHz ...")
             with SlaveProcess(link, slaves, load_model()), link.entered():
                 results.append(measure_line(link.master_port, slaves, cycles))
     return results
@@ -118,7 +126,7 @@ def _velocity_limit() -> float:
 
 @reports_failures("bus-bench")
 def main(argv: list[str] | None = None) -> int:
-    parser = CommandParser(prog="bus-bench", description=__doc__.splitlines()[0])
+    parser = CommandParser(prog="bus-bench", description=doc_description(__doc__))
     parser.add_argument("--cycles", type=int_range(1, 10_000_000), default=5000,
                         help="cycles per measurement (default: %(default)s; the EtherCAT round "
                              "trips take that many ms of real time per line)")
@@ -134,8 +142,12 @@ def main(argv: list[str] | None = None) -> int:
                     "load_average_1min": round(os.getloadavg()[0], 2)}
     try:
         if not args.ethercat_only:
+            _stage(f"CAN, master and virtual drive in one process, {args.cycles} lock-step "
+                   "cycles ...")
             result["in_process_lockstep_cycles_per_s"] = round(
                 _lockstep_in_process(args.cycles))
+            _stage(f"CAN over udp_multicast, sim-bus in a second process, {args.cycles} "
+                   "cycles ...")
             result["udp_multicast_two_processes"] = _two_processes(args.cycles)
         if not args.no_ethercat:
             lines = _ethercat(args.cycles)

@@ -19,7 +19,7 @@ from commands.model_options import (
     load_model_option,
     parse_payload,
 )
-from commands.parsing import CommandParser, positive_float, usage_error
+from commands.parsing import CommandParser, doc_description, positive_float, usage_error
 from model.identify import (
     CUTOFF_HZ,
     PARAMETERS,
@@ -38,7 +38,7 @@ PROG = "identify"
 
 
 def build_parser() -> CommandParser:
-    parser = CommandParser(prog=PROG, description=__doc__.splitlines()[0])
+    parser = CommandParser(prog=PROG, description=doc_description(__doc__))
     parser.add_argument("no_load", metavar="NOLOAD", help="recording without payload")
     parser.add_argument("load", metavar="LOAD", help="recording with the known payload")
     add_payload_arguments(parser, mass_default=None,

@@ -14,7 +14,7 @@ from commands.log_options import (
     reports_failures,
 )
 from commands.model_options import load_model_option
-from commands.parsing import CommandParser, positive_float, usage_error
+from commands.parsing import CommandParser, doc_description, positive_float, usage_error
 from model.gap import (
     HORIZON,
     GapError,
@@ -34,7 +34,7 @@ PROG = "model-gap"
 
 
 def build_parser() -> CommandParser:
-    parser = CommandParser(prog=PROG, description=__doc__.splitlines()[0])
+    parser = CommandParser(prog=PROG, description=doc_description(__doc__))
     parser.add_argument("recordings", nargs="+", metavar="RECORDING",
                         help="MCAP or CSV recordings (payload from their metadata, else none)")
     parser.add_argument("--model", required=True, metavar="MODEL.toml")

@@ -13,10 +13,32 @@ from typing import NoReturn
 
 class CommandParser(argparse.ArgumentParser):
     """argparse whose errors are one line, `PROG: error: MESSAGE`, exit code 2 (the usage is
-    one `--help` away)."""
+    one `--help` away), and which answers `--version` on every command."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.add_argument("--version", action="version", version=f"%(prog)s {package_version()}",
+                          help="print the version of actuator-link and exit")
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def doc_description(doc: str) -> str:
+    """A command's `--help` description: its module docstring's first paragraph as one
+    sentence (the first line alone stopped mid-sentence)."""
+    return " ".join(doc.split("\n\n", 1)[0].split())
+
+
+def package_version() -> str:
+    """The installed actuator-link's version (pyproject.toml), or where it runs from when it is
+    not installed (a checkout run as `python3 -m commands.X`)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("actuator-link")
+    except PackageNotFoundError:
+        return "(not installed)"
 
 
 def usage_error(prog: str, message: str) -> int:

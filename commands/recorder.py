@@ -1,9 +1,11 @@
-"""`recorder`: run the exciting trajectory and record it, record live Zenoh telemetry, or
-export a recording to CSV.
+"""`recorder`: run the exciting trajectory (or a slow sinusoid) on a drive and record it,
+record live Zenoh telemetry, export a recording to CSV or as a ROS 2 bag, or repair one.
 
     recorder --exciting-trajectory [--bus vcan0 | --sim [--lockstep]] -o FILE.mcap
+    recorder --sinusoid [--duration S] [--bus vcan0 | --sim [--lockstep]] -o FILE.mcap
     recorder --zenoh KEYEXPR -o FILE.mcap [--duration S]
     recorder export FILE.mcap -o FILE.csv
+    recorder export --ros2 FILE.mcap -o BAG.mcap
     recorder repair FILE.mcap -o REPAIRED.mcap
 """
 
@@ -26,6 +28,7 @@ from commands.bus_options import (
     open_drive,
 )
 from commands.file_options import check_distinct_outputs, check_output_file, option_inputs
+from commands.first_run import CompileNotice
 from commands.log_options import (
     add_logging_argument,
     configure_logging,
@@ -39,7 +42,14 @@ from commands.model_options import (
     load_model_option,
     payload_from_args,
 )
-from commands.parsing import CommandParser, finite_float, int_range, positive_float, usage_error
+from commands.parsing import (
+    CommandParser,
+    doc_description,
+    finite_float,
+    int_range,
+    positive_float,
+    usage_error,
+)
 from commands.sim_options import add_virtual_drive_arguments, with_truth_effects
 from commands.zenoh_options import (
     add_zenoh_arguments,
@@ -56,7 +66,9 @@ from recorder.recording import RecordingError
 from robot.wiring import DriveOpenError, open_joint
 
 PROG = "recorder"
-RECORDED_TOPICS = ("state", "command", "fault")  # what an experiment's recording keeps
+# what an experiment's recording keeps (loop_stats: the loop's jitter and the tracking law's
+# decide time, once a second, for the experiment layout's timing panel)
+RECORDED_TOPICS = ("state", "command", "fault", "loop_stats")
 ELBOW_MARGIN = 0.15  # rad: the exciting trajectory's default margin inside the elbow's limits
 # the options that choose or shape a drive: meaningless for --zenoh, which drives nothing
 _DRIVE_OPTIONS = (("--sim", "sim"), ("--lockstep", "lockstep"), ("--bus", "bus"),
@@ -70,10 +82,11 @@ MAX_RUN = 3600.0  # s of drive time in one recording (3.6 M samples, some 500 MB
 
 def build_parser() -> argparse.ArgumentParser:
     parser = CommandParser(
-        prog=PROG, description=__doc__.splitlines()[0],
-        epilog="`recorder export FILE.mcap -o FILE.csv` writes the CSV interchange format; "
-               "`recorder repair FILE.mcap -o REPAIRED.mcap` rewrites a killed, truncated or "
-               "damaged recording as a complete MCAP file.")
+        prog=PROG, description=doc_description(__doc__),
+        epilog="`recorder export FILE.mcap -o FILE.csv` writes the CSV interchange format, "
+               "`recorder export --ros2 FILE.mcap -o BAG.mcap` a ROS 2 bag; `recorder repair "
+               "FILE.mcap -o REPAIRED.mcap` rewrites a killed, truncated or damaged recording "
+               "as a complete MCAP file.")
     job = parser.add_mutually_exclusive_group(required=True)
     job.add_argument("--exciting-trajectory", action="store_true",
                      help="run the paper's exciting trajectory on the drive and record it")
@@ -88,10 +101,20 @@ def build_parser() -> argparse.ArgumentParser:
                                     "--sim's drive)")
     add_payload_arguments(parser)
     defaults = ExcitingTrajectory()
-    parser.add_argument("--position-low", type=finite_float, default=defaults.position_low)
-    parser.add_argument("--position-high", type=finite_float, default=defaults.position_high)
-    parser.add_argument("--velocity-min", type=positive_float, default=defaults.velocity_min)
-    parser.add_argument("--velocity-max", type=positive_float, default=defaults.velocity_max)
+    parser.add_argument("--position-low", type=finite_float, default=defaults.position_low,
+                        metavar="RAD", help="the exciting trajectory's lower end (rad, default: "
+                                            "%(default)s; with --robot 0.15 rad inside the "
+                                            "joint's lower limit)")
+    parser.add_argument("--position-high", type=finite_float, default=defaults.position_high,
+                        metavar="RAD", help="its upper end (rad, default: %(default)s; with "
+                                            "--robot 0.15 rad inside the joint's upper limit)")
+    parser.add_argument("--velocity-min", type=positive_float, default=defaults.velocity_min,
+                        metavar="RAD/S", help="the first cruise velocity (rad/s, default: "
+                                              "%(default)s)")
+    parser.add_argument("--velocity-max", type=positive_float, default=defaults.velocity_max,
+                        metavar="RAD/S", help="the last cruise velocity (rad/s, default: "
+                                              "%(default)s; with --robot at most half the "
+                                              "joint's velocity limit)")
     parser.add_argument("--steps", type=int_range(1, 1000), default=defaults.steps,
                         help="cruise velocities from min to max (default: %(default)s)")
     add_virtual_drive_arguments(parser, faults=False)
@@ -214,12 +237,18 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     from recorder.tracking import TrackingLaw
 
     apply_real_time(args, PROG)  # before the drive's threads start: they inherit it
+    # a first run compiles the physics (--sim's drive, while it opens) and the tracking law
+    # (its first sample); a real bus's opening is not counted
+    notice = CompileNotice(PROG) if args.sim else None
     try:
         connection = (open_drive(args, model, sim_model, payload) if joint is None else
                       open_joint(robot, joint, sim_model, payload, sim=args.sim,
                                  lockstep=args.lockstep, seed=args.seed))
     except DriveOpenError as exc:
+        if notice is not None:
+            notice.done()
         return job_error(PROG, str(exc))
+    notice = notice or CompileNotice(PROG)
     drive = connection.drive
     metadata = {
         "payload_mass": payload.mass, "payload_position": f"{payload.x},{payload.y}",
@@ -234,13 +263,19 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     try:  # before the drive runs
         writer = McapRecorder(args.output, metadata, on_failure=stop.set)
     except OSError as exc:
+        notice.done()
         connection.close()
         return job_error(PROG, f"-o {args.output}: cannot write: {exc.strerror or exc}")
     # channels named as the Zenoh keys, so a Foxglove layout serves live data and both recordings
     record = writer.subscriber(RECORDED_TOPICS, telemetry.DEFAULT_PREFIX)
     state_channel = writer.channel(telemetry.key_expr(telemetry.DEFAULT_PREFIX, "state"), "State")
     law = TrackingLaw(model.parameters.with_payload(payload), model.limits.current_max)
-    bar = _progress(args.no_progress, trajectory.duration)
+    shown = _progress(args.no_progress, trajectory.duration)
+
+    def bar(fraction: float | None) -> None:
+        notice.done()  # the first sample is in: the compiled code runs
+        shown(fraction)
+
     started = time.perf_counter()
     code = 0
     try:
@@ -333,24 +368,15 @@ def _record_zenoh(args: argparse.Namespace, stop: threading.Event) -> int:
     try:
         while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
             try:
-                key, data, log_time = received.get(timeout=0.1)
+                key, data, arrival = received.get(timeout=0.1)
             except queue.Empty:
                 continue
-            message = telemetry.TOPICS.get(key.rsplit("/", 1)[-1])
-            if message is None:
-                skipped += 1
-                continue
-            writer.write(writer.channel(key, message), data, publish_time_ns=log_time,
-                         log_time_ns=log_time)
+            skipped += not writer.write_sample(key, data, arrival)
     finally:
         subscriber.undeclare()
         session.close()
         while not received.empty():
-            key, data, log_time = received.get()
-            message = telemetry.TOPICS.get(key.rsplit("/", 1)[-1])
-            if message is not None:
-                writer.write(writer.channel(key, message), data, publish_time_ns=log_time,
-                             log_time_ns=log_time)
+            skipped += not writer.write_sample(*received.get())
         writer.close()
     if writer.failure is not None:
         return job_error(PROG, _write_failure(args.output, writer.failure, writer.messages))
@@ -360,20 +386,40 @@ def _record_zenoh(args: argparse.Namespace, stop: threading.Event) -> int:
 
 
 def _export(argv: list[str]) -> int:
-    parser = CommandParser(prog="recorder export",
-                           description="MCAP recording to the CSV contract")
+    parser = CommandParser(
+        prog=f"{PROG} export",
+        description="Write a recording in the CSV interchange format (t,q,current,"
+                    "joint_torque with # key=value metadata) or, with --ros2, as a ROS 2 "
+                    "bag: an MCAP file of profile ros2 with sensor_msgs/msg/JointState on "
+                    "/joint_states, which rosbags, ros2 bag and Foxglove read.")
     parser.add_argument("recording", metavar="FILE.mcap")
-    parser.add_argument("-o", "--output", required=True, metavar="FILE.csv")
+    parser.add_argument("-o", "--output", required=True, metavar="FILE.csv|FILE.mcap")
+    parser.add_argument("--ros2", action="store_true",
+                        help="write a ROS 2 MCAP (ROS 2 Jazzy types) instead of CSV; every "
+                             "joint-state sample, stamped at its drive time on the run's "
+                             "time base")
     add_logging_argument(parser)
     args = parser.parse_args(argv)
     configure_logging(PROG, args.log_level)
     from recorder.csv_io import write_csv
+    from recorder.reader import is_mcap
 
     try:
         check_output_file("-o", args.output, [("FILE.mcap", args.recording)])
+        if args.ros2:  # a robot's recording has no single-joint State: not load_recording
+            if not is_mcap(args.recording):
+                raise ValueError(f"--ros2: {args.recording} is CSV; the ROS 2 export reads "
+                                 "MCAP recordings (CSV carries no velocity)")
+            from recorder.ros2_export import export_ros2
+
+            exported = export_ros2(args.recording, args.output)
+            print(f"recorder: {exported.summary()} -> {args.output}")
+            return 0
         recording = load_recording(args.recording)
     except (RecordingError, ValueError) as exc:
         return usage_error(PROG, str(exc))
+    except OSError as exc:
+        return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
     try:
         write_csv(recording, Path(args.output))
     except OSError as exc:  # a full disk: nothing is left behind (written whole or not)

@@ -8,6 +8,7 @@ excluded from the tick figures.
 
 import os
 import time
+from collections.abc import Callable
 
 import numba
 import numpy as np
@@ -183,19 +184,27 @@ def measure_joints(joints: int, ticks: int, threads: int,
     return result
 
 
-def run(ticks: int = 20_000, numpy_ticks: int = 300, joint_ticks: int = 5_000) -> dict:
+def run(ticks: int = 20_000, numpy_ticks: int = 300, joint_ticks: int = 5_000,
+        progress: Callable[[str], None] = lambda stage: None) -> dict:
     """Everything `bench --json` prints: the paper's N = 100 at 1 ms, the paper's robot setting
     (N = 5 at 3.3 ms) under `paper_robot`, and the batched MPC under `joints`: for each joint
     count, one and two threads, the vectorised and the scalar kernel side by side. The host's
-    load average and core count come with the figures (they move them)."""
+    load average and core count come with the figures (they move them). `progress` is told
+    each stage as it starts (the whole run takes a quarter of a minute or more)."""
+    stages = 2 + len(JOINT_COUNTS)
+    progress(f"[1/{stages}] MPC N = 100 at 1 ms: {ticks} ticks, {numpy_ticks} of numpy iLQR")
     result = measure(OcpSettings(), ticks, numpy_ticks)
     result["paper_tick_us"] = PAPER_TICK_US
     result["speedup_over_paper"] = round(PAPER_TICK_US / result["tick_median_us"], 1)
+    progress(f"[2/{stages}] MPC N = 5 at 3.3 ms (the paper's robot setting)")
     result["paper_robot"] = measure(OcpSettings(horizon=5, dt=3.3e-3), ticks, numpy_ticks)
-    result["joints"] = {str(joints): {f"threads_{threads}": measure_joints(joints, joint_ticks,
-                                                                            threads)
-                                      for threads in THREAD_COUNTS}
-                        for joints in JOINT_COUNTS}
+    result["joints"] = {}
+    for stage, joints in enumerate(JOINT_COUNTS, start=3):
+        progress(f"[{stage}/{stages}] batched MPC of {joints} joints: {joint_ticks} ticks on "
+                 f"{', '.join(map(str, THREAD_COUNTS))} threads")
+        result["joints"][str(joints)] = {
+            f"threads_{threads}": measure_joints(joints, joint_ticks, threads)
+            for threads in THREAD_COUNTS}
     result["default_threads"] = default_threads()
     result["cores"] = os.cpu_count()
     result["load_average"] = [round(load, 2) for load in os.getloadavg()]

@@ -9,8 +9,16 @@ import collections
 import copy
 import threading
 import time
+from collections.abc import Callable
 
 import can
+import canopen
+
+from protocol.cia301 import SYNC_COB_ID
+
+# a frame after SYNC k is stamped at most this fraction of a period after it, so it stays
+# before SYNC k+1 however long the host took in lock-step
+LATEST_IN_CYCLE = 0.9
 
 
 class CanLog:
@@ -20,8 +28,38 @@ class CanLog:
     def __init__(self, path: str, channel: str) -> None:
         self._writer = can.Logger(path)
         self._channel = channel  # named in the file for frames that carry none (those sent)
-        self._lock = threading.Lock()  # the receive thread and the control thread both log
+        # the receive thread and the control thread both log; reentrant: a sender holds it
+        # across the send and the write of its frame (see `sending`)
+        self._lock = threading.RLock()
         self._open = True
+        self._period: Callable[[], float] | None = None  # drive time: see use_drive_time
+        self._sync_stamp: float | None = None
+        self._sync_wall = 0.0
+
+    def sending(self) -> threading.RLock:
+        """Hold while sending a frame and logging it: an answer the receive thread gets before
+        `send` returns then waits, and is logged after its question, as on the wire."""
+        return self._lock
+
+    def use_drive_time(self, period: Callable[[], float]) -> None:
+        """Stamp frames on the run's time base instead of the wall clock, for a lock-step
+        link where the drive advances `period()` seconds per SYNC whatever the wall clock
+        does: the first SYNC at its wall-clock time, each next one a period later, and a frame
+        after SYNC k at SYNC k plus the wall time since it (at most 0.9 of a period). The log
+        then replays at the drive's pace (2 s of drive time in 2 s) and keeps its order.
+        Frames before the first SYNC (bring-up) keep the wall clock."""
+        self._period = period
+
+    def _stamp(self, msg: can.Message, now: float) -> float:
+        """The frame's time on the run's time base (see use_drive_time); under the lock."""
+        if msg.arbitration_id == SYNC_COB_ID:
+            self._sync_stamp = (now if self._sync_stamp is None
+                                else self._sync_stamp + self._period())
+            self._sync_wall = now
+            return self._sync_stamp
+        if self._sync_stamp is None:
+            return now
+        return self._sync_stamp + min(now - self._sync_wall, LATEST_IN_CYCLE * self._period())
 
     def write(self, msg: can.Message, is_rx: bool) -> None:
         logged = copy.copy(msg)
@@ -32,6 +70,8 @@ class CanLog:
             logged.timestamp = time.time()  # frames being sent carry no time yet
         with self._lock:
             if self._open:
+                if self._period is not None:
+                    logged.timestamp = self._stamp(logged, logged.timestamp)
                 self._writer.on_message_received(logged)
 
     def stop(self) -> None:
@@ -62,8 +102,9 @@ class LoggedBus(can.BusABC):
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         with self._sent_lock:
             self._sent.append((msg.arbitration_id, bytes(msg.data)))
-        self._bus.send(msg, timeout)
-        self._log.write(msg, is_rx=False)
+        with self._log.sending():
+            self._bus.send(msg, timeout)
+            self._log.write(msg, is_rx=False)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         msg = self._bus.recv(timeout)  # filtered by the bus itself
@@ -82,10 +123,23 @@ class LoggedBus(can.BusABC):
         self._bus.shutdown()
 
 
+def tap_link(master_network: canopen.Network, drive_network: canopen.Network,
+             can_log: CanLog, period: Callable[[], float] | None = None) -> None:
+    """Log the `--sim` link (sim_bus.embedded.LinkedNetwork: each side hands a frame to its
+    peers in turn, in the sender's thread). The taps go first among the peers: the other
+    side answers a frame inside its `notify` (a SYNC's TPDOs are sent before the SYNC's
+    `send` returns), so a tap after it would log the answer before the question. `period`
+    (lock-step): stamp on drive time (CanLog.use_drive_time)."""
+    master_network.peers.insert(0, LinkTap(can_log, is_rx=False))
+    drive_network.peers.insert(0, LinkTap(can_log, is_rx=True))
+    if period is not None:
+        can_log.use_drive_time(period)
+
+
 class LinkTap:
     """A peer on one side of the --sim link (sim_bus.embedded.LinkedNetwork hands every frame
     its network sends to its peers' `notify`): what that side sends goes to the log, the
-    master's frames as sent (Tx), the drive's as received (Rx)."""
+    master's frames as sent (Tx), the drive's as received (Rx). Placed by `tap_link`."""
 
     def __init__(self, can_log: CanLog, is_rx: bool) -> None:
         self._log, self._is_rx = can_log, is_rx

@@ -18,7 +18,7 @@ import can
 
 from model.parameters import ActuatorModel, Payload
 from protocol.bus_spec import is_ethercat, parse_bus_spec
-from robot.can_log import CanLog, LinkTap, LoggedBus
+from robot.can_log import CanLog, LoggedBus, tap_link
 
 if TYPE_CHECKING:  # imported when a drive is opened: describing a bus needs none of them
     import canopen
@@ -151,8 +151,8 @@ def open_embedded_drive(model: ActuatorModel, sim_model: ActuatorModel, payload:
     sim = EmbeddedDrive(sim_model, payload, SensorNoise(seed=seed), node_id,
                         lockstep=lockstep, eds_path=eds)
     if can_log is not None:
-        sim.master_network.peers.append(LinkTap(can_log, is_rx=False))
-        sim.network.peers.append(LinkTap(can_log, is_rx=True))
+        tap_link(sim.master_network, sim.network, can_log,
+                 (lambda: sim.device.period) if lockstep else None)
     for fault, seconds in schedule:
         sim.device.schedule(fault, seconds)
     try:
