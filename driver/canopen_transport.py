@@ -226,6 +226,10 @@ class CanOpenTransport(Transport):
     def failure(self) -> DriveError | None:
         return self.sync_cycle.failure
 
+    @property
+    def has_warnings(self) -> bool:
+        return bool(self._warnings)
+
     def warnings(self) -> list[str]:
         if not self._warnings:
             return []

@@ -70,6 +70,12 @@ class RingStats:
         n = min(self.count, len(self._values))
         return float(np.percentile(self._values[:n], q)) if n else math.nan
 
+    def recent(self) -> np.ndarray:
+        """The values kept (the last `window`), oldest first."""
+        n = min(self.count, len(self._values))
+        start = self.count % len(self._values) if self.count > len(self._values) else 0
+        return np.roll(self._values[:n], -start)
+
 
 class CycleClock:
     def __init__(self, period: float, lockstep: bool):

@@ -82,6 +82,11 @@ class Segment:
             except (CommandRangeError, DriveError) as exc:
                 raise JointFailure(joint, exc) from exc
 
+    def warnings(self) -> list[str]:
+        """What the segment's drives reported since the last call, each naming its joint."""
+        return [f"joint {joint}: {warning}" for joint, drive in self.joints
+                for warning in drive.warnings()]
+
     def close(self) -> None:
         """Release what the segment owns beyond its drives (nothing here)."""
 
@@ -168,6 +173,18 @@ class EthercatLine(Segment):
         self._cycle = drives[0].cycle
         self._previous: np.ndarray | None = None
         self._outputs = np.zeros(len(drives), self._out_dtype)
+        self._warnings: list[str] = []
+
+    def warnings(self) -> list[str]:
+        """The line's own (saturated sensors, found on the arrays), then any a drive kept
+        (from its bring-up and acyclic path): one attribute look per drive, not a call."""
+        if not self._image:
+            return super().warnings()
+        out, self._warnings = self._warnings, []
+        for joint, drive in self.joints:
+            if drive.has_warnings:
+                out += [f"joint {joint}: {warning}" for warning in drive.warnings()]
+        return out
 
     def collect(self) -> np.ndarray:
         if not self._image:
@@ -195,8 +212,8 @@ class EthercatLine(Segment):
             saturated = (reading >= cia301.INT32_MAX) | (reading <= cia301.INT32_MIN)
             table[:, SAMPLE_JOINT_TORQUE] = np.where(saturated, np.nan, reading * self._torque)
             for j in np.flatnonzero(saturated):
-                self._drives[j]._warnings.append(
-                    f"joint torque sensor reading saturated ({int(reading[j])} mN.m)")
+                self._warnings.append(f"joint {self.joints[j][0]}: joint torque sensor reading "
+                                      f"saturated ({int(reading[j])} mN.m)")
         else:
             table[:, SAMPLE_JOINT_TORQUE] = np.nan
         previous, self._previous = self._previous, table[:, SAMPLE_POSITION]
@@ -241,11 +258,8 @@ class EthercatLine(Segment):
         outputs["f1"] = np.rint(currents * self._target_per_amp)
         data, size = outputs.tobytes(), self._out_size
         with self._line.lock:
-            for k, (slave, transport) in enumerate(zip(self._slaves, self._transports,
-                                                         strict=True)):
-                chunk = data[k * size:(k + 1) * size]
-                slave.output = chunk
-                transport._staged[:] = transport._out_codec.struct.unpack(chunk)
+            for k, slave in enumerate(self._slaves):
+                slave.output = data[k * size:(k + 1) * size]
 
 
 class DriveGroup:
@@ -300,9 +314,7 @@ class DriveGroup:
             segment.command(currents[rows])
 
     def warnings(self) -> list[str]:
-        return [f"joint {name}: {warning}" for name, drive in zip(self.names, self.drives,
-                                                                   strict=True)
-                for warning in drive.warnings()]
+        return [warning for segment in self.segments for warning in segment.warnings()]
 
     def quick_stop_all(self) -> list[tuple[str, str]]:
         """Quick-stop every drive (best effort each: a dead one does not spare the others),

@@ -111,6 +111,11 @@ class EthercatTransport(Transport):
                              f"aborted: 0x{exc.abort_code:08X} {exc.desc}") from None
         for k, obj in enumerate(self._outputs):
             if (obj.index, obj.subindex) == (index, subindex):
+                if self.line.mapped and self._mapped:
+                    # what the image carries now (the line may have written it as a whole,
+                    # `driver.drive_group.EthercatLine`), with this object changed
+                    with self.line.lock:
+                        self._staged[:] = self._out_codec.struct.unpack(self.slave.output)
                 self._staged[k] = value  # the next frame carries it too
                 self._stage()
 

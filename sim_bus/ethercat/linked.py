@@ -14,6 +14,7 @@ veth (`sim_bus.ethercat.netns`), against SOEM and KickCAT.
 """
 
 import struct
+import time
 from collections.abc import Callable
 
 import pysoem
@@ -153,6 +154,9 @@ class LinkedMaster:
         self.slaves: list[LinkedSlave] = []
         self.state = 0
         self.expected_wkc = 0
+        # s each process data exchange spent in the slaves (their firmware and physics), in
+        # order: what a benchmark of the master takes out of its figures
+        self.slave_seconds: list[float] = []
 
     def open(self, interface: str) -> None:
         """Nothing to open: the line is in this process."""
@@ -213,9 +217,11 @@ class LinkedMaster:
     def send_processdata(self) -> None:
         """One cycle of the image: every slave's outputs in (its drive cycles), its inputs
         out; the working counter is kept for `receive_processdata`."""
+        start = time.perf_counter()
         with self._segment.lock:
             self._wkc = sum(slave._exchange() for slave in self.slaves)
             self._segment.frames += 1
+        self.slave_seconds.append(time.perf_counter() - start)
 
     def receive_processdata(self, timeout_us: int = 0) -> int:
         return self._wkc
