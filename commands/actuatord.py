@@ -17,7 +17,7 @@ from commands.bus_options import (
     load_esi_option,
     open_drive,
 )
-from commands.file_options import check_output_folder
+from commands.file_options import check_output_file, check_output_folder
 from commands.first_run import CompileNotice
 from commands.log_options import (
     ThreadFailures,
@@ -90,10 +90,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--robot", metavar="FILE",
                         help="every joint of a robot file (robots/*.toml) in one cycle: one "
                              "SYNC per CAN bus and one frame per EtherCAT line, one batched "
-                             "MPC call; --sim embeds every drive (an EtherCAT line's too, on "
-                             "an in-process CANopen link); --inject-fault then takes "
+                             "MPC call; --sim embeds every drive (a CAN bus as an in-process "
+                             "link, an EtherCAT line as virtual slaves linked to the master's "
+                             "process image); --inject-fault then takes "
                              "JOINT:NAME@SECONDS")
     parser.add_argument("--plot", metavar="DIR", help="save position and current figures here")
+    parser.add_argument("--report", metavar="FILE",
+                        help="write the run's figures as JSON (cycles, missed cycles by cause, "
+                             "jitter, MPC tick and the master's own cost in us, exit code)")
     add_virtual_drive_arguments(parser)
     add_real_time_argument(parser)
     add_zenoh_arguments(parser)
@@ -151,6 +155,17 @@ def main(argv: list[str] | None = None) -> int:
         return _run_joint(args, stop, threads)
 
 
+def _write_report(args: argparse.Namespace, report) -> None:
+    """--report: the run's figures as JSON, written whole (after the summary, which stays the
+    word of record if the file cannot be written)."""
+    if args.report is None:
+        return
+    try:
+        Path(args.report).write_text(json.dumps(report.figures(), indent=1) + "\n")
+    except OSError as exc:
+        job_error(PROG, f"--report {args.report}: cannot write: {exc.strerror or exc}")
+
+
 def _run_joint(args: argparse.Namespace, stop: threading.Event, threads: ThreadFailures) -> int:
     """`actuatord` on one drive: exit 0 when the run ends as asked, 1 when it failed (the drive
     quick-stopped), 2 for bad input."""
@@ -172,6 +187,8 @@ def _run_joint(args: argparse.Namespace, stop: threading.Event, threads: ThreadF
         reference = _reference(args.reference, model)
         if args.plot:
             check_output_folder("--plot", args.plot)
+        if args.report is not None:
+            check_output_file("--report", args.report)
         # built (and compiled) before the drive is opened: a reference the model's limits
         # refuse (a velocity_max below the default sinusoid's peak) is bad input, not a crash
         try:
@@ -249,6 +266,7 @@ def _run_joint(args: argparse.Namespace, stop: threading.Event, threads: ThreadF
         publisher.close()
         session.close()
     print(f"actuatord: {report.summary()}", flush=True)
+    _write_report(args, report)
     if args.plot and report.history.get("t"):
         from controller.plots import save_figures
 
@@ -351,6 +369,8 @@ def _run_robot(args: argparse.Namespace, stop: threading.Event,
         args.prefix = args.prefix or f"robots/{robot.name}"
         check_key_expr("--prefix", args.prefix, wildcards=False)
         zenoh_config(args)  # its file and endpoints, before the controller is compiled
+        if args.report is not None:
+            check_output_file("--report", args.report, [("--robot", args.robot)])
         problems = _robot_problems(args, robot)
         batch = BatchMpc(problems)  # compiled before any drive is opened
     except (RobotFileError, BusSpecError, ValueError) as exc:
@@ -425,6 +445,7 @@ def _run_robot(args: argparse.Namespace, stop: threading.Event,
     if failure is not None:
         (usage_error if report.exit_code == 2 else job_error)(PROG, failure)
     print(f"actuatord: {report.summary()}", flush=True)
+    _write_report(args, report)
     rms = loop.tracking_rms()
     print(f"actuatord: RMS tracking error after {TRACKING_SETTLE:g} s (mrad): " + ", ".join(
         f"{name} {1e3 * value:.2g}" for name, value in zip(loop.names, rms,

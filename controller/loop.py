@@ -81,6 +81,20 @@ class LoopReport:
                 + ", ".join(f"{cause} {n}" for cause, n in self.missed_by_cause.items())
                 + f"; {self.reason}")
 
+    def figures(self) -> dict:
+        """The run's figures as plain data (what `actuatord --report` writes as JSON): times
+        in us, missed cycles in total and by cause."""
+        def stats(ring: RingStats) -> dict:
+            return {"median_us": ring.percentile(50), "p99_us": ring.percentile(99),
+                    "max_us": ring.max}
+
+        return {"cycles": self.cycles, "missed": self.missed_cycles,
+                "missed_by_cause": dict(self.missed_by_cause), "fallbacks": self.fallbacks,
+                "cold_solve_us": self.cold_solve_us,
+                "jitter": {"p99_us": self.jitter.percentile(99), "max_us": self.jitter.max},
+                "mpc_tick": stats(self.solve), "master": stats(self.master),
+                "exit_code": self.exit_code, "reason": self.reason}
+
     def count_missed(self, phases: dict[str, float], cycles: int) -> None:
         """`cycles` missed, put down to the phase that took longest of the cycle behind them
         (`phases`: s per cause), so a user can tell their machine from the service."""
