@@ -30,6 +30,8 @@ from driver.interface import SAMPLE_POSITION, SAMPLE_STATUSWORD, SAMPLE_T, SAMPL
 from protocol import cia402
 
 QUICK_STOPPED = "every joint quick-stopped, then disabled"  # what the caller does on failure
+# the solver's status names by code, for a whole column at once
+_STATUS_NAMES = np.array([STATUS_NAMES[code] for code in range(len(STATUS_NAMES))], dtype=object)
 
 
 class Joints(Protocol):
@@ -137,8 +139,12 @@ class RobotLoop(CycleLoop):
             for j in np.flatnonzero(~believed):
                 sample = Sample(*table[j, :SAMPLE_STATUSWORD], int(table[j, SAMPLE_STATUSWORD]))
                 fallbacks[int(j)] = self._nets[j].screen(sample).fault
-        rows[believed, ws.POSITION] = positions[believed]
-        rows[believed, ws.VELOCITY] = velocities[believed]
+        if fallbacks:
+            rows[believed, ws.POSITION] = positions[believed]
+            rows[believed, ws.VELOCITY] = velocities[believed]
+        else:
+            rows[:, ws.POSITION] = positions
+            rows[:, ws.VELOCITY] = velocities
         cold = believed & (rows[:, ws.MODE] == COLD)
         if cold.any():  # a cold start begins from the current that holds the joint
             rows[cold, ws.INITIAL_CURRENT] = safety.hold_currents(positions)[cold]
@@ -149,10 +155,12 @@ class RobotLoop(CycleLoop):
         status = header[:, ws.STATUS]
         ok = (status == CONVERGED) | (status == MAX_ITERATIONS)
         planned = header[:, ws.PLANNED_CURRENT]
-        currents = self._currents = np.where(
-            believed, safety.checked_currents(positions, planned, ok),
-            safety.screened_currents(positions, velocities))
-        self._status = [STATUS_NAMES[int(code)] for code in status]
+        currents = safety.checked_currents(positions, planned, ok)
+        if fallbacks:  # a joint screened out: the net's command for it
+            currents = np.where(believed, currents,
+                                safety.screened_currents(positions, velocities))
+        self._currents = currents
+        self._status = _STATUS_NAMES[status.astype(np.intp)].tolist()
         failed = believed & ~(ok & np.isfinite(planned))
         if failed.any():
             for j in np.flatnonzero(failed):

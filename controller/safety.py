@@ -139,5 +139,7 @@ class BatchSafety:
         """What `check` commands: the planned current clipped to the limit where the policy
         succeeded with a finite current, else the holding current."""
         usable = ok & np.isfinite(planned)
+        if usable.all():  # every cycle but a rare one: no holding current to work out
+            return np.clip(planned, -self.current_max, self.current_max)
         return np.where(usable, np.clip(np.where(usable, planned, 0.0), -self.current_max,
                                         self.current_max), self.hold_currents(positions))

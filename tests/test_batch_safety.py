@@ -63,3 +63,48 @@ def test_the_batch_net_commands_what_each_joints_net_commands():
             expected = net.check(sample, decision).current
             assert math.isclose(checked[j], expected, rel_tol=1e-12, abs_tol=1e-12), (
                 j, checked[j], expected)
+
+
+class _TwoJoints:
+    """Two elbows at rest whose second one reports an impossible velocity at cycle 3."""
+
+    names = ["left", "right"]
+
+    def __init__(self):
+        self.cycle = 0
+        self.commands: list[np.ndarray] = []
+
+    def sync(self) -> np.ndarray:
+        self.cycle += 1
+        rest = MODELS[0].limits.position_min + 0.5
+        velocity = 1e3 if self.cycle == 3 else 0.0
+        return np.array([[self.cycle * 1e-3, rest, 0.0, 0.0, 0.0, 0x0237],
+                         [self.cycle * 1e-3, rest, velocity, 0.0, 0.0, 0x0237]])
+
+    def command_currents(self, currents) -> None:
+        self.commands.append(np.array(currents, dtype=float))
+
+    def warnings(self) -> list[str]:
+        return []
+
+
+def test_a_joint_screened_out_of_the_batch_is_held_and_named_the_others_ticked():
+    from controller.loop import LoopOptions
+    from controller.mpc import BatchMpc, JointProblem
+    from controller.robot_loop import RobotLoop
+
+    faults = []
+    joints = _TwoJoints()
+    batch = BatchMpc([JointProblem(MODELS[0]), JointProblem(MODELS[0])])
+    loop = RobotLoop(joints, batch, LoopOptions(lockstep=True, duration=5e-3),
+                     [lambda m: faults.append(m) if type(m).__name__ == "Fault" else None])
+    report = loop.run()
+    assert report.exit_code == 0 and report.fallbacks == 1
+    [fault] = [f for f in faults if "right" in f.cause]
+    assert "state out of range" in fault.cause
+    net = SafetyNet(_Policy(MODELS[0]))
+    held = net.hold_current(MODELS[0].limits.position_min + 0.5)
+    _, right = joints.commands[2]
+    assert math.isclose(right, held, rel_tol=1e-12)  # the net's holding current
+    # the screened joint skipped that tick and came back: every other cycle decided by the MPC
+    assert all(np.isfinite(c).all() for c in joints.commands) and len(joints.commands) == 5
