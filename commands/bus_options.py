@@ -99,17 +99,22 @@ def add_real_time_argument(parser: argparse.ArgumentParser) -> None:
 
 def apply_real_time(args: argparse.Namespace, prog: str) -> None:
     """Real time only: the process (and the threads it starts from now on) at the asked
-    SCHED_RR priority, so CPU-bound work beside it does not delay a cycle; a refusal is one
-    warning and the run goes on at normal priority."""
+    SCHED_RR priority, so CPU-bound work beside it does not delay a cycle, and its memory
+    locked (`driver.clock.lock_memory`); each refusal is one warning and the run goes on."""
     if getattr(args, "lockstep", False) or not args.rt_priority:
         return
-    from driver.clock import prefer_real_time
+    from driver.clock import lock_memory, prefer_real_time
 
     refused = prefer_real_time(args.rt_priority)
     if refused is not None:
         logging.getLogger(prog).warning(
             "real-time priority %d refused (%s): running at normal priority, a busy host "
             "may delay cycles", args.rt_priority, refused)
+    refused = lock_memory()
+    if refused is not None:
+        logging.getLogger(prog).warning(
+            "memory lock refused (%s): a page fault may delay a cycle (raise RLIMIT_MEMLOCK, "
+            "or run as root)", refused)
 
 
 # python-can's options (argparse keys as can.cli names them), absent unless given

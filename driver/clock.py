@@ -33,6 +33,27 @@ def prefer_real_time(priority: int = REAL_TIME_PRIORITY) -> str | None:
     return None
 
 
+MCL_CURRENT, MCL_FUTURE = 1, 2  # <sys/mman.h>
+
+
+def lock_memory() -> str | None:
+    """Keep this process's pages in RAM (mlockall), so no cycle waits for a page to come back
+    from swap or for a first touch of a page mapped lazily: what a real-time process on a robot
+    PC does before its loop starts. Pages mapped later are locked too only where the lock limit
+    is unlimited (root, or a raised RLIMIT_MEMLOCK); under a finite limit, locking future pages
+    would turn the next large allocation into a failure, so only those mapped now are locked.
+    Returns None, or why it was refused (the loop runs on without it)."""
+    import ctypes
+    import resource
+
+    soft, _ = resource.getrlimit(resource.RLIMIT_MEMLOCK)
+    flags = MCL_CURRENT | (MCL_FUTURE if soft == resource.RLIM_INFINITY else 0)
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.mlockall(flags) != 0:
+        return os.strerror(ctypes.get_errno())
+    return None
+
+
 @contextlib.contextmanager
 def collector_off_the_cycle() -> Iterator[None]:
     """Keep Python's cyclic garbage collector from stopping a running loop for tens of ms.
