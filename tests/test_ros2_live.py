@@ -9,14 +9,13 @@ import threading
 import time
 
 import pytest
+import zenoh_ros2_sdk as sdk
+from zenoh_ros2_sdk import discovery, message_registry
+from zenoh_ros2_sdk.attachment import Attachment
+from zenoh_ros2_sdk.qos import QosProfile
+from zenoh_ros2_sdk.session import ZenohSession
 
 from tests.conftest import free_port
-
-sdk = pytest.importorskip("zenoh_ros2_sdk")
-from zenoh_ros2_sdk import discovery, message_registry  # noqa: E402
-from zenoh_ros2_sdk.attachment import Attachment  # noqa: E402
-from zenoh_ros2_sdk.qos import QosProfile  # noqa: E402
-from zenoh_ros2_sdk.session import ZenohSession  # noqa: E402
 
 DOMAIN = 7
 # the ROS 2 message definitions (comments left out: they do not enter the type hash), where
