@@ -8,6 +8,7 @@ opens the drive."""
 from __future__ import annotations
 
 import argparse
+import errno
 import logging
 from collections.abc import Iterable
 from pathlib import Path
@@ -264,10 +265,11 @@ def check_can_log(path: str, inputs: Inputs = ()) -> None:
     suffixes = Path(path).suffixes
     suffix = suffixes[-2] if len(suffixes) > 1 and suffixes[-1] == ".gz" else (
         suffixes[-1] if suffixes else "")
-    writers = can.io.logger.MESSAGE_WRITERS
+    # what python-can both writes and reads back (its .txt printer writes what no reader reads)
+    writers = set(can.io.logger.MESSAGE_WRITERS) & set(can.io.player.MESSAGE_READERS)
     if suffix.lower() not in writers:
         raise ValueError(f"--can-log {path}: expected a file ending in "
-                         f"{', '.join(sorted(writers))} (python-can's writers)")
+                         f"{', '.join(sorted(writers))} (python-can's writers and readers)")
     check_output_file("--can-log", path, inputs)
 
 
@@ -302,8 +304,15 @@ def open_drive(args: argparse.Namespace, model: ActuatorModel, sim_model: Actuat
         except Exception as exc:
             raise DriveOpenError(f"--can-log {args.can_log}: {exc}") from exc
     if config is not None:
-        return open_can_drive(config, args.node_id, model, eds=args.eds, can_log=can_log,
-                              lockstep=lockstep, **timing)
+        try:
+            return open_can_drive(config, args.node_id, model, eds=args.eds, can_log=can_log,
+                                  lockstep=lockstep, **timing)
+        except DriveOpenError as exc:
+            if getattr(exc.__cause__, "errno", None) != errno.EAFNOSUPPORT:
+                raise
+            raise DriveOpenError(f"{exc} (this kernel has no SocketCAN: --sim runs the virtual "
+                                 "drive in this process, --bus udp_multicast:239.0.0.1 reaches "
+                                 "sim-bus on the same bus)") from exc
     return open_embedded_drive(model, sim_model, payload, args.node_id, seed=args.seed,
                                eds=args.eds, schedule=schedule, can_log=can_log,
                                lockstep=lockstep, **timing)

@@ -107,6 +107,16 @@ def _request_payload(what: str, values: list[str]) -> str:
     if what == "reference":
         if len(values) != 1:
             raise ValueError("reference: give one JSON object")
+        # malformed text is bad input (exit 2, as a malformed weight is), found here; whether
+        # the reference is acceptable stays actuatord's to say (exit 1 when it refuses)
+        try:
+            spec = json.loads(values[0])
+        except (ValueError, RecursionError) as exc:
+            raise ValueError(f"reference {values[0][:40]!r}: expected a JSON object, e.g. "
+                             f"'{{\"kind\": \"setpoint\", \"position\": -1.0}}' ({exc})") from None
+        if not isinstance(spec, dict):
+            raise ValueError(f"reference {values[0][:40]!r}: expected a JSON object, not "
+                             f"{type(spec).__name__}")
         return values[0]
     weights = parse_assignments(values, None, "weights")
     return json.dumps(weights)

@@ -391,7 +391,7 @@ def _export(argv: list[str]) -> int:
         description="Write a recording in the CSV interchange format (t,q,current,"
                     "joint_torque with # key=value metadata) or, with --ros2, as a ROS 2 "
                     "bag: an MCAP file of profile ros2 with sensor_msgs/msg/JointState on "
-                    "/joint_states, which rosbags, ros2 bag and Foxglove read.")
+                    "/joint_states, which rosbags reads.")
     parser.add_argument("recording", metavar="FILE.mcap")
     parser.add_argument("-o", "--output", required=True, metavar="FILE.csv|FILE.mcap")
     parser.add_argument("--ros2", action="store_true",

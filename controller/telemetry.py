@@ -12,7 +12,6 @@ import zenoh
 
 from controller.messages import topic_of
 from controller.requests import Body
-from controller.ros2 import JointStatePublisher
 from protocol import telemetry as schema
 
 log = logging.getLogger(__name__)
@@ -60,9 +59,12 @@ class TelemetryPublisher:
             schema.key_expr(prefix, schema.AUDIT), encoding=zenoh.Encoding.APPLICATION_JSON,
             congestion_control=zenoh.CongestionControl.BLOCK,
             priority=zenoh.Priority.INTERACTIVE_HIGH)
-        joint = prefix.rstrip("/").rsplit("/", 1)[-1]
-        self._ros2 = (None if ros2_domain is None else
-                      JointStatePublisher(session, ros2_domain, joint))
+        self._ros2 = None
+        if ros2_domain is not None:  # rosbags' type store is loaded only for it
+            from controller.ros2 import JointStatePublisher
+
+            joint = prefix.rstrip("/").rsplit("/", 1)[-1]
+            self._ros2 = JointStatePublisher(session, ros2_domain, joint)
         self._thread = threading.Thread(target=self._run, name="telemetry", daemon=True)
         self._thread.start()
 

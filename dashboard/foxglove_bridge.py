@@ -16,6 +16,7 @@ import json
 import logging
 import threading
 import time
+from collections.abc import Sequence
 
 import foxglove
 import zenoh
@@ -59,7 +60,7 @@ class FoxgloveBridge:
     and on each of `extra_ports` too. Raises OSError when a port cannot be listened on."""
 
     def __init__(self, session: zenoh.Session, key: str, prefix: str = telemetry.DEFAULT_PREFIX,
-                 host: str = "127.0.0.1", port: int = 8765, extra_ports: list[int] = ()):
+                 host: str = "127.0.0.1", port: int = 8765, extra_ports: Sequence[int] = ()):
         self.session = session
         self.prefix = prefix
         self.server = foxglove.start_server(

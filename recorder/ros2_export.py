@@ -1,6 +1,7 @@
 """A recording as a ROS 2 bag: an MCAP file of profile `ros2` with `sensor_msgs/msg/JointState`
 on `/joint_states` (CDR from rosbags, the message definition as ROS 2 writes it), which
-`rosbags`, `ros2 bag play`, `mcap-ros2-support` and Foxglove read as ROS 2 data.
+`rosbags` and `mcap-ros2-support` read as ROS 2 data (tested), as rosbag2's MCAP storage
+lays it out for `ros2 bag` and Foxglove.
 
 Native recordings stay protobuf (one message format for Zenoh, MCAP and Foxglove); this is
 the export for the ROS 2 tools, in the spirit of `recorder export` to CSV.

@@ -23,10 +23,12 @@ LATEST_IN_CYCLE = 0.9
 
 class CanLog:
     """`--can-log`: every frame this process sends or receives, written in order by
-    python-can's writer for the file's suffix."""
+    python-can's writer for the file's suffix. The file is created with the first frame, so a
+    bus that fails to open leaves none."""
 
     def __init__(self, path: str, channel: str) -> None:
-        self._writer = can.Logger(path)
+        self._path = path
+        self._writer: can.io.generic.MessageWriter | None = None  # opened with the first frame
         self._channel = channel  # named in the file for frames that carry none (those sent)
         # the receive thread and the control thread both log; reentrant: a sender holds it
         # across the send and the write of its frame (see `sending`)
@@ -72,6 +74,8 @@ class CanLog:
             if self._open:
                 if self._period is not None:
                     logged.timestamp = self._stamp(logged, logged.timestamp)
+                if self._writer is None:  # a bus that never opened leaves no empty file
+                    self._writer = can.Logger(self._path)
                 self._writer.on_message_received(logged)
 
     def stop(self) -> None:
@@ -79,7 +83,8 @@ class CanLog:
         with self._lock:
             if self._open:
                 self._open = False
-                self._writer.stop()
+                if self._writer is not None:
+                    self._writer.stop()
 
 
 class LoggedBus(can.BusABC):

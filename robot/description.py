@@ -31,6 +31,7 @@ refused with the load figure and the fastest period that would fit.
 import math
 import tomllib
 from dataclasses import dataclass, fields, replace
+from importlib.resources import files
 from pathlib import Path
 
 from controller.problem import Weights
@@ -111,11 +112,30 @@ def cyclic_frame_bytes() -> list[int]:
                                                *pdo_layout.DEFAULT_TPDOS)]
 
 
+def shipped_robots() -> list[str]:
+    """The names of the robot files shipped with the package (`robots/*.toml`)."""
+    return sorted(entry.name.removesuffix(".toml") for entry in files("robots").iterdir()
+                  if entry.name.endswith(".toml"))
+
+
+def robot_path(name_or_path: str | Path) -> Path:
+    """The robot file `--robot` names: the path itself when it exists or is written as a path
+    (a folder or a suffix in it), else the shipped robot of that name (`talos_arm` ->
+    robots/talos_arm.toml in the installed package)."""
+    path = Path(name_or_path)
+    if path.exists() or path.suffix or len(path.parts) > 1:
+        return path
+    shipped = Path(str(files("robots") / f"{path.name}.toml"))
+    return shipped if shipped.is_file() else path
+
+
 def load_robot(path: str | Path) -> RobotSpec:
-    """Read and check a robot file; RobotFileError names what is wrong."""
-    path = Path(path)
+    """Read and check a robot file (a path, or a shipped robot's name: see robot_path);
+    RobotFileError names what is wrong."""
+    path = robot_path(path)
     if not present(path):
-        raise RobotFileError(f"{path}: robot file not found")
+        raise RobotFileError(f"{path}: robot file not found (a path, or one of the shipped "
+                             f"robots: {', '.join(shipped_robots())})")
     try:
         doc = tomllib.loads(read_input_file(path, "a robot file (TOML)", TEXT_MAX).decode(
             "utf-8-sig"))

@@ -99,3 +99,29 @@ def test_an_answer_received_while_its_question_is_sent_is_logged_after_it(tmp_pa
     log.stop()
     order = [f.arbitration_id for f in can.LogReader(path)]
     assert order == [SYNC, TPDOS[0]] * 5
+
+
+@pytest.mark.subprocess
+def test_a_bus_that_does_not_open_leaves_no_log_and_names_sim_without_socketcan(tmp_path):
+    log = tmp_path / "frames.log"
+    proc = subprocess.run([sys.executable, "-m", "commands.actuatord", "--bus", "vcan0",
+                           "--duration", "1", "--no-multicast-scouting", "--can-log", str(log)],
+                          capture_output=True, text=True, timeout=60)
+    if proc.returncode == 0 or "Errno 97" not in proc.stderr:
+        pytest.skip("this kernel has SocketCAN (vcan0 or its absence is told otherwise)")
+    assert proc.returncode == 1
+    assert proc.stderr.strip().splitlines() == [
+        "actuatord: error: cannot open bus socketcan:vcan0: [Errno 97] Address family not "
+        "supported by protocol (this kernel has no SocketCAN: --sim runs the virtual drive in "
+        "this process, --bus udp_multicast:239.0.0.1 reaches sim-bus on the same bus)"]
+    assert not log.exists()
+
+
+@pytest.mark.subprocess
+def test_a_log_suffix_no_reader_reads_is_refused(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "commands.actuatord", "--sim", "--can-log",
+                           str(tmp_path / "frames.txt")], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 2
+    assert "--can-log" in proc.stderr and ".txt" not in proc.stderr.split("expected")[1]
+    assert not (tmp_path / "frames.txt").exists()

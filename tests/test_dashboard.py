@@ -679,6 +679,8 @@ def test_refused_change_leaves_the_controller_unchanged_and_says_why():
 @pytest.mark.parametrize("args,needle", [
     (["set", "weights", "position"], "expected NAME=VALUE"),
     (["set", "reference", "{}", "{}"], "give one JSON object"),
+    (["set", "reference", "notjson"], "expected a JSON object"),
+    (["set", "weights", "position=abc"], "position"),
 ])
 def test_set_bad_usage_exits_2(args, needle):
     proc = subprocess.run([sys.executable, "-m", "commands.dashboard", *args], capture_output=True,

@@ -9,14 +9,13 @@ import threading
 import time
 
 import pytest
+import zenoh_ros2_sdk as sdk
+from zenoh_ros2_sdk import discovery, message_registry
+from zenoh_ros2_sdk.attachment import Attachment
+from zenoh_ros2_sdk.qos import QosProfile
+from zenoh_ros2_sdk.session import ZenohSession
 
 from tests.conftest import free_port
-
-sdk = pytest.importorskip("zenoh_ros2_sdk")
-from zenoh_ros2_sdk import discovery, message_registry  # noqa: E402
-from zenoh_ros2_sdk.attachment import Attachment  # noqa: E402
-from zenoh_ros2_sdk.qos import QosProfile  # noqa: E402
-from zenoh_ros2_sdk.session import ZenohSession  # noqa: E402
 
 DOMAIN = 7
 # the ROS 2 message definitions (comments left out: they do not enter the type hash), where
@@ -101,3 +100,49 @@ def test_joint_states_reach_a_ros2_subscriber_on_rmw_zenoh(ros2_messages):
     assert len({a.gid for a in decoded}) == 1
     sequence = [a.sequence_id for a in decoded]
     assert sequence == list(range(sequence[0], sequence[0] + len(sequence)))
+
+
+def test_a_robots_joint_states_carry_every_joint_by_name(ros2_messages):
+    """`actuatord --robot --ros2`: one JointState per cycle with every joint of the robot file,
+    as the SDK's subscriber decodes it (here from the publisher alone, in this process)."""
+    import json
+
+    import zenoh
+
+    from controller.ros2 import JointStatePublisher
+    from protocol import telemetry
+
+    port = free_port()
+    config = zenoh.Config()
+    config.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(config)
+    publisher = JointStatePublisher(session, DOMAIN, "unused for a robot")
+    received = []
+    subscriber = None
+    try:
+        subscriber = sdk.ROS2Subscriber("/joint_states", "sensor_msgs/msg/JointState",
+                                        received.append, domain_id=DOMAIN, router_port=port)
+        names = ["arm_left_1_joint", "arm_left_2_joint", "arm_left_3_joint"]
+        joint_states = telemetry.message_class("JointStates")
+        deadline = time.monotonic() + 10
+        k = 0
+        while len(received) < 5 and time.monotonic() < deadline:
+            k += 1
+            publisher.publish(joint_states(t=k * 1e-3, name=names, position=[0.1, 0.2, 0.3],
+                                           velocity=[1.0, 2.0, 3.0], effort=[-1.0, -2.0, -3.0]))
+            publisher.publish(telemetry.message_class("Fault")(t=k * 1e-3))  # not a joint state
+            time.sleep(0.01)
+    finally:
+        if subscriber is not None:
+            subscriber.close()
+        if ZenohSession._instance is not None:
+            ZenohSession._instance.close()
+        publisher.close()
+        session.close()
+    assert len(received) >= 5
+    assert publisher.sent == k  # the faults were not published
+    message = received[-1]
+    assert list(message.name) == names
+    assert message.position.tolist() == [0.1, 0.2, 0.3]
+    assert message.effort.tolist() == [-1.0, -2.0, -3.0]
