@@ -68,7 +68,7 @@ from controller.problem import (
     N_COST,
 )
 from controller.reference import reference_at
-from controller.workspace import JIT
+from controller.workspace import COLD, JIT, SKIP, WARM
 from model.dynamics import (
     EFFECT_OFFSET,
     N_PARAMS,
@@ -81,8 +81,6 @@ from model.dynamics import (
     P_OFFSET,
     P_VISCOUS,
 )
-
-COLD, WARM, RESAMPLE, SKIP = 0, 1, 2, 3  # tick modes, as controller.mpc
 
 # Joints go in chunks of WIDTH lanes: a compile-time width, so the compiler knows the loop over
 # a chunk's lanes and the distance between two fields (and proves they do not overlap). Four

@@ -44,12 +44,10 @@ from controller.policy import Decision, PlanSnapshot
 from controller.problem import C_DT, N_COST, OcpSettings, pack_cost
 from controller.reference import Reference, Sinusoid, check_reference, reference_at
 from controller.safety import holding_current
-from controller.workspace import JIT
+from controller.workspace import COLD, JIT, RESAMPLE, SKIP, WARM
 from driver import Sample
 from model.dynamics import N_PARAMS
 from model.parameters import ActuatorModel, Payload
-
-COLD, WARM, RESAMPLE, SKIP = 0, 1, 2, 3  # tick modes, per joint
 
 # The worker threads of a parallel tick sleep between ticks instead of spinning (unless the user
 # chose otherwise). Spinning saves a wake-up of some microseconds on an idle machine, but on a
