@@ -68,7 +68,7 @@ from controller.problem import (
     N_COST,
 )
 from controller.reference import reference_at
-from controller.workspace import JIT
+from controller.workspace import COLD, JIT, SKIP, WARM
 from model.dynamics import (
     EFFECT_OFFSET,
     N_PARAMS,
@@ -81,8 +81,6 @@ from model.dynamics import (
     P_OFFSET,
     P_VISCOUS,
 )
-
-COLD, WARM, RESAMPLE, SKIP = 0, 1, 2, 3  # tick modes, as controller.mpc
 
 # Joints go in chunks of WIDTH lanes: a compile-time width, so the compiler knows the loop over
 # a chunk's lanes and the distance between two fields (and proves they do not overlap). Four
@@ -131,9 +129,12 @@ def supports(packed_parameters: np.ndarray) -> bool:
 
 
 def default_threads() -> int:
-    """One thread on a machine with two cores or fewer, else two (see `bench`: on the two
-    shared cores here a second thread gained little at 32 joints and lost at 7 under load,
-    and on a robot PC with two cores the second belongs to the bus and the telemetry)."""
+    """One thread on a machine with two cores or fewer, else two. Measured on the two shared
+    cores here (bench --json, 32 joints = 4 chunks, 2 blocks on two threads): one thread
+    135 us, two 152 us at load 8; 88 us against 139 us beside two CPU-bound loops (load 10).
+    The second thread must be woken each tick and competes with whatever holds the other core;
+    on a robot PC with two cores that is the bus and the telemetry. Two on larger machines is
+    not measured here; fewer than 9 joints are one chunk, one block, whatever the count."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return 1 if (cores or 1) <= 2 else 2
 

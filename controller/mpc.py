@@ -18,6 +18,7 @@ lanes are tested against, and the kernel of joints whose model carries an extra 
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from itertools import repeat
 
 import numba
 import numpy as np
@@ -43,12 +44,10 @@ from controller.policy import Decision, PlanSnapshot
 from controller.problem import C_DT, N_COST, OcpSettings, pack_cost
 from controller.reference import Reference, Sinusoid, check_reference, reference_at
 from controller.safety import holding_current
-from controller.workspace import JIT
+from controller.workspace import COLD, JIT, RESAMPLE, SKIP, WARM
 from driver import Sample
 from model.dynamics import N_PARAMS
 from model.parameters import ActuatorModel, Payload
-
-COLD, WARM, RESAMPLE, SKIP = 0, 1, 2, 3  # tick modes, per joint
 
 # The worker threads of a parallel tick sleep between ticks instead of spinning (unless the user
 # chose otherwise). Spinning saves a wake-up of some microseconds on an idle machine, but on a
@@ -262,6 +261,21 @@ def _decision(header: list[float]) -> Decision:
                     int(header[ws.ROLLOUTS]), header[ws.COST])
 
 
+USABLE = tuple(code in (CONVERGED, MAX_ITERATIONS) for code in range(len(STATUS_NAMES)))
+
+
+def _decisions(rows: np.ndarray) -> list[Decision]:
+    """Every joint's decision from the rows, as `_decision` builds one, a column at a time:
+    half the Python time of one call per joint (30 us of a 32-joint tick of ~100 us)."""
+    status = rows[:, ws.STATUS].astype(np.int64).tolist()
+    return list(map(Decision._make, zip(
+        rows[:, ws.PLANNED_CURRENT].tolist(), rows[:, ws.REFERENCE_POSITION].tolist(),
+        rows[:, ws.REFERENCE_VELOCITY].tolist(), map(STATUS_NAMES.__getitem__, status),
+        map(USABLE.__getitem__, status), rows[:, ws.ITERATIONS].astype(np.int64).tolist(),
+        rows[:, ws.ROLLOUTS].astype(np.int64).tolist(), rows[:, ws.COST].tolist(),
+        repeat(False))))
+
+
 KERNELS = ("lanes", "scalar")
 
 
@@ -360,7 +374,7 @@ class BatchMpc:
             joint = self.joints[j]
             rows[j, ws.INITIAL_CURRENT] = joint.hold_current(rows[j, ws.POSITION])
         self.run(t)
-        return [_decision(header) for header in rows[:, :ws.HEADER].tolist()]
+        return _decisions(rows)
 
     def plan(self, joint: JointRow, t: float) -> PlanSnapshot:
         if self.kernel == "lanes":

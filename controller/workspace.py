@@ -23,6 +23,8 @@ from model.dynamics import N_PARAMS
 
 JIT = {"cache": True, "error_model": "numpy", "nogil": True}
 
+COLD, WARM, RESAMPLE, SKIP = 0, 1, 2, 3  # tick modes, per joint (both kernels read them here)
+
 # header: inputs of the tick (written by Python before the call)
 POSITION = 0  # rad, measured
 VELOCITY = 1  # rad/s, measured

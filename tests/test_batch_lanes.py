@@ -8,7 +8,7 @@ import numba
 import numpy as np
 import pytest
 
-from controller import ilqr_reference, lane_math, lanes
+from controller import ilqr_reference, lane_math
 from controller import workspace as ws
 from controller.ilqr import LINE_SEARCH_STEPS
 from controller.mpc import BatchMpc, JointProblem, Mpc
@@ -144,7 +144,7 @@ def test_lane_decisions_equal_the_scalar_kernel_with_joints_in_every_mode():
         cycle = k + 1 if k >= 70 else k  # from cycle 70 on, one cycle was missed
         twins.tick(cycle, skip, disturb)
     modes = {mode for tick_modes in twins.modes for mode in tick_modes}
-    assert {lanes.COLD, lanes.WARM, lanes.RESAMPLE, lanes.SKIP} <= modes
+    assert {ws.COLD, ws.WARM, ws.RESAMPLE, ws.SKIP} <= modes
     mixed = [tick_modes for tick_modes in twins.modes if len(set(tick_modes)) >= 3]
     assert mixed, "no tick had joints in three modes at once"
     backtracked = [r for r in twins.rollouts if max(r) > 1 and min(r) == 1]
@@ -220,7 +220,7 @@ def test_a_skipped_lane_joint_keeps_its_row():
     batch.run(DT)
     untouched = np.arange(len(kept_row)) != ws.MODE
     assert np.array_equal(second.row[untouched], kept_row[untouched])
-    assert second.mode == lanes.COLD
+    assert second.mode == ws.COLD
     assert batch.decision(first).ok
 
 
