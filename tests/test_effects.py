@@ -109,14 +109,15 @@ def test_model_files_carry_library_effects_only(tmp_path):
     good.write_text(text + "\n[effects.friction_ripple]\namplitude = 0.3\n"
                     "spatial_frequency = 5.0\nphase = 0.2\nprovenance = 'test'\n")
     assert load_model(good).parameters.effects.enabled() == ["friction_ripple"]
-    hidden = HIDDEN_ONLY[0].name
-    bad = tmp_path / "bad.toml"
-    bad.write_text(text + f"\n[effects.{hidden}]\nvelocity = 0.01\nprovenance = 'test'\n")
-    with pytest.raises(ModelFileError, match=rf"\[effects.{hidden}\]: unknown effect"):
-        load_model(bad)
-    # ... while the virtual drive can carry it as a hidden truth
-    model = with_truth_effects(load_model(), [f"{hidden}:velocity=0.01"])
-    assert model.parameters.effects.enabled() == [hidden]
+    for effect in HIDDEN_ONLY:
+        key = effect.strength
+        bad = tmp_path / "bad.toml"
+        bad.write_text(text + f"\n[effects.{effect.name}]\n{key} = 0.01\nprovenance = 'test'\n")
+        with pytest.raises(ModelFileError, match=rf"\[effects.{effect.name}\]: unknown effect"):
+            load_model(bad)
+        # ... while the virtual drive can carry it as a hidden truth
+        model = with_truth_effects(load_model(), [f"{effect.name}:{key}=0.01"])
+        assert model.parameters.effects.enabled() == [effect.name]
 
 
 def test_smooth_reversal_lets_go_where_coulomb_friction_sticks():
