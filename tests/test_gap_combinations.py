@@ -98,8 +98,8 @@ def heavy_model(folder: Path) -> Path:
     return path
 
 
-# the first test pays for every case's recordings (61 cases, two at a time: 4 min on a quiet
-# machine, 9 beside other test runs): longer than the suite's 300 s per-test default
+# the first test pays for every case's recordings (61 cases, two at a time: 545 s measured
+# beside other test runs): longer than the suite's 300 s per-test default
 pytestmark = [pytest.mark.timeout(1800), pytest.mark.slow]
 
 
