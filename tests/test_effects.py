@@ -7,6 +7,9 @@ import pytest
 from scipy.optimize import brentq
 
 from commands.options import with_truth_effects
+from controller.mpc import Mpc
+from controller.reference import Sinusoid
+from driver import Sample
 from model import dynamics
 from model.effects import EFFECTS, HIDDEN_ONLY, LIBRARY, FitContext, Regressors
 from model.identify import Columns, rows
@@ -177,3 +180,27 @@ def test_warm_up_friction_decays_with_the_drives_time_since_power_on():
         if moved_at is None and plant.velocity > 0:
             moved_at = cycle * 1e-3
     assert moved_at == pytest.approx(math.log(2.0), abs=0.01)
+
+
+def test_the_mpc_tracks_a_saturating_drive_better_once_the_saturation_is_named():
+    """Named in the model, the saturation reaches the controller's predictions: on a joint
+    whose torque constant saturates, carrying 5 kg through a 0.5 Hz swing, the MPC that knows
+    it tracks at least twice as closely as the one that does not (measured: 0.12 against
+    0.51 mrad RMS)."""
+    payload = Payload(5.0, 0.0, 0.1)
+    saturated = with_truth_effects(load_model(), [
+        "torque_constant_saturation:coefficient=0.06,knee_current=1.5"])
+    truth = saturated.parameters.with_payload(payload).packed()
+    errors = []
+    for model in (saturated, load_model()):
+        mpc = Mpc(model, payload=payload,
+                  reference=Sinusoid(center=-1.2, amplitude=0.6, frequency=0.5))
+        q, qd = mpc.reference_at(0.0)
+        error = []
+        for k in range(3000):
+            decision = mpc.tick(Sample(k * 1e-3, q, qd, 0.0, 0.0, 0))
+            q, qd, *_ = dynamics.step(q, qd, decision.planned_current, truth, 1e-3,
+                                      dynamics.SUBSTEPS)
+            error.append(q - mpc.reference_at((k + 1) * 1e-3)[0])
+        errors.append(math.sqrt(np.mean(np.square(error[500:]))))
+    assert errors[0] <= 0.5 * errors[1], errors
