@@ -84,7 +84,7 @@ def test_identification_rows_vanish_on_the_inverse_dynamics_own_torques():
         np.testing.assert_allclose(block @ np.append(chi, 1.0), 0.0, atol=1e-9)
 
 
-CONTEXT = FitContext(coulomb=1.5, position_range=2.0, current_peak=6.0, duration=10.0)
+CONTEXT = FitContext(coulomb=1.5, position_range=2.0, current_peak=6.0)
 
 
 @pytest.mark.parametrize("name,table,broken", [
