@@ -62,7 +62,6 @@ class FitContext:
     coulomb: float  # N.m, the refitted Coulomb level
     position_range: float  # rad travelled in the data
     current_peak: float = math.inf  # A, the largest |current| in the data
-    duration: float = math.inf  # s, the longest recording
 
 
 @dataclass(frozen=True)
@@ -97,6 +96,12 @@ class Effect:
 
     @staticmethod
     def term(q, qd, p, k, coulomb, gravity, d_gravity):
+        """A transmission effect's share (see the module docstring)."""
+        raise NotImplementedError
+
+    @staticmethod
+    def current_term(current, p, k):
+        """A drive-side effect's current loss and its slope (see the module docstring)."""
         raise NotImplementedError
 
     def grid(self, rows: Regressors) -> np.ndarray:

@@ -7,6 +7,9 @@ import pytest
 from scipy.optimize import brentq
 
 from commands.sim_options import with_truth_effects
+from controller.mpc import Mpc
+from controller.reference import Sinusoid
+from driver import Sample
 from model import dynamics
 from model.effects import EFFECTS, HIDDEN_ONLY, LIBRARY, FitContext, Regressors
 from model.identify import Columns, rows
@@ -81,7 +84,7 @@ def test_identification_rows_vanish_on_the_inverse_dynamics_own_torques():
         np.testing.assert_allclose(block @ np.append(chi, 1.0), 0.0, atol=1e-9)
 
 
-CONTEXT = FitContext(coulomb=1.5, position_range=2.0, current_peak=6.0, duration=10.0)
+CONTEXT = FitContext(coulomb=1.5, position_range=2.0, current_peak=6.0)
 
 
 @pytest.mark.parametrize("name,table,broken", [
@@ -109,14 +112,15 @@ def test_model_files_carry_library_effects_only(tmp_path):
     good.write_text(text + "\n[effects.friction_ripple]\namplitude = 0.3\n"
                     "spatial_frequency = 5.0\nphase = 0.2\nprovenance = 'test'\n")
     assert load_model(good).parameters.effects.enabled() == ["friction_ripple"]
-    hidden = HIDDEN_ONLY[0].name
-    bad = tmp_path / "bad.toml"
-    bad.write_text(text + f"\n[effects.{hidden}]\nvelocity = 0.01\nprovenance = 'test'\n")
-    with pytest.raises(ModelFileError, match=rf"\[effects.{hidden}\]: unknown effect"):
-        load_model(bad)
-    # ... while the virtual drive can carry it as a hidden truth
-    model = with_truth_effects(load_model(), [f"{hidden}:velocity=0.01"])
-    assert model.parameters.effects.enabled() == [hidden]
+    for effect in HIDDEN_ONLY:
+        key = effect.strength
+        bad = tmp_path / "bad.toml"
+        bad.write_text(text + f"\n[effects.{effect.name}]\n{key} = 0.01\nprovenance = 'test'\n")
+        with pytest.raises(ModelFileError, match=rf"\[effects.{effect.name}\]: unknown effect"):
+            load_model(bad)
+        # ... while the virtual drive can carry it as a hidden truth
+        model = with_truth_effects(load_model(), [f"{effect.name}:{key}=0.01"])
+        assert model.parameters.effects.enabled() == [effect.name]
 
 
 def test_smooth_reversal_lets_go_where_coulomb_friction_sticks():
@@ -176,3 +180,27 @@ def test_warm_up_friction_decays_with_the_drives_time_since_power_on():
         if moved_at is None and plant.velocity > 0:
             moved_at = cycle * 1e-3
     assert moved_at == pytest.approx(math.log(2.0), abs=0.01)
+
+
+def test_the_mpc_tracks_a_saturating_drive_better_once_the_saturation_is_named():
+    """Named in the model, the saturation reaches the controller's predictions: on a joint
+    whose torque constant saturates, carrying 5 kg through a 0.5 Hz swing, the MPC that knows
+    it tracks at least twice as closely as the one that does not (measured: 0.12 against
+    0.51 mrad RMS)."""
+    payload = Payload(5.0, 0.0, 0.1)
+    saturated = with_truth_effects(load_model(), [
+        "torque_constant_saturation:coefficient=0.06,knee_current=1.5"])
+    truth = saturated.parameters.with_payload(payload).packed()
+    errors = []
+    for model in (saturated, load_model()):
+        mpc = Mpc(model, payload=payload,
+                  reference=Sinusoid(center=-1.2, amplitude=0.6, frequency=0.5))
+        q, qd = mpc.reference_at(0.0)
+        error = []
+        for k in range(3000):
+            decision = mpc.tick(Sample(k * 1e-3, q, qd, 0.0, 0.0, 0))
+            q, qd, *_ = dynamics.step(q, qd, decision.planned_current, truth, 1e-3,
+                                      dynamics.SUBSTEPS)
+            error.append(q - mpc.reference_at((k + 1) * 1e-3)[0])
+        errors.append(math.sqrt(np.mean(np.square(error[500:]))))
+    assert errors[0] <= 0.5 * errors[1], errors

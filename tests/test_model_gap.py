@@ -13,16 +13,17 @@ import numpy as np
 import pytest
 import tomli_w
 
+from commands.sim_options import with_truth_effects
 from controller.mpc import Mpc
 from model import dynamics
-from model.effects import EFFECTS
+from model.effects import EFFECTS, Effects
 from model.gap import find_gap
 from model.gap.candidates import Problem
 from model.gap.discrimination import discriminate
 from model.gap.evidence import collect
 from model.gap.selection import contest
-from model.identify import Experiment
-from model.parameters import Payload, load_model
+from model.identify import Experiment, identify
+from model.parameters import ActuatorParameters, Payload, load_model
 from recorder.reader import load_recording
 
 pytestmark = pytest.mark.subprocess  # runs the commands as processes
@@ -199,9 +200,19 @@ def test_saturation_is_told_from_load_dependent_friction_and_identification_uses
     identified = load_model(again).parameters
     assert identified.effects.enabled() == ["torque_constant_saturation"]
     truth = load_model().parameters
-    assert abs(baseline.drive_gain / truth.drive_gain - 1) > 0.03  # the compromise without it
-    for name in ("drive_gain", "first_moment_y", "motor_inertia", "torque_sensor_gain"):
-        assert getattr(identified, name) == pytest.approx(getattr(truth, name), rel=0.005), name
+
+    def error(parameters: ActuatorParameters, name: str) -> float:
+        return abs(getattr(parameters, name) / getattr(truth, name) - 1)
+
+    # without it the gain is a compromise; with model-gap's estimate far closer; with the
+    # hidden table itself exact: the registry's drive side is identification's
+    assert error(baseline, "drive_gain") > 0.03
+    assert error(identified, "drive_gain") < min(0.02, error(baseline, "drive_gain") / 4)
+    exact = identify(*experiments(files)[:2], effects=Effects(
+        {"torque_constant_saturation": {"coefficient": 0.06, "knee_current": 1.5}})).parameters
+    for name in ("drive_gain", "first_moment_y", "motor_inertia", "torque_sensor_gain",
+                 "dry_friction_motor"):
+        assert error(exact, name) < 0.001, name
 
 
 def test_warm_up_friction_is_reported_with_its_time_scale_not_named(scenarios):
@@ -234,3 +245,16 @@ def test_each_instrument_is_examined_on_its_own(scenarios):
     assert result.instruments["verdict_before"].startswith("the motor side is wrong")
     assert not result.instruments["sensor"]["found"]
     assert result.instruments["verdict_after"] == "both instruments agree with the model"
+
+
+def test_the_hidden_truth_explains_its_recordings_to_the_noise(scenarios):
+    """One physics, time included: the virtual drive's model with its warm-up friction,
+    evaluated by model-gap at each row's time since the start, leaves the clean recordings'
+    error, where the baseline leaves several times more."""
+    files = scenarios["warm_up_friction"]
+    truth = with_truth_effects(load_model(), [HIDDEN["warm_up_friction"]])
+    clean = find_gap(experiments(scenarios["none"]), load_model(scenarios["none"]["baseline"]))
+    explained = find_gap(experiments(files), truth)
+    baseline = find_gap(experiments(files), load_model(files["baseline"]))
+    assert explained.rmsd_before <= 1.2 * clean.rmsd_before
+    assert baseline.rmsd_before >= 2 * explained.rmsd_before

@@ -45,8 +45,7 @@ def violations(problem: Problem, fit: Fit) -> dict[str, list[str]]:
     coulomb = fit.coefficients[REFIT.index("dry_friction_motor")] + (
         problem.parameters.dry_friction_joint)
     context = FitContext(coulomb=float(coulomb), position_range=float(np.ptp(problem.s.q)),
-                         current_peak=float(np.max(np.abs(problem.s.current))),
-                         duration=float(np.max(problem.s.elapsed)))
+                         current_peak=float(np.max(np.abs(problem.s.current))))
     out = {}
     for name, table in fit.tables().items():
         broken = EFFECTS[name].violations(table, context)
