@@ -82,8 +82,7 @@ def _one_line(exc: Exception) -> str:
         number, line = exc.errors[0]
         return f"line {number}: expected KEY=VALUE or [section], got {line.strip()!r:.60}"
     if isinstance(exc, configparser.DuplicateSectionError | configparser.DuplicateOptionError):
-        return f"line {exc.lineno}: {exc.message.split(':', 1)[-1].strip()}" if hasattr(
-            exc, "message") else " ".join(str(exc).split())
+        return f"line {exc.lineno}: {exc.message.split(':', 1)[-1].strip()}"
     return " ".join(f"{type(exc).__name__}: {exc}".split())[:300]
 
 
