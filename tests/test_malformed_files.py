@@ -97,6 +97,14 @@ def malformed_esi() -> dict[str, tuple[str, str]]:
                                              "<SubIndex>300</SubIndex>", 1), "SubIndex"),
         "ConfigData not hex": (ESI.replace("<ConfigData>0500000000000000</ConfigData>",
                                            "<ConfigData>zz</ConfigData>"), "ConfigData"),
+        "mailbox of 0 bytes": (ESI.replace('MinSize="34" MaxSize="128" DefaultSize="128" '
+                                           'StartAddress="#x1000"', 'MinSize="0" MaxSize="0" '
+                                           'DefaultSize="0" StartAddress="#x1000"'),
+                               "at least 16 bytes"),
+        "overlapping sync managers": (ESI.replace('StartAddress="#x1080"',
+                                                  'StartAddress="#x1000"'), "overlaps"),
+        "no PDOs": (ESI[:ESI.index("        <RxPdo")] + ESI[ESI.index("        <Mailbox"):],
+                    "at least one <RxPdo>"),
         "not XML": (ESI[:200], "not XML"),
     }
 
