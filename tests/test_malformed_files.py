@@ -47,6 +47,12 @@ def malformed_eds() -> dict[str, tuple[str, str]]:
         "line without =": (EDS.replace("[6041]\n", "[6041]\ngarbage line\n", 1),
                            "expected KEY=VALUE"),
         "binary": ("\x00\x01\x02" * 100, "not a valid EDS"),
+        "default not a number": (_set(EDS, "6041", "DefaultValue", "abc"),
+                                 "DefaultValue=abc: expected a number"),
+        "limit not a number": (EDS.replace("[6041]\n", "[6041]\nLowLimit=zz\n", 1),
+                               "LowLimit=zz"),
+        "unknown AccessType": (_set(EDS, "6041", "AccessType", "xyz"), "AccessType=xyz"),
+        "PDOMapping not 0 or 1": (_set(EDS, "6041", "PDOMapping", "7"), "PDOMapping=7"),
     }
 
 
