@@ -139,6 +139,9 @@ def malformed_models() -> dict[str, tuple[str, str]]:
         "range narrower than the default reference": (
             edit("position_min = -2.35", "position_min = -1e-12"), "reference spans"),
         "not TOML": (MODEL.replace("[parameters]", "[parameters", 1), "not valid TOML"),
+        "effect beyond the drive's peak torque": (
+            MODEL + '\n[effects.load_dependent_friction]\ncoefficient = 1e300\n'
+                    'provenance = "a typo"\n', "[effects]: add up to"),
     }
 
 
