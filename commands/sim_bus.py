@@ -37,7 +37,7 @@ from commands.sim_options import (
     with_truth_effects,
 )
 from model.parameters import ActuatorModel, ModelFileError, Payload
-from protocol.bus_spec import BusSpecError, is_ethercat, parse_bus_spec
+from protocol.bus_spec import BusSpecError, is_ethercat
 from robot.wiring import describe_bus, open_can_network
 from sim_bus.canopen_node import CanOpenNode
 from sim_bus.canopen_watchdogs import DEFAULT_SILENCE_TIMEOUT
@@ -89,9 +89,8 @@ def _serve_robot(args) -> int:
     """`sim-bus --robot FILE`: all the file's drives in this process until a signal, CAN
     drives on their buses, every EtherCAT line on its interface."""
     from commands.sim_options import parse_joint_fault
-    from driver.canopen_transport import open_network
     from robot.description import RobotFileError, load_robot
-    from sim_bus.embedded import make_device, power_on
+    from robot.serving import serve_robot
 
     try:
         for option, key in (("--bus", "bus"), ("-i", "interface"), ("-c", "channel"),
@@ -112,96 +111,30 @@ def _serve_robot(args) -> int:
     except (RobotFileError, BusSpecError, ValueError) as exc:
         return usage_error(PROG, str(exc))
 
-    def noise_of(joint) -> SensorNoise:
-        return SensorNoise(current=args.current_noise, joint_torque=args.torque_noise,
-                           seed=args.seed + robot.joints.index(joint))
-
-    def device_of(joint):
-        return make_device(joint.model, Payload(), noise_of(joint), eds_path=joint.eds,
-                           commissioned=True)
-
-    networks, nodes, lines = [], [], []
-    served: list[tuple[str, Cia402Device]] = []  # (joint, its drive), bus by bus
-    stop = threading.Event()
     try:
-        for bus, joints in robot.buses().items():
-            if is_ethercat(bus):
-                on_line = sorted(joints, key=lambda joint: joint.address)
-                devices = [device_of(joint) for joint in on_line]
-                served += [(joint.name, device) for joint, device in zip(on_line, devices,
-                                                                         strict=True)]
-                lines.append(_LineThread(bus, parse_bus_spec(bus)["channel"], devices, stop))
-                continue
-            networks.append(open_network(bus, robot.bitrates.get(bus)))
-            for joint in joints:
-                nodes.append(power_on(networks[-1], joint.model, Payload(), noise_of(joint),
-                                      joint.address, eds_path=joint.eds, commissioned=True,
-                                      silence_timeout=_silence_timeout(args)))
-                served.append((joint.name, nodes[-1].device))
-        for line in lines:
-            line.start()
-        for line in lines:
-            line.wait_ready()
+        served = serve_robot(robot, seed=args.seed, current_noise=args.current_noise,
+                             torque_noise=args.torque_noise,
+                             silence_timeout=_silence_timeout(args))
     except Exception as exc:  # python-can raises per interface: CanError, OSError, ImportError
-        stop.set()
-        for line in lines:
-            line.join()
-        for node in nodes:
-            node.close()
-        for network in networks:
-            network.disconnect()
         return job_error(PROG, f"cannot serve {args.robot}: {exc}")
-    devices = dict(served)
+    devices = dict(served.served)
     for name, fault, seconds in faults:
         devices[name].schedule(fault, seconds)
+    stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    answer_like_hardware()
-    print(f"sim-bus: {len(served)} drives of {robot.name} on {', '.join(robot.buses())} ready",
-          flush=True)
-    while not stop.is_set() and not any(line.failure for line in lines):
-        stop.wait(0.1)
-    stop.set()
-    for line in lines:
-        line.join()
+    answer_like_hardware()  # once every drive is ready: their answers are the hardware's
+    print(f"sim-bus: {len(served.served)} drives of {robot.name} on "
+          f"{', '.join(robot.buses())} ready", flush=True)
+    served.serve_until(stop)
     print("sim-bus: stopped; " + ", ".join(
         f"{name} {device.cycle_count} cycles '{device.state.value}' at "
-        f"{device.plant.position:.3f} rad" for name, device in served), flush=True)
-    for node in nodes:
-        node.close()
-    for network in networks:
-        network.disconnect()
-    failed = [line for line in lines if line.failure]
-    if failed:
-        return job_error(PROG, f"line {failed[0].bus} failed: {failed[0].failure}")
+        f"{device.plant.position:.3f} rad" for name, device in served.served), flush=True)
+    served.close()
+    failed = served.failed_line()
+    if failed is not None:
+        return job_error(PROG, f"line {failed.bus} failed: {failed.failure}")
     return 0
-
-
-class _LineThread(threading.Thread):
-    """One EtherCAT line of virtual slaves answering on its interface until `stop`."""
-
-    def __init__(self, bus: str, interface: str, devices: Sequence[Cia402Device],
-                 stop: threading.Event):
-        super().__init__(daemon=True, name=f"line-{interface}")
-        self.bus, self.interface, self.devices, self.stop = bus, interface, devices, stop
-        self.ready = threading.Event()
-        self.failure: Exception | None = None
-
-    def run(self) -> None:
-        from sim_bus.ethercat.segment import serve
-
-        try:
-            serve(self.interface, self.devices, self.stop, on_ready=lambda _: self.ready.set())
-        except Exception as exc:  # OSError: no such interface, no raw socket
-            self.failure = exc
-        finally:
-            self.ready.set()
-
-    def wait_ready(self) -> None:
-        """Return once the line answers; raise why it cannot."""
-        self.ready.wait()
-        if self.failure is not None:
-            raise OSError(f"bus {self.bus}: {self.failure}")
 
 
 def _line_faults(texts: Sequence[str], slaves: int) -> list[tuple[int | None, Fault, float]]:

@@ -9,13 +9,10 @@ import math
 from collections.abc import Iterable
 from dataclasses import replace
 
-import numpy as np
-
 from commands.model_options import peak_joint_torque
 from commands.parsing import seed
-from model.dynamics import inverse_dynamics
 from model.effects import EFFECT_KEYS, EFFECT_NAMES
-from model.parameters import ActuatorModel, ActuatorParameters
+from model.parameters import ActuatorModel, largest_effect_torque
 from sim_bus.faults import Fault
 
 
@@ -112,28 +109,10 @@ def with_truth_effects(model: ActuatorModel, options: Iterable[str]) -> Actuator
                                                     **table})
         except (KeyError, ValueError) as exc:
             raise ValueError(f"--truth-effect {option}: {exc}") from None
-        extra = _largest_effect_torque(model, parameters, with_it)
+        extra = largest_effect_torque(parameters, with_it, model.limits)
         if not extra <= peak:
             raise ValueError(f"--truth-effect {option}: adds up to {extra:.3g} N.m over the "
                              f"joint's range and velocities; expected at most the drive's peak "
                              f"torque {peak:g} N.m")
         parameters = with_it
     return replace(model, parameters=parameters)
-
-
-def _largest_effect_torque(model: ActuatorModel, without: ActuatorParameters,
-                           with_it: ActuatorParameters) -> float:
-    """N.m: the most an effect changes the motor torque over the joint's position range and
-    velocities (both directions), from the model's own inverse dynamics. Whatever its keys'
-    units (a load coefficient of 1e300 is as absurd as 1e300 N.m), an effect the drive could
-    never overcome is not a plausible hidden truth; the physics would overflow too."""
-    limits = model.limits
-    q, qd = np.meshgrid(np.linspace(limits.position_min, limits.position_max, 41),
-                        limits.velocity_max * np.array([-1.0, -0.1, -0.01, 0.01, 0.1, 1.0]))
-    q, qd = q.ravel(), qd.ravel()
-    direction, qdd = np.sign(qd), np.zeros_like(q)
-    with np.errstate(all="ignore"):
-        before, _ = inverse_dynamics(q, qd, qdd, direction, without.packed())
-        after, _ = inverse_dynamics(q, qd, qdd, direction, with_it.packed())
-        largest = float(np.max(np.abs(after - before)))
-    return largest if math.isfinite(largest) else math.inf

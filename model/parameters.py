@@ -208,10 +208,32 @@ def load_model(path: str | Path | None = None) -> ActuatorModel:
     std = _numbers(path, doc, "std", param_names, required=False)
     effects, effect_provenance = _effects(path, doc)
     provenance.update(effect_provenance)
+    parameters = ActuatorParameters(**values, effects=effects)
+    extra = largest_effect_torque(ActuatorParameters(**values), parameters, limits)
+    if not extra <= peak:
+        raise ModelFileError(f"{path}: [effects]: add up to {extra:.3g} N.m over the joint's "
+                             f"range and velocities; expected at most the drive's peak torque "
+                             f"drive_gain x current_max = {peak:g} N.m")
     meta = doc.get("meta", {})
-    return ActuatorModel(parameters=ActuatorParameters(**values, effects=effects), limits=limits,
-                         provenance=provenance, std=std, name=str(meta.get("name", "")),
-                         source=str(path))
+    return ActuatorModel(parameters=parameters, limits=limits, provenance=provenance, std=std,
+                         name=str(meta.get("name", "")), source=str(path))
+
+
+def largest_effect_torque(without: ActuatorParameters, with_effects: ActuatorParameters,
+                          limits: Limits) -> float:
+    """N.m: the most the extra effects of `with_effects` change the motor torque over the
+    joint's position range and velocities (both directions), from the inverse dynamics.
+    Whatever an effect's keys' units (a load coefficient of 1e300 is as absurd as 1e300 N.m),
+    one the drive could never overcome is a mistake, and the physics would overflow."""
+    q, qd = np.meshgrid(np.linspace(limits.position_min, limits.position_max, 41),
+                        limits.velocity_max * np.array([-1.0, -0.1, -0.01, 0.01, 0.1, 1.0]))
+    q, qd = q.ravel(), qd.ravel()
+    direction, qdd = np.sign(qd), np.zeros_like(q)
+    with np.errstate(all="ignore"):
+        before, _ = dynamics.inverse_dynamics(q, qd, qdd, direction, without.packed())
+        after, _ = dynamics.inverse_dynamics(q, qd, qdd, direction, with_effects.packed())
+        largest = float(np.max(np.abs(after - before)))
+    return largest if math.isfinite(largest) else math.inf
 
 
 def _effects(path: Path, doc: dict) -> tuple[Effects, dict[str, str]]:

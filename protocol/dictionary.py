@@ -18,6 +18,7 @@ from protocol.pdo import CODEC_BITS, MappedObject, split_mapping_entry
 
 # every DataType canopen can read and write; anything else would reach the cycle as raw bytes
 KNOWN_TYPES = frozenset(ODVariable.STRUCT_TYPES) | frozenset(datatypes.DATA_TYPES)
+_ACCESS_TYPES = ("ro", "wo", "rw", "rwr", "rww", "const")
 # the predefined record types (PDO communication and mapping, SDO, identity)
 _RECORD_TYPES = frozenset(range(0x20, 0x24))
 # objects the master's unit scaling divides by: a default, where given, must be > 0
@@ -45,7 +46,7 @@ def load_dictionary(path: str | Path, node_id: int | None = None) -> ObjectDicti
         raw.read_string(text, str(path))
     except configparser.Error as exc:
         raise ValueError(f"{path}: not a valid EDS: {_one_line(exc)}") from None
-    _check_data_types(raw, path)
+    _check_raw(raw, path)
     source = io.StringIO(text)
     source.name = "drive.eds"  # canopen picks its parser by the suffix; the content decides
     try:
@@ -56,10 +57,21 @@ def load_dictionary(path: str | Path, node_id: int | None = None) -> ObjectDicti
     return dictionary
 
 
-def _check_data_types(raw: configparser.RawConfigParser, path: str | Path) -> None:
-    """Every DataType names a CiA 301 type canopen can encode (canopen itself reads an unknown
-    one as DOMAIN: a statusword that would reach the cycle as raw bytes)."""
+def _check_raw(raw: configparser.RawConfigParser, path: str | Path) -> None:
+    """What canopen reads leniently, checked as written: every DataType names a CiA 301 type
+    canopen can encode (canopen reads an unknown one as DOMAIN: a statusword that would reach
+    the cycle as raw bytes), AccessType and PDOMapping are CiA 306's, and the default, value
+    and limits of a number are numbers (canopen drops one it cannot parse, so the object
+    would silently hold 0)."""
     for section in raw.sections():
+        where = f"{path}: [{section}]"
+        access = raw.get(section, "AccessType", fallback=None)
+        if access is not None and access.strip().lower() not in _ACCESS_TYPES:
+            raise ValueError(f"{where} AccessType={access.strip()[:20]}: expected one of "
+                             f"{', '.join(_ACCESS_TYPES)}")
+        mapping = raw.get(section, "PDOMapping", fallback=None)
+        if mapping is not None and mapping.strip() not in ("0", "1"):
+            raise ValueError(f"{where} PDOMapping={mapping.strip()[:20]}: expected 0 or 1")
         text = raw.get(section, "DataType", fallback=None)
         if text is None:
             continue
@@ -70,8 +82,25 @@ def _check_data_types(raw: configparser.RawConfigParser, path: str | Path) -> No
         record = raw.get(section, "ObjectType", fallback="0x7").strip() in ("0x8", "0x9",
                                                                             "0x08", "0x09")
         if data_type not in KNOWN_TYPES and not (record and data_type in _RECORD_TYPES):
-            raise ValueError(f"{path}: [{section}] DataType={text.strip()}: expected a CiA "
-                             "301 basic type (0x0001..0x001B, e.g. 0x0006 UNSIGNED16)")
+            raise ValueError(f"{where} DataType={text.strip()}: expected a CiA 301 basic type "
+                             "(0x0001..0x001B, e.g. 0x0006 UNSIGNED16)")
+        parse = (_canopen_int if data_type in datatypes.INTEGER_TYPES + (datatypes.BOOLEAN,)
+                 else float if data_type in datatypes.FLOAT_TYPES else None)
+        for key in ("DefaultValue", "ParameterValue", "LowLimit", "HighLimit"):
+            value = raw.get(section, key, fallback=None)
+            if parse is None or value is None or not value.strip() or "$NODEID" in (
+                    value.upper()):
+                continue
+            try:
+                parse(value.strip())
+            except ValueError:
+                raise ValueError(f"{where} {key}={value.strip()[:20]}: expected a number for "
+                                 f"DataType {text.strip()}") from None
+
+
+def _canopen_int(text: str) -> int:
+    """An EDS integer as canopen reads it (decimal or 0x hexadecimal, spaces ignored)."""
+    return int(text.replace(" ", "").upper(), 0)
 
 
 def _one_line(exc: Exception) -> str:
@@ -82,8 +111,7 @@ def _one_line(exc: Exception) -> str:
         number, line = exc.errors[0]
         return f"line {number}: expected KEY=VALUE or [section], got {line.strip()!r:.60}"
     if isinstance(exc, configparser.DuplicateSectionError | configparser.DuplicateOptionError):
-        return f"line {exc.lineno}: {exc.message.split(':', 1)[-1].strip()}" if hasattr(
-            exc, "message") else " ".join(str(exc).split())
+        return f"line {exc.lineno}: {exc.message.split(':', 1)[-1].strip()}"
     return " ".join(f"{type(exc).__name__}: {exc}".split())[:300]
 
 

@@ -30,6 +30,7 @@ EEPROM_BYTES = (128, 65536)
 MAX_SYNC_MANAGERS = 16
 MAX_FMMUS = 16
 MAX_PDO_ENTRIES = 254
+MAILBOX_MIN = 16  # bytes: a mailbox header (6), a CoE header (2) and an expedited SDO (8)
 RXPDO_INDICES = range(0x1600, 0x1800)
 TXPDO_INDICES = range(0x1A00, 0x1C00)
 
@@ -245,10 +246,24 @@ def _check_layout(device: EsiDevice) -> None:
     if len(device.sync_managers) > MAX_SYNC_MANAGERS or len(device.fmmus) > MAX_FMMUS:
         raise EsiError(f"{len(device.sync_managers)} <Sm> and {len(device.fmmus)} <Fmmu>: an "
                        f"ESC has at most {MAX_SYNC_MANAGERS} of each")
-    for sm in device.sync_managers:
+    windows = []
+    for number, sm in enumerate(device.sync_managers):
         if sm.start + max(sm.default_size, sm.max_size) > 0x10000:
             raise EsiError(f"Sm {sm.kind} at 0x{sm.start:04X} with {sm.max_size} bytes: "
                            "expected to end within the ESC's 64 KiB")
+        mailbox = sm.kind in ("MBoxOut", "MBoxIn")
+        if mailbox and sm.default_size < MAILBOX_MIN:
+            raise EsiError(f"Sm {sm.kind} DefaultSize {sm.default_size}: expected at least "
+                           f"{MAILBOX_MIN} bytes (a CoE SDO in a mailbox)")
+        size = sm.default_size if mailbox else device.pdo_bytes(number)
+        for other, start, end in windows:
+            if sm.start < end and start < sm.start + size:
+                raise EsiError(f"Sm {sm.kind} at 0x{sm.start:04X} ({size} bytes) overlaps Sm "
+                               f"{other} at 0x{start:04X}; expected separate windows")
+        windows.append((sm.kind, sm.start, sm.start + size))
+    if not device.rxpdos or not device.txpdos:
+        raise EsiError("expected at least one <RxPdo> and one <TxPdo> (a CiA 402 drive's "
+                       "command and sample)")
     for kind, pdos, indices in (("Outputs", device.rxpdos, RXPDO_INDICES),
                                 ("Inputs", device.txpdos, TXPDO_INDICES)):
         for pdo in pdos:

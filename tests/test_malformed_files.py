@@ -47,6 +47,12 @@ def malformed_eds() -> dict[str, tuple[str, str]]:
         "line without =": (EDS.replace("[6041]\n", "[6041]\ngarbage line\n", 1),
                            "expected KEY=VALUE"),
         "binary": ("\x00\x01\x02" * 100, "not a valid EDS"),
+        "default not a number": (_set(EDS, "6041", "DefaultValue", "abc"),
+                                 "DefaultValue=abc: expected a number"),
+        "limit not a number": (EDS.replace("[6041]\n", "[6041]\nLowLimit=zz\n", 1),
+                               "LowLimit=zz"),
+        "unknown AccessType": (_set(EDS, "6041", "AccessType", "xyz"), "AccessType=xyz"),
+        "PDOMapping not 0 or 1": (_set(EDS, "6041", "PDOMapping", "7"), "PDOMapping=7"),
     }
 
 
@@ -97,6 +103,14 @@ def malformed_esi() -> dict[str, tuple[str, str]]:
                                              "<SubIndex>300</SubIndex>", 1), "SubIndex"),
         "ConfigData not hex": (ESI.replace("<ConfigData>0500000000000000</ConfigData>",
                                            "<ConfigData>zz</ConfigData>"), "ConfigData"),
+        "mailbox of 0 bytes": (ESI.replace('MinSize="34" MaxSize="128" DefaultSize="128" '
+                                           'StartAddress="#x1000"', 'MinSize="0" MaxSize="0" '
+                                           'DefaultSize="0" StartAddress="#x1000"'),
+                               "at least 16 bytes"),
+        "overlapping sync managers": (ESI.replace('StartAddress="#x1080"',
+                                                  'StartAddress="#x1000"'), "overlaps"),
+        "no PDOs": (ESI[:ESI.index("        <RxPdo")] + ESI[ESI.index("        <Mailbox"):],
+                    "at least one <RxPdo>"),
         "not XML": (ESI[:200], "not XML"),
     }
 
@@ -125,6 +139,9 @@ def malformed_models() -> dict[str, tuple[str, str]]:
         "range narrower than the default reference": (
             edit("position_min = -2.35", "position_min = -1e-12"), "reference spans"),
         "not TOML": (MODEL.replace("[parameters]", "[parameters", 1), "not valid TOML"),
+        "effect beyond the drive's peak torque": (
+            MODEL + '\n[effects.load_dependent_friction]\ncoefficient = 1e300\n'
+                    'provenance = "a typo"\n', "[effects]: add up to"),
     }
 
 
