@@ -163,7 +163,7 @@ def measure_joints(joints: int, ticks: int, threads: int,
     try:
         loops = {kernel: _ClosedLoop(joints, settings, kernel, threads)
                  for kernel in ("lanes", "scalar")}
-        block = max(1, min(500, ticks // 10))
+        block = max(1, min(50, ticks // 100))  # 100 turns each: bursts of load average out
         times: dict[str, list[np.ndarray]] = {kernel: [] for kernel in loops}
         done = 0
         while done < ticks:

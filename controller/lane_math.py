@@ -5,13 +5,15 @@ call. Without a vector maths library behind them, LLVM cannot put these calls in
 it either scalarises the intrinsics (four libm calls per AVX2 vector) or, for the libm call,
 gives up on the whole loop. The usual remedy, numba with Intel's SVML (`icc_rt`), needs an
 llvmlite built with the SVML patch; this one is not (`numba -s`: "LLVM SVML Patched: False"),
-and its LLVM has no `-vector-library` option either, so glibc's libmvec cannot be plugged in.
+and its LLVM build takes no `-vector-library` option (setting it changed nothing), so glibc's
+libmvec cannot be plugged in either.
 Hence these: branch-free straight-line code of additions, multiplications, fused
 multiply-adds and bit moves, which LLVM turns into AVX2/FMA instructions inside a loop over
 joints.
 
-Bounds, relative to the correctly rounded value (checked against glibc in
-tests/test_batch_lanes.py on ~10^6 points each):
+Bounds, in units in the last place of glibc's result (checked in tests/test_batch_lanes.py on
+6 x 10^5 random points each and the edge cases; measured: exp 1, tanh 3, sin and cos 1 for
+|x| <= 10 and 2 up to 10^5):
   * `exp`: at most 2 ulp over the whole double range (overflow to inf above 709.78, 0 below
     -745.13, NaN kept). Cody-Waite reduction x = n ln2 + r, |r| <= ln2/2, then e^r by its Taylor
     polynomial of degree 13, whose truncation error (ln2/2)^14 / 14! = 4e-18 is below half an

@@ -105,9 +105,9 @@ GAIN_FIELDS = 5
 PARAMETERS = 0
 COSTS = N_PARAMS
 (Q0, QD0, BOX, TOLERANCE, MU, COST, MERIT, DV1, DV2, ALPHA, VX1, VX2, V11, V12, V22, SWEEP_OK,
- TOTAL, NEEDS_SWEEP, TAKES, SHIFTS, SUM, SIMULATED_Q, SIMULATED_QD) = range(COSTS + N_COST,
-                                                                          COSTS + N_COST + 23)
-SCRATCH = COSTS + N_COST + 23
+ TOTAL, NEEDS_SWEEP, TAKES, SHIFTS, SUM, SIMULATED_Q, SIMULATED_QD, INVERSE_INERTIA) = range(
+    COSTS + N_COST, COSTS + N_COST + 24)
+SCRATCH = COSTS + N_COST + 24
 
 # phases of a joint within a tick
 DONE, WARM_SWEEP, FIRST_ROLLOUT, SWEEP, SEARCH = range(5)
@@ -222,7 +222,7 @@ def _acceleration(q, qd, u, S, c, w):
     maths: qdd and its partial derivatives in q, qd and u."""
     sharpness = S[c, COSTS + C_FRICTION_SHARPNESS, w]
     th = tanh(sharpness * qd)
-    inv_inertia = 1.0 / S[c, PARAMETERS + P_INERTIA, w]
+    inv_inertia = S[c, INVERSE_INERTIA, w]  # 1 / I, as smooth_acceleration computes it
     sin_q, cos_q = sin_cos(q)
     my, mx = S[c, PARAMETERS + P_GRAVITY_MY, w], S[c, PARAMETERS + P_GRAVITY_MX, w]
     gravity = my * sin_q + mx * cos_q
@@ -511,6 +511,7 @@ def _begin(rows, Tc, G, scratch, state, t0, n, r, c0, c1, width):
                 scratch[c, PARAMETERS + i, w] = row[ws.PARAMETERS + i]
             for i in range(N_COST):
                 scratch[c, COSTS + i, w] = row[ws.COST_VECTOR + i]
+            scratch[c, INVERSE_INERTIA, w] = 1.0 / scratch[c, PARAMETERS + P_INERTIA, w]
             costs = lane_costs(scratch, c, w)
             scratch[c, BOX, w] = control_box(costs)
             scratch[c, Q0, w] = row[ws.POSITION]
@@ -551,8 +552,8 @@ def _begin(rows, Tc, G, scratch, state, t0, n, r, c0, c1, width):
         for w in range(last_lane + 1, width):
             for i in range(COSTS + N_COST):
                 scratch[last_chunk, i, w] = scratch[last_chunk, i, last_lane]
-            scratch[last_chunk, Q0, w] = scratch[last_chunk, Q0, last_lane]
-            scratch[last_chunk, QD0, w] = scratch[last_chunk, QD0, last_lane]
+            for i in (Q0, QD0, INVERSE_INERTIA):
+                scratch[last_chunk, i, w] = scratch[last_chunk, i, last_lane]
     return shifts
 
 
