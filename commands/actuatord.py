@@ -5,45 +5,54 @@ import dataclasses
 import json
 import signal
 import sys
+import threading
 from pathlib import Path
 
-from commands.options import (
-    CommandParser,
-    DriveOpenError,
+from commands.bus_options import (
     add_bus_arguments,
-    add_logging_argument,
-    add_model_argument,
-    add_payload_arguments,
     add_real_time_argument,
-    add_virtual_drive_arguments,
-    add_zenoh_arguments,
     apply_real_time,
     check_drive_arguments,
     check_eds,
-    check_key_expr,
-    check_output_folder,
-    check_payload,
-    configure_logging,
-    fault_schedule,
-    int_range,
-    job_error,
     load_esi_option,
     open_drive,
-    open_session,
+)
+from commands.file_options import check_output_file, check_output_folder
+from commands.first_run import CompileNotice
+from commands.log_options import (
+    ThreadFailures,
+    add_logging_argument,
+    configure_logging,
+    internal_error,
+    job_error,
+    reports_failures,
+)
+from commands.model_options import (
+    add_model_argument,
+    add_payload_arguments,
+    check_payload,
+    load_model_option,
     parse_assignments,
     payload_from_args,
-    positive_float,
-    usage_error,
-    with_truth_effects,
+)
+from commands.parsing import CommandParser, int_range, positive_float, usage_error
+from commands.ros2_options import add_ros2_argument
+from commands.sim_options import add_virtual_drive_arguments, fault_schedule, with_truth_effects
+from commands.zenoh_options import (
+    add_zenoh_arguments,
+    check_key_expr,
+    open_session,
+    zenoh_config,
 )
 from controller.loop import ControlLoop, LoopOptions
 from controller.mpc import Mpc
 from controller.problem import MAX_HORIZON, OcpSettings, ResolutionError, Weights
 from controller.reference import ReferenceError, Sinusoid, reference_from_dict
 from controller.requests import RequestHandler
-from model.parameters import ActuatorModel, ModelFileError, load_model
+from model.parameters import ActuatorModel, ModelFileError
 from protocol import telemetry
 from protocol.bus_spec import BusSpecError
+from robot.wiring import DriveOpenError
 
 PROG = "actuatord"
 
@@ -81,13 +90,18 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--robot", metavar="FILE",
                         help="every joint of a robot file (robots/*.toml) in one cycle: one "
                              "SYNC per CAN bus and one frame per EtherCAT line, one batched "
-                             "MPC call; --sim embeds every drive (an EtherCAT line's too, on "
-                             "an in-process CANopen link); --inject-fault then takes "
+                             "MPC call; --sim embeds every drive (a CAN bus as an in-process "
+                             "link, an EtherCAT line as virtual slaves linked to the master's "
+                             "process image); --inject-fault then takes "
                              "JOINT:NAME@SECONDS")
     parser.add_argument("--plot", metavar="DIR", help="save position and current figures here")
+    parser.add_argument("--report", metavar="FILE",
+                        help="write the run's figures as JSON (cycles, missed cycles by cause, "
+                             "jitter, MPC tick and the master's own cost in us, exit code)")
     add_virtual_drive_arguments(parser)
     add_real_time_argument(parser)
     add_zenoh_arguments(parser)
+    add_ros2_argument(parser)
     add_logging_argument(parser)
     return parser
 
@@ -101,6 +115,7 @@ def _settings(args: argparse.Namespace, model: ActuatorModel) -> OcpSettings:
         weights["torque_barrier"] = 0.0
     try:
         settings = OcpSettings(horizon=args.horizon, dt=args.dt).with_weights(**weights)
+        settings.check_weights()
     except ValueError as exc:
         raise ValueError(f"--weight/--dt: {exc}") from None
     _check_resolution(settings, model, args.period_us)
@@ -127,15 +142,37 @@ def _reference(text: str | None, model: ActuatorModel):
     return reference_from_dict(spec, model.limits)
 
 
+@reports_failures(PROG)
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)
-    if args.robot is not None:
-        return _run_robot(args)
+    # from before the first thread starts: an exception that ends any thread stops the loop
+    # (or keeps it from starting), and the run then ends with every drive quick-stopped
+    stop = threading.Event()
+    with ThreadFailures(stop.set) as threads:
+        if args.robot is not None:
+            return _run_robot(args, stop, threads)
+        return _run_joint(args, stop, threads)
+
+
+def _write_report(args: argparse.Namespace, report) -> None:
+    """--report: the run's figures as JSON, written whole (after the summary, which stays the
+    word of record if the file cannot be written)."""
+    if args.report is None:
+        return
+    try:
+        Path(args.report).write_text(json.dumps(report.figures(), indent=1) + "\n")
+    except OSError as exc:
+        job_error(PROG, f"--report {args.report}: cannot write: {exc.strerror or exc}")
+
+
+def _run_joint(args: argparse.Namespace, stop: threading.Event, threads: ThreadFailures) -> int:
+    """`actuatord` on one drive: exit 0 when the run ends as asked, 1 when it failed (the drive
+    quick-stopped), 2 for bad input."""
     if args.prefix is None:
         args.prefix = telemetry.DEFAULT_PREFIX
     try:
-        model = load_model(args.model)
+        model = load_model_option(args.model)
         sim_model = with_truth_effects(model, args.truth_effect)
         schedule = fault_schedule(args)
         if schedule and not args.sim:
@@ -145,10 +182,21 @@ def main(argv: list[str] | None = None) -> int:
         check_drive_arguments(args)
         check_eds(args.eds, model.parameters.drive_gain, esi=load_esi_option(args))
         check_key_expr("--prefix", args.prefix, wildcards=False)
+        zenoh_config(args)  # its file and endpoints, before the controller is compiled
         settings = _settings(args, model)
         reference = _reference(args.reference, model)
         if args.plot:
             check_output_folder("--plot", args.plot)
+        if args.report is not None:
+            check_output_file("--report", args.report)
+        # built (and compiled) before the drive is opened: a reference the model's limits
+        # refuse (a velocity_max below the default sinusoid's peak) is bad input, not a crash
+        try:
+            mpc = Mpc(model, settings, payload, reference)
+        except ReferenceError as exc:
+            shown = args.reference or "(default: the paper's sinusoid)"
+            raise ValueError(f"--reference {shown[:60]} with the limits of the model "
+                             f"{model.source}: {exc}") from None
     except (ModelFileError, BusSpecError, ReferenceError, ValueError) as exc:
         return usage_error(PROG, str(exc))
 
@@ -156,14 +204,19 @@ def main(argv: list[str] | None = None) -> int:
     from driver.clock import collector_off_the_cycle
 
     period = args.period_us * 1e-6
-    apply_real_time(args, PROG)  # before any thread starts: they inherit it
     try:
         session = open_session(args)
     except ValueError as exc:
         return usage_error(PROG, str(exc))
     from controller.telemetry import TelemetryPublisher
 
-    publisher = TelemetryPublisher(session, args.prefix)
+    publisher = TelemetryPublisher(session, args.prefix, ros2_domain=args.ros2)
+    with CompileNotice(PROG):  # a first run compiles the solver here
+        mpc = Mpc(model, settings, payload, reference)  # compiled code loaded before the drive
+    # real-time priority from here on (the drive's threads inherit it), not before: Zenoh's
+    # and the publisher's threads stay off the cycle, and a start-up's heavy work at that
+    # priority starved the drives and the other master on a 2-core host
+    apply_real_time(args, PROG)
     try:
         # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host
         connection = open_drive(args, model, sim_model, payload, schedule, period=period,
@@ -173,23 +226,25 @@ def main(argv: list[str] | None = None) -> int:
         session.close()
         return job_error(PROG, str(exc))
     drive = connection.drive
-    mpc = Mpc(model, settings, payload, reference)
     loop = ControlLoop(drive, mpc, LoopOptions(period=period, lockstep=args.lockstep,
                                                duration=args.duration,
                                                keep_history=bool(args.plot)),
-                       [publisher.publish], lambda: publisher.dropped)
-    requests = RequestHandler(loop, mpc, model, payload, publisher.publish_audit)
-    publisher.serve_json(telemetry.PARAMETERS, requests.parameters)
-    publisher.serve_json(telemetry.REFERENCE, requests.set_reference)
-    publisher.serve_json(telemetry.WEIGHTS, requests.set_weights)
+                       [publisher.publish], lambda: publisher.dropped, stop)
     signal.signal(signal.SIGINT, lambda *_: loop.stop())
     signal.signal(signal.SIGTERM, lambda *_: loop.stop())
-    try:
+    try:  # from here on the drive is open: whatever happens, it is stopped and closed
+        requests = RequestHandler(loop, mpc, model, payload, publisher.publish_audit)
+        publisher.serve_json(telemetry.PARAMETERS, requests.parameters)
+        publisher.serve_json(telemetry.REFERENCE, requests.set_reference)
+        publisher.serve_json(telemetry.WEIGHTS, requests.set_weights)
         drive.start()
         print(f"actuatord: {connection.address} on {connection.where} enabled; "
               f"telemetry under {args.prefix}/", flush=True)
         with collector_off_the_cycle():
             report = loop.run()
+        if threads.first is not None and report.exit_code == 0:
+            report.exit_code, report.reason = 1, threads.first
+            _quick_stop(drive)
         if report.exit_code == 1:  # the loop ended on a fault: one line on stderr too
             job_error(PROG, report.reason)
     except ProfileError as exc:  # the drive does not fit the model: refused before enabling
@@ -201,11 +256,17 @@ def main(argv: list[str] | None = None) -> int:
         job_error(PROG, str(exc))
         report = loop.report
         report.exit_code, report.reason = 1, str(exc)
+    except Exception as exc:  # a bug or an input no check foresaw: the drive stops
+        report = loop.report
+        report.exit_code, report.reason = 1, internal_error(exc)
+        _quick_stop(drive)
+        job_error(PROG, report.reason)
     finally:
         connection.close()
         publisher.close()
         session.close()
     print(f"actuatord: {report.summary()}", flush=True)
+    _write_report(args, report)
     if args.plot and report.history.get("t"):
         from controller.plots import save_figures
 
@@ -215,6 +276,14 @@ def main(argv: list[str] | None = None) -> int:
         for path in save_figures(report.history, model.limits, Path(args.plot), title):
             print(f"actuatord: wrote {path}", flush=True)
     return report.exit_code
+
+
+def _quick_stop(drive) -> None:
+    """After an unexpected failure: quick stop (best effort; closing then disables)."""
+    try:
+        drive.quick_stop()
+    except Exception as exc:  # the drive may be what failed; closing still disables it
+        job_error(PROG, f"quick stop failed: {exc}")
 
 
 # --- a robot file: every joint in one cycle ---------------------------------------------------
@@ -250,6 +319,7 @@ def _robot_problems(args: argparse.Namespace, robot) -> list:
             if joint.friction_sharpness is not None:
                 settings = dataclasses.replace(settings,
                                                friction_sharpness=joint.friction_sharpness)
+            settings.check_weights()
         except ValueError as exc:
             raise ValueError(f"--weight/--dt for joint {joint.name}: {exc}") from None
         try:
@@ -273,11 +343,14 @@ def _robot_parameters(robot, problems: list) -> dict:
         for joint, problem in zip(robot.joints, problems, strict=True)]}
 
 
-def _run_robot(args: argparse.Namespace) -> int:
+def _run_robot(args: argparse.Namespace, stop: threading.Event,
+               threads: ThreadFailures) -> int:
     """`actuatord --robot FILE`: exit 0 when the run ends as asked, 1 when a joint failed
     (every joint quick-stopped, the joint named), 2 for a bad file or option."""
-    from commands.options import RobotConnection, open_robot, parse_joint_fault
-    from commands.robot_file import RobotFileError, load_robot
+    from commands.sim_options import parse_joint_fault
+    from controller.mpc import BatchMpc
+    from robot.description import RobotFileError, load_robot
+    from robot.wiring import RobotConnection, open_robot
 
     try:
         for option, key, default in _SINGLE_JOINT_OPTIONS:
@@ -295,23 +368,29 @@ def _run_robot(args: argparse.Namespace) -> int:
             raise ValueError("--inject-fault needs --sim")
         args.prefix = args.prefix or f"robots/{robot.name}"
         check_key_expr("--prefix", args.prefix, wildcards=False)
+        zenoh_config(args)  # its file and endpoints, before the controller is compiled
+        if args.report is not None:
+            check_output_file("--report", args.report, [("--robot", args.robot)])
         problems = _robot_problems(args, robot)
+        batch = BatchMpc(problems)  # compiled before any drive is opened
     except (RobotFileError, BusSpecError, ValueError) as exc:
         return usage_error(PROG, str(exc))
 
-    from controller.mpc import BatchMpc
     from controller.robot_loop import RobotLoop
     from controller.telemetry import TelemetryPublisher
     from driver import DriveError, ProfileError
     from driver.clock import collector_off_the_cycle
 
     period = robot.period_us * 1e-6
-    apply_real_time(args, PROG)  # before any thread starts: they inherit it
     try:
         session = open_session(args)
     except ValueError as exc:
         return usage_error(PROG, str(exc))
-    publisher = TelemetryPublisher(session, args.prefix, telemetry.ROBOT_TOPICS)
+    publisher = TelemetryPublisher(session, args.prefix, telemetry.ROBOT_TOPICS,
+                                   ros2_domain=args.ros2)
+    with CompileNotice(PROG):
+        batch = BatchMpc(problems)  # compiled before any drive is opened
+    apply_real_time(args, PROG)  # from here on, for the reason given in the one-joint run
     try:
         # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host
         connection: RobotConnection = open_robot(
@@ -322,30 +401,37 @@ def _run_robot(args: argparse.Namespace) -> int:
         session.close()
         return job_error(PROG, str(exc))
     group = connection.group
-    batch = BatchMpc(problems)  # compiled before any drive is enabled
     loop = RobotLoop(group, batch, LoopOptions(period=period, lockstep=args.lockstep,
                                                duration=args.duration),
-                     [publisher.publish], lambda: publisher.dropped, settle=TRACKING_SETTLE)
-    parameters = _robot_parameters(robot, problems)
-    publisher.serve_json(telemetry.PARAMETERS, lambda _: parameters)
+                     [publisher.publish], lambda: publisher.dropped, stop,
+                     settle=TRACKING_SETTLE)
     signal.signal(signal.SIGINT, lambda *_: loop.stop())
     signal.signal(signal.SIGTERM, lambda *_: loop.stop())
     failure = None
-    try:
+    try:  # from here on the drives are open: whatever happens, they are stopped and closed
+        parameters = _robot_parameters(robot, problems)
+        publisher.serve_json(telemetry.PARAMETERS, lambda _: parameters)
         group.start()
         print(f"actuatord: {len(group)} joints of {robot.name} on "
-              f"{', '.join(robot.buses())}{' (--sim)' if args.sim else ''} enabled; telemetry "
-              f"under {args.prefix}/", flush=True)
+              f"{', '.join(robot.buses())}{' (--sim)' if args.sim else ''} enabled; "
+              f"telemetry under {args.prefix}/", flush=True)
         with collector_off_the_cycle():
             report = loop.run()
         if report.exit_code != 0:
             failure = report.reason
     except DriveError as exc:
         report = loop.report
-        # a drive that does not fit its joint's model is refused before any drive is enabled
+        # a drive that does not fit its joint's model is refused before any is enabled
         unfit = isinstance(exc.__cause__, ProfileError)
         report.exit_code, report.reason = 2 if unfit else 1, str(exc)
         failure = str(exc)
+    except Exception as exc:  # a bug or an input no check foresaw: the drives stop
+        report = loop.report
+        report.exit_code, report.reason = 1, internal_error(exc)
+        failure = report.reason
+    if threads.first is not None and failure is None:
+        report.exit_code, report.reason = 1, threads.first
+        failure = threads.first
     try:
         if failure is not None:
             states = group.quick_stop_all()
@@ -359,6 +445,7 @@ def _run_robot(args: argparse.Namespace) -> int:
     if failure is not None:
         (usage_error if report.exit_code == 2 else job_error)(PROG, failure)
     print(f"actuatord: {report.summary()}", flush=True)
+    _write_report(args, report)
     rms = loop.tracking_rms()
     print(f"actuatord: RMS tracking error after {TRACKING_SETTLE:g} s (mrad): " + ", ".join(
         f"{name} {1e3 * value:.2g}" for name, value in zip(loop.names, rms,

@@ -18,16 +18,28 @@ import time
 
 import numpy as np
 
-from commands.options import (
-    CommandParser,
+from commands.log_options import (
     add_logging_argument,
     configure_logging,
-    int_range,
     job_error,
+    reports_failures,
+)
+from commands.parsing import (
+    CommandParser,
+    doc_description,
+    int_range,
+    positive_float,
+    usage_error,
 )
 from driver.canopen_drive import CanOpenDrive, open_network
 
 ETHERCAT_LINES = (1, 4)  # slaves on the measured lines
+
+
+def _stage(text: str) -> None:
+    """One progress line on stderr per measurement (the JSON result alone goes to stdout): the
+    whole run takes 15-30 s."""
+    print(f"bus-bench: {text}", file=sys.stderr, flush=True)
 
 
 def _lockstep_in_process(cycles: int) -> float:
@@ -105,6 +117,8 @@ def _ethercat(cycles: int) -> list[dict] | None:
     results = []
     with link:
         for slaves in ETHERCAT_LINES:
+            _stage(f"EtherCAT line of {slaves} virtual slave{'s' * (slaves > 1)} over a veth, "
+                   f"{cycles} frames lock-step and {cycles} at 1 kHz ...")
             with SlaveProcess(link, slaves, load_model()), link.entered():
                 results.append(measure_line(link.master_port, slaves, cycles))
     return results
@@ -116,11 +130,21 @@ def _velocity_limit() -> float:
     return load_model().limits.velocity_max
 
 
+@reports_failures("bus-bench")
 def main(argv: list[str] | None = None) -> int:
-    parser = CommandParser(prog="bus-bench", description=__doc__.splitlines()[0])
+    parser = CommandParser(prog="bus-bench", description=doc_description(__doc__))
     parser.add_argument("--cycles", type=int_range(1, 10_000_000), default=5000,
                         help="cycles per measurement (default: %(default)s; the EtherCAT round "
                              "trips take that many ms of real time per line)")
+    parser.add_argument("--robot", metavar="FILE",
+                        help="instead: the robot file in real time, its virtual drives in one "
+                             "process and actuatord in another, beside this machine's bare "
+                             "1 kHz loop (`commands.robot_bench`; EtherCAT lines need root)")
+    parser.add_argument("--duration", type=positive_float, default=10.0, metavar="S",
+                        help="--robot: seconds of each run and of the bare loop "
+                             "(default: %(default)s)")
+    parser.add_argument("--starts", type=int_range(1, 1000), default=3, metavar="N",
+                        help="--robot: runs started one after the other (default: %(default)s)")
     which = parser.add_mutually_exclusive_group()
     which.add_argument("--no-ethercat", action="store_true", help="the CAN figures only")
     which.add_argument("--ethercat-only", action="store_true", help="the EtherCAT figures only")
@@ -131,10 +155,28 @@ def main(argv: list[str] | None = None) -> int:
 
     result: dict = {"cpus": os.cpu_count(),
                     "load_average_1min": round(os.getloadavg()[0], 2)}
+    if args.robot is not None:
+        from commands.robot_bench import run as robot_real_time
+        from robot.description import RobotFileError
+        from sim_bus.ethercat.netns import LinkUnavailable
+
+        try:
+            result.update(robot_real_time(args.robot, args.duration, args.starts))
+        except RobotFileError as exc:
+            return usage_error(parser.prog, str(exc))
+        except LinkUnavailable as exc:
+            return job_error(parser.prog, f"{args.robot}: its EtherCAT lines need a veth "
+                                          f"between two network namespaces: {exc}")
+        print(json.dumps(result))
+        return 0
     try:
         if not args.ethercat_only:
+            _stage(f"CAN, master and virtual drive in one process, {args.cycles} lock-step "
+                   "cycles ...")
             result["in_process_lockstep_cycles_per_s"] = round(
                 _lockstep_in_process(args.cycles))
+            _stage(f"CAN over udp_multicast, sim-bus in a second process, {args.cycles} "
+                   "cycles ...")
             result["udp_multicast_two_processes"] = _two_processes(args.cycles)
         if not args.no_ethercat:
             lines = _ethercat(args.cycles)

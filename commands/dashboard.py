@@ -13,18 +13,15 @@ import socket
 import sys
 import threading
 
-from commands.options import (
-    TCP_PORT,
-    CommandParser,
+from commands.log_options import (
     add_logging_argument,
-    add_zenoh_arguments,
-    check_key_expr,
     configure_logging,
     job_error,
-    open_session,
-    parse_assignments,
-    usage_error,
+    reports_failures,
 )
+from commands.model_options import parse_assignments
+from commands.parsing import TCP_PORT, CommandParser, usage_error
+from commands.zenoh_options import add_zenoh_arguments, check_key_expr, open_session
 from protocol import telemetry
 
 PROG = "dashboard"
@@ -42,11 +39,12 @@ def build_parser() -> CommandParser:
     fox.add_argument("--key", help="key expression to bridge (default: PREFIX/**)")
     fox.add_argument("--host", default="127.0.0.1")
     fox.add_argument("--port", type=TCP_PORT, default=8765,
-                     help="WebSocket port, 1..65535 (default: %(default)s)")
+                     help="WebSocket port, 1..65535, serving both subprotocols, "
+                          "foxglove.sdk.v1 (Foxglove) and foxglove.websocket.v1 (Lichtblick, "
+                          "@foxglove/ws-protocol) (default: %(default)s)")
     fox.add_argument("--legacy-port", type=TCP_PORT, metavar="PORT",
-                     help="also serve the old foxglove.websocket.v1 subprotocol here, for "
-                          "viewers that do not offer foxglove.sdk.v1 (Lichtblick before "
-                          "December 2025)")
+                     help="serve the same on this port too (kept for setups that named a "
+                          "second port for foxglove.websocket.v1; --port now serves it)")
     tui = jobs.add_parser("tui", help="terminal dashboard")
     tui.add_argument("--prefix", default=telemetry.DEFAULT_PREFIX)
     change = jobs.add_parser("set", help="change the reference or the weights")
@@ -60,6 +58,7 @@ def build_parser() -> CommandParser:
     return parser
 
 
+@reports_failures(PROG)
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)
@@ -70,6 +69,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.job == "foxglove":
             if args.key is not None:
                 check_key_expr("--key", args.key, wildcards=True)
+            if args.legacy_port == args.port:
+                raise ValueError(f"--legacy-port {args.legacy_port}: the same as --port; "
+                                 "expected a port of its own")
             for port in (args.port, args.legacy_port):
                 if port is not None:
                     _check_port_free(args.host, port)
@@ -132,20 +134,15 @@ def _foxglove(session, args: argparse.Namespace) -> int:
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     key = args.key or f"{args.prefix}/**"
+    extra = [] if args.legacy_port is None else [args.legacy_port]
     try:
-        bridge = FoxgloveBridge(session, key, args.prefix, args.host, args.port)
-    except RuntimeError as exc:  # foxglove-sdk's FoxgloveError: the port was taken meanwhile
+        bridge = FoxgloveBridge(session, key, args.prefix, args.host, args.port, extra)
+    except (OSError, RuntimeError) as exc:  # a port taken since it was checked
         return usage_error(PROG, f"--port {args.port}: {exc}")
-    relay = None
-    if args.legacy_port is not None:
-        from dashboard.foxglove_legacy import LegacyRelay
-
-        relay = LegacyRelay(args.host, bridge.port, args.host, args.legacy_port)
-    print(f"dashboard: Foxglove bridge on ws://{args.host}:{bridge.port} for {key}"
-          + (f" (foxglove.websocket.v1 on port {relay.port})" if relay else ""), flush=True)
+    also = "".join(f" and ws://{args.host}:{port}" for port in bridge.ports[1:])
+    print(f"dashboard: Foxglove bridge on ws://{args.host}:{bridge.port}{also} for {key} "
+          "(subprotocols foxglove.sdk.v1 and foxglove.websocket.v1)", flush=True)
     stop.wait()
-    if relay is not None:
-        relay.close()
     bridge.close()
     print(f"dashboard: forwarded {bridge.forwarded} messages", flush=True)
     return 0

@@ -6,18 +6,20 @@ import datetime
 import sys
 from pathlib import Path
 
-from commands.options import (
-    CommandParser,
+from commands.file_options import check_output_file, check_output_folder
+from commands.log_options import (
     add_logging_argument,
+    configure_logging,
+    job_error,
+    reports_failures,
+)
+from commands.model_options import (
     add_model_argument,
     add_payload_arguments,
-    check_output_file,
-    check_output_folder,
-    configure_logging,
+    load_model_option,
     parse_payload,
-    positive_float,
-    usage_error,
 )
+from commands.parsing import CommandParser, doc_description, positive_float, usage_error
 from model.identify import (
     CUTOFF_HZ,
     PARAMETERS,
@@ -27,7 +29,7 @@ from model.identify import (
     identify,
 )
 from model.model_file import write_model
-from model.parameters import ActuatorModel, ModelFileError, load_model
+from model.parameters import ActuatorModel, ModelFileError
 from model.plots import identification_figures
 from recorder.reader import load_recording
 from recorder.recording import Recording, RecordingError
@@ -36,7 +38,7 @@ PROG = "identify"
 
 
 def build_parser() -> CommandParser:
-    parser = CommandParser(prog=PROG, description=__doc__.splitlines()[0])
+    parser = CommandParser(prog=PROG, description=doc_description(__doc__))
     parser.add_argument("no_load", metavar="NOLOAD", help="recording without payload")
     parser.add_argument("load", metavar="LOAD", help="recording with the known payload")
     add_payload_arguments(parser, mass_default=None,
@@ -60,14 +62,16 @@ def _experiment(recording: Recording, payload) -> Experiment:
                       payload, recording.source)
 
 
+@reports_failures(PROG)
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)
     try:
-        check_output_file("-o", args.output)
+        check_output_file("-o", args.output, [("NOLOAD", args.no_load), ("LOAD", args.load),
+                                              ("--model", args.model)])
         if args.plots:
             check_output_folder("--plots", args.plots)
-        nominal = load_model(args.model)
+        nominal = load_model_option(args.model)
         no_load = load_recording(args.no_load)
         load = load_recording(args.load)
         if args.payload_mass is not None:
@@ -82,14 +86,21 @@ def main(argv: list[str] | None = None) -> int:
                           args.cutoff, nominal.parameters.effects)
     except (ModelFileError, RecordingError, IdentificationError, ValueError) as exc:
         return usage_error(PROG, str(exc))
-    write_identified(Path(args.output), result, nominal, args.no_load, args.load)
+    try:
+        write_identified(Path(args.output), result, nominal, args.no_load, args.load)
+    except OSError as exc:  # a full disk: the model is written whole or not at all
+        return job_error(PROG, f"-o {args.output}: cannot write: {exc.strerror or exc}")
     print(table(result, nominal))
     print(f"condition number {result.condition_number:.1f} (paper: 36); torque-fit RMSD motor "
           f"{result.rmsd_motor:.3f} N.m, joint {result.rmsd_joint:.3f} N.m (paper: 0.6 N.m); "
           f"{result.rows} rows -> {args.output}")
     if args.plots:
-        for path in identification_figures(result, Path(args.plots)):
-            print(f"{PROG}: wrote {path}")
+        try:
+            for path in identification_figures(result, Path(args.plots)):
+                print(f"{PROG}: wrote {path}")
+        except OSError as exc:
+            return job_error(PROG, f"--plots {args.plots}: cannot write: "
+                                   f"{exc.strerror or exc} (the model was written)")
     return 0
 
 

@@ -6,15 +6,15 @@ import json
 import sys
 from pathlib import Path
 
-from commands.options import (
-    CommandParser,
+from commands.file_options import check_distinct_outputs, check_output_file, check_output_folder
+from commands.log_options import (
     add_logging_argument,
-    check_output_file,
-    check_output_folder,
     configure_logging,
-    positive_float,
-    usage_error,
+    job_error,
+    reports_failures,
 )
+from commands.model_options import load_model_option
+from commands.parsing import CommandParser, doc_description, positive_float, usage_error
 from model.gap import (
     HORIZON,
     GapError,
@@ -24,8 +24,8 @@ from model.gap import (
     summary,
 )
 from model.identify import Experiment
-from model.model_file import write_model
-from model.parameters import ModelFileError, Payload, load_model
+from model.model_file import write_atomically, write_model
+from model.parameters import ModelFileError, Payload
 from model.plots import gap_figures
 from recorder.reader import load_recording
 from recorder.recording import RecordingError
@@ -34,7 +34,7 @@ PROG = "model-gap"
 
 
 def build_parser() -> CommandParser:
-    parser = CommandParser(prog=PROG, description=__doc__.splitlines()[0])
+    parser = CommandParser(prog=PROG, description=doc_description(__doc__))
     parser.add_argument("recordings", nargs="+", metavar="RECORDING",
                         help="MCAP or CSV recordings (payload from their metadata, else none)")
     parser.add_argument("--model", required=True, metavar="MODEL.toml")
@@ -49,16 +49,19 @@ def build_parser() -> CommandParser:
     return parser
 
 
+@reports_failures(PROG)
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)
     try:
+        inputs = [("--model", args.model), *(("RECORDING", path) for path in args.recordings)]
         for option, path in (("--report", args.report), ("-o", args.output)):
             if path:
-                check_output_file(option, path)
+                check_output_file(option, path, inputs)
+        check_distinct_outputs([("--report", args.report), ("-o", args.output)])
         if args.plots:
             check_output_folder("--plots", args.plots)
-        model = load_model(args.model)
+        model = load_model_option(args.model)
         experiments = []
         for path in args.recordings:
             recording = load_recording(path).with_joint_torque()
@@ -72,18 +75,25 @@ def main(argv: list[str] | None = None) -> int:
         return usage_error(PROG, str(exc))
 
     improved_path = args.model
-    if result.effects and args.output:
-        provenance = improved_provenance(result, args.recordings,
-                                         datetime.date.today().isoformat())
-        write_model(Path(args.output), result.parameters, model,
-                    f"{model.name or Path(args.model).stem} + {result.effect}", provenance)
-        improved_path = args.output
-    report = build_report(result, improved_path)
-    if args.report:
-        Path(args.report).write_text(json.dumps(report, indent=2))
-    if args.plots:
-        for path in gap_figures(result, Path(args.plots)):
-            print(f"{PROG}: wrote {path}")
+    option = "-o"
+    try:  # a full disk: each file is written whole or not at all, named in one line
+        if result.effects and args.output:
+            provenance = improved_provenance(result, args.recordings,
+                                             datetime.date.today().isoformat())
+            write_model(Path(args.output), result.parameters, model,
+                        f"{model.name or Path(args.model).stem} + {result.effect}", provenance)
+            improved_path = args.output
+        report = build_report(result, improved_path)
+        if args.report:
+            option = "--report"
+            write_atomically(Path(args.report), json.dumps(report, indent=2).encode())
+        if args.plots:
+            option = "--plots"
+            for path in gap_figures(result, Path(args.plots)):
+                print(f"{PROG}: wrote {path}")
+    except OSError as exc:
+        shown = {"-o": args.output, "--report": args.report, "--plots": args.plots}[option]
+        return job_error(PROG, f"{option} {shown}: cannot write: {exc.strerror or exc}")
     print(summary(result))
     closed = not result.effects or (result.rmsd_after < result.rmsd_before
                                     and result.sim_rmsd_after <= result.sim_rmsd_before)

@@ -1,9 +1,11 @@
-"""`recorder`: run the exciting trajectory and record it, record live Zenoh telemetry, or
-export a recording to CSV.
+"""`recorder`: run the exciting trajectory (or a slow sinusoid) on a drive and record it,
+record live Zenoh telemetry, export a recording to CSV or as a ROS 2 bag, or repair one.
 
     recorder --exciting-trajectory [--bus vcan0 | --sim [--lockstep]] -o FILE.mcap
+    recorder --sinusoid [--duration S] [--bus vcan0 | --sim [--lockstep]] -o FILE.mcap
     recorder --zenoh KEYEXPR -o FILE.mcap [--duration S]
     recorder export FILE.mcap -o FILE.csv
+    recorder export --ros2 FILE.mcap -o BAG.mcap
     recorder repair FILE.mcap -o REPAIRED.mcap
 """
 
@@ -16,53 +18,75 @@ import threading
 import time
 from pathlib import Path
 
-from commands.options import (
-    CommandParser,
-    DriveOpenError,
+from commands.bus_options import (
     add_bus_arguments,
-    add_logging_argument,
-    add_model_argument,
-    add_payload_arguments,
     add_real_time_argument,
-    add_virtual_drive_arguments,
-    add_zenoh_arguments,
     apply_real_time,
     check_drive_arguments,
     check_eds,
-    check_key_expr,
-    check_output_file,
-    check_payload,
-    configure_logging,
-    finite_float,
-    int_range,
-    job_error,
     load_esi_option,
     open_drive,
-    open_joint,
-    open_session,
+)
+from commands.file_options import check_distinct_outputs, check_output_file, option_inputs
+from commands.first_run import CompileNotice
+from commands.log_options import (
+    add_logging_argument,
+    configure_logging,
+    job_error,
+    reports_failures,
+)
+from commands.model_options import (
+    add_model_argument,
+    add_payload_arguments,
+    check_payload,
+    load_model_option,
     payload_from_args,
+)
+from commands.parsing import (
+    CommandParser,
+    doc_description,
+    finite_float,
+    int_range,
     positive_float,
     usage_error,
-    with_truth_effects,
 )
-from model.parameters import ModelFileError, load_model
+from commands.sim_options import add_virtual_drive_arguments, with_truth_effects
+from commands.zenoh_options import (
+    add_zenoh_arguments,
+    check_key_expr,
+    open_session,
+    zenoh_config,
+)
+from model.parameters import ModelFileError
 from protocol import telemetry
 from protocol.bus_spec import BusSpecError
 from recorder.exciting import ExcitingTrajectory, SlowSinusoid
 from recorder.reader import load_recording
 from recorder.recording import RecordingError
+from robot.wiring import DriveOpenError, open_joint
 
 PROG = "recorder"
-RECORDED_TOPICS = ("state", "command", "fault")  # what an experiment's recording keeps
+# what an experiment's recording keeps (loop_stats: the loop's jitter and the tracking law's
+# decide time, once a second, for the experiment layout's timing panel)
+RECORDED_TOPICS = ("state", "command", "fault", "loop_stats")
 ELBOW_MARGIN = 0.15  # rad: the exciting trajectory's default margin inside the elbow's limits
+# the options that choose or shape a drive: meaningless for --zenoh, which drives nothing
+_DRIVE_OPTIONS = (("--sim", "sim"), ("--lockstep", "lockstep"), ("--bus", "bus"),
+                  ("-i", "interface"), ("-c", "channel"), ("--node-id", "node_id"),
+                  ("--slave", "slave"), ("--eds", "eds"), ("--esi", "esi"),
+                  ("--can-log", "can_log"), ("--model", "model"), ("--robot", "robot"),
+                  ("--joint", "joint"), ("--payload-position", "payload_position"),
+                  ("--truth-effect", "truth_effect"))
+MAX_RUN = 3600.0  # s of drive time in one recording (3.6 M samples, some 500 MB of MCAP)
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = CommandParser(
-        prog=PROG, description=__doc__.splitlines()[0],
-        epilog="`recorder export FILE.mcap -o FILE.csv` writes the CSV interchange format; "
-               "`recorder repair FILE.mcap -o REPAIRED.mcap` rewrites a killed, truncated or "
-               "damaged recording as a complete MCAP file.")
+        prog=PROG, description=doc_description(__doc__),
+        epilog="`recorder export FILE.mcap -o FILE.csv` writes the CSV interchange format, "
+               "`recorder export --ros2 FILE.mcap -o BAG.mcap` a ROS 2 bag; `recorder repair "
+               "FILE.mcap -o REPAIRED.mcap` rewrites a killed, truncated or damaged recording "
+               "as a complete MCAP file.")
     job = parser.add_mutually_exclusive_group(required=True)
     job.add_argument("--exciting-trajectory", action="store_true",
                      help="run the paper's exciting trajectory on the drive and record it")
@@ -77,10 +101,20 @@ def build_parser() -> argparse.ArgumentParser:
                                     "--sim's drive)")
     add_payload_arguments(parser)
     defaults = ExcitingTrajectory()
-    parser.add_argument("--position-low", type=finite_float, default=defaults.position_low)
-    parser.add_argument("--position-high", type=finite_float, default=defaults.position_high)
-    parser.add_argument("--velocity-min", type=positive_float, default=defaults.velocity_min)
-    parser.add_argument("--velocity-max", type=positive_float, default=defaults.velocity_max)
+    parser.add_argument("--position-low", type=finite_float, default=defaults.position_low,
+                        metavar="RAD", help="the exciting trajectory's lower end (rad, default: "
+                                            "%(default)s; with --robot 0.15 rad inside the "
+                                            "joint's lower limit)")
+    parser.add_argument("--position-high", type=finite_float, default=defaults.position_high,
+                        metavar="RAD", help="its upper end (rad, default: %(default)s; with "
+                                            "--robot 0.15 rad inside the joint's upper limit)")
+    parser.add_argument("--velocity-min", type=positive_float, default=defaults.velocity_min,
+                        metavar="RAD/S", help="the first cruise velocity (rad/s, default: "
+                                              "%(default)s)")
+    parser.add_argument("--velocity-max", type=positive_float, default=defaults.velocity_max,
+                        metavar="RAD/S", help="the last cruise velocity (rad/s, default: "
+                                              "%(default)s; with --robot at most half the "
+                                              "joint's velocity limit)")
     parser.add_argument("--steps", type=int_range(1, 1000), default=defaults.steps,
                         help="cruise velocities from min to max (default: %(default)s)")
     add_virtual_drive_arguments(parser, faults=False)
@@ -99,6 +133,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@reports_failures(PROG)
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "export":
@@ -108,18 +143,21 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)
     try:
-        check_output_file("-o", args.output)
-        if args.zenoh:
+        check_output_file("-o", args.output, option_inputs(args))
+        check_distinct_outputs([("-o", args.output), ("--can-log", args.can_log)])
+        if args.zenoh is not None:  # '' too: an empty key expression is refused, not falsy
             check_key_expr("--zenoh", args.zenoh, wildcards=True)
-            if args.can_log:
-                raise ValueError("--can-log: --zenoh records no CAN bus; expected "
-                                 "--exciting-trajectory or --sinusoid")
+            for option, key in _DRIVE_OPTIONS:
+                if getattr(args, key, None) not in (None, False, []):
+                    raise ValueError(f"{option}: --zenoh records telemetry and drives "
+                                     "nothing; expected --exciting-trajectory or --sinusoid")
+            zenoh_config(args)
     except ValueError as exc:
         return usage_error(PROG, str(exc))
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    if args.zenoh:
+    if args.zenoh is not None:
         return _record_zenoh(args, stop)
     return _record_trajectory(args, stop)
 
@@ -127,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
 def _robot_joint(args: argparse.Namespace):
     """(robot, joint) for --robot/--joint, the trajectory's defaults fitted to the joint;
     (None, None) without --robot. ValueError names the option."""
-    from commands.robot_file import load_robot
+    from robot.description import load_robot
 
     if args.robot is None:
         if args.joint is not None:
@@ -161,7 +199,7 @@ def _robot_joint(args: argparse.Namespace):
 def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     try:
         robot, joint = _robot_joint(args)
-        model = load_model(args.model) if joint is None else joint.model
+        model = load_model_option(args.model) if joint is None else joint.model
         sim_model = with_truth_effects(model, args.truth_effect)
         payload = payload_from_args(args)
         check_payload(model, payload)
@@ -176,6 +214,14 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         check_drive_arguments(args, None if robot is None else [joint.bus])
         check_eds(args.eds, model.parameters.drive_gain, esi=load_esi_option(args))
         limits = model.limits
+        if not args.sinusoid and not args.velocity_max <= limits.velocity_max:
+            raise ValueError(f"--velocity-max {args.velocity_max:g} rad/s: expected at most "
+                             f"the model's velocity limit {limits.velocity_max:g} rad/s")
+        if not trajectory.duration <= MAX_RUN:
+            shown = (f"--duration {args.duration:g} s" if args.sinusoid else
+                     f"--velocity-min {args.velocity_min:g} rad/s")
+            raise ValueError(f"{shown}: the trajectory would last {trajectory.duration:.3g} s; "
+                             f"expected at most {MAX_RUN:g} s in one recording")
         if not (limits.position_min <= trajectory_range[0]
                 and trajectory_range[1] <= limits.position_max):
             raise ValueError(f"trajectory [{trajectory_range[0]}, {trajectory_range[1]}] rad "
@@ -191,12 +237,18 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     from recorder.tracking import TrackingLaw
 
     apply_real_time(args, PROG)  # before the drive's threads start: they inherit it
+    # a first run compiles the physics (--sim's drive, while it opens) and the tracking law
+    # (its first sample); a real bus's opening is not counted
+    notice = CompileNotice(PROG) if args.sim else None
     try:
         connection = (open_drive(args, model, sim_model, payload) if joint is None else
                       open_joint(robot, joint, sim_model, payload, sim=args.sim,
                                  lockstep=args.lockstep, seed=args.seed))
     except DriveOpenError as exc:
+        if notice is not None:
+            notice.done()
         return job_error(PROG, str(exc))
+    notice = notice or CompileNotice(PROG)
     drive = connection.drive
     metadata = {
         "payload_mass": payload.mass, "payload_position": f"{payload.x},{payload.y}",
@@ -209,15 +261,21 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         "joint": "" if joint is None else joint.name,
         "recorded_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
     try:  # before the drive runs
-        writer = McapRecorder(args.output, metadata)
+        writer = McapRecorder(args.output, metadata, on_failure=stop.set)
     except OSError as exc:
+        notice.done()
         connection.close()
-        return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
+        return job_error(PROG, f"-o {args.output}: cannot write: {exc.strerror or exc}")
     # channels named as the Zenoh keys, so a Foxglove layout serves live data and both recordings
     record = writer.subscriber(RECORDED_TOPICS, telemetry.DEFAULT_PREFIX)
     state_channel = writer.channel(telemetry.key_expr(telemetry.DEFAULT_PREFIX, "state"), "State")
     law = TrackingLaw(model.parameters.with_payload(payload), model.limits.current_max)
-    bar = _progress(args.no_progress, trajectory.duration)
+    shown = _progress(args.no_progress, trajectory.duration)
+
+    def bar(fraction: float | None) -> None:
+        notice.done()  # the first sample is in: the compiled code runs
+        shown(fraction)
+
     started = time.perf_counter()
     code = 0
     try:
@@ -225,7 +283,9 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         with collector_off_the_cycle():
             report = run_trajectory(drive, trajectory, law, model.limits, [record],
                                     args.lockstep, bar, stop)
-        if stop.is_set():
+        if writer.failure is not None:
+            code = 1  # reported below, once the file is closed
+        elif stop.is_set():
             code = 1
             print(f"{PROG}: interrupted after {writer.messages_on(state_channel)} samples",
                   file=sys.stderr)
@@ -243,12 +303,22 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
             writer.discard()  # failed before its first sample: leave no file
         else:
             writer.close()
+    if writer.failure is not None:
+        code = job_error(PROG, _write_failure(args.output, writer.failure, samples))
     elapsed = time.perf_counter() - started
     bar(None)
     output = args.output if samples else "no file written"
     print(f"recorder: {samples} samples ({samples / 1000:.1f} s of drive time) in {elapsed:.1f} s "
           f"(real-time factor {samples / 1000 / elapsed:.2f}) -> {output}", flush=True)
     return code
+
+
+def _write_failure(path: str, exc: OSError, samples: int) -> str:
+    """One line for a recording that could not be written to the end (a full disk): what was
+    kept and how to make it whole."""
+    return (f"-o {path}: cannot write: {exc.strerror or exc} after {samples} samples; the "
+            f"file ends at its last complete chunk: `recorder repair {path} -o "
+            "REPAIRED.mcap` keeps them")
 
 
 def _address_metadata(address: str) -> dict[str, str | int]:
@@ -283,10 +353,11 @@ def _record_zenoh(args: argparse.Namespace, stop: threading.Event) -> int:
     except ValueError as exc:
         return usage_error(PROG, str(exc))
     try:
-        writer = McapRecorder(args.output, {"source": f"zenoh {args.zenoh}"})
+        writer = McapRecorder(args.output, {"source": f"zenoh {args.zenoh}"},
+                              on_failure=stop.set)
     except OSError as exc:
         session.close()
-        return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
+        return job_error(PROG, f"-o {args.output}: cannot write: {exc.strerror or exc}")
     received: queue.Queue = queue.Queue()
     subscriber = session.declare_subscriber(
         args.zenoh, lambda sample: received.put((str(sample.key_expr),
@@ -297,49 +368,62 @@ def _record_zenoh(args: argparse.Namespace, stop: threading.Event) -> int:
     try:
         while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
             try:
-                key, data, log_time = received.get(timeout=0.1)
+                key, data, arrival = received.get(timeout=0.1)
             except queue.Empty:
                 continue
-            message = telemetry.TOPICS.get(key.rsplit("/", 1)[-1])
-            if message is None:
-                skipped += 1
-                continue
-            writer.write(writer.channel(key, message), data, publish_time_ns=log_time,
-                         log_time_ns=log_time)
+            skipped += not writer.write_sample(key, data, arrival)
     finally:
         subscriber.undeclare()
         session.close()
         while not received.empty():
-            key, data, log_time = received.get()
-            message = telemetry.TOPICS.get(key.rsplit("/", 1)[-1])
-            if message is not None:
-                writer.write(writer.channel(key, message), data, publish_time_ns=log_time,
-                             log_time_ns=log_time)
+            skipped += not writer.write_sample(*received.get())
         writer.close()
+    if writer.failure is not None:
+        return job_error(PROG, _write_failure(args.output, writer.failure, writer.messages))
     print(f"recorder: {writer.messages} messages ({skipped} on keys without a schema skipped) "
           f"-> {args.output}", flush=True)
     return 0
 
 
 def _export(argv: list[str]) -> int:
-    parser = CommandParser(prog="recorder export",
-                           description="MCAP recording to the CSV contract")
+    parser = CommandParser(
+        prog=f"{PROG} export",
+        description="Write a recording in the CSV interchange format (t,q,current,"
+                    "joint_torque with # key=value metadata) or, with --ros2, as a ROS 2 "
+                    "bag: an MCAP file of profile ros2 with sensor_msgs/msg/JointState on "
+                    "/joint_states, which rosbags, ros2 bag and Foxglove read.")
     parser.add_argument("recording", metavar="FILE.mcap")
-    parser.add_argument("-o", "--output", required=True, metavar="FILE.csv")
+    parser.add_argument("-o", "--output", required=True, metavar="FILE.csv|FILE.mcap")
+    parser.add_argument("--ros2", action="store_true",
+                        help="write a ROS 2 MCAP (ROS 2 Jazzy types) instead of CSV; every "
+                             "joint-state sample, stamped at its drive time on the run's "
+                             "time base")
     add_logging_argument(parser)
     args = parser.parse_args(argv)
     configure_logging(PROG, args.log_level)
     from recorder.csv_io import write_csv
+    from recorder.reader import is_mcap
 
     try:
-        check_output_file("-o", args.output)
+        check_output_file("-o", args.output, [("FILE.mcap", args.recording)])
+        if args.ros2:  # a robot's recording has no single-joint State: not load_recording
+            if not is_mcap(args.recording):
+                raise ValueError(f"--ros2: {args.recording} is CSV; the ROS 2 export reads "
+                                 "MCAP recordings (CSV carries no velocity)")
+            from recorder.ros2_export import export_ros2
+
+            exported = export_ros2(args.recording, args.output)
+            print(f"recorder: {exported.summary()} -> {args.output}")
+            return 0
         recording = load_recording(args.recording)
     except (RecordingError, ValueError) as exc:
         return usage_error(PROG, str(exc))
-    try:
-        write_csv(recording, Path(args.output))
     except OSError as exc:
         return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
+    try:
+        write_csv(recording, Path(args.output))
+    except OSError as exc:  # a full disk: nothing is left behind (written whole or not)
+        return job_error(PROG, f"-o {args.output}: cannot write: {exc.strerror or exc}")
     print(f"recorder: {len(recording)} samples -> {args.output}")
     return 0
 
@@ -357,12 +441,12 @@ def _repair(argv: list[str]) -> int:
     from recorder.repair import repair_recording
 
     try:
-        check_output_file("-o", args.output)
+        check_output_file("-o", args.output)  # the same file: refused by repair, naming it
         report = repair_recording(args.recording, args.output)
     except (RecordingError, ValueError) as exc:
         return usage_error(PROG, str(exc))
-    except OSError as exc:
-        return usage_error(PROG, f"-o {args.output}: cannot write: {exc.strerror}")
+    except OSError as exc:  # a full disk: the source is untouched, no partial copy is left
+        return job_error(PROG, f"-o {args.output}: cannot write: {exc.strerror or exc}")
     print(f"recorder: {report.summary()} -> {args.output}")
     return 0
 

@@ -7,38 +7,44 @@ import sys
 import threading
 from collections.abc import Sequence
 
-from commands.options import (
-    CommandParser,
+from commands.bus_options import (
     add_bus_arguments,
-    add_logging_argument,
-    add_model_argument,
-    add_payload_arguments,
-    add_virtual_drive_arguments,
     bus_config,
     check_drive_arguments,
     check_eds,
-    check_payload,
-    configure_logging,
-    describe_bus,
     ethercat_interface,
-    fault_schedule,
-    finite_float,
-    job_error,
-    non_negative_float,
-    open_bus_network,
+    load_esi_option,
     open_can_log,
-    parse_fault,
+)
+from commands.log_options import (
+    add_logging_argument,
+    configure_logging,
+    job_error,
+    reports_failures,
+)
+from commands.model_options import (
+    add_model_argument,
+    add_payload_arguments,
+    check_payload,
+    load_model_option,
     payload_from_args,
-    usage_error,
+)
+from commands.parsing import CommandParser, finite_float, non_negative_float, usage_error
+from commands.sim_options import (
+    add_virtual_drive_arguments,
+    fault_schedule,
+    parse_fault,
     with_truth_effects,
 )
-from model.parameters import ActuatorModel, ModelFileError, Payload, load_model
+from model.parameters import ActuatorModel, ModelFileError, Payload
 from protocol.bus_spec import BusSpecError, is_ethercat, parse_bus_spec
+from robot.wiring import describe_bus, open_can_network
 from sim_bus.canopen_node import CanOpenNode
 from sim_bus.canopen_watchdogs import DEFAULT_SILENCE_TIMEOUT
 from sim_bus.device import Cia402Device
 from sim_bus.faults import Fault
 from sim_bus.plant import SensorNoise
+from sim_bus.priority import answer_like_hardware
 
 PROG = "sim-bus"
 
@@ -82,9 +88,9 @@ def build_parser() -> CommandParser:
 def _serve_robot(args) -> int:
     """`sim-bus --robot FILE`: all the file's drives in this process until a signal, CAN
     drives on their buses, every EtherCAT line on its interface."""
-    from commands.options import parse_joint_fault
-    from commands.robot_file import RobotFileError, load_robot
+    from commands.sim_options import parse_joint_fault
     from driver.canopen_transport import open_network
+    from robot.description import RobotFileError, load_robot
     from sim_bus.embedded import make_device, power_on
 
     try:
@@ -132,10 +138,6 @@ def _serve_robot(args) -> int:
                                       joint.address, eds_path=joint.eds, commissioned=True,
                                       silence_timeout=_silence_timeout(args)))
                 served.append((joint.name, nodes[-1].device))
-        if lines:
-            from sim_bus.ethercat.segment import prefer_this_process
-
-            prefer_this_process()  # before the lines' threads, which inherit it
         for line in lines:
             line.start()
         for line in lines:
@@ -154,6 +156,7 @@ def _serve_robot(args) -> int:
         devices[name].schedule(fault, seconds)
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    answer_like_hardware()
     print(f"sim-bus: {len(served)} drives of {robot.name} on {', '.join(robot.buses())} ready",
           flush=True)
     while not stop.is_set() and not any(line.failure for line in lines):
@@ -221,7 +224,7 @@ def _serve_line(args: argparse.Namespace, interface: str, model: ActuatorModel,
     answering in this thread until a signal; then each slave's end state."""
     from protocol import ethercat as ec
     from sim_bus.embedded import make_device
-    from sim_bus.ethercat.segment import prefer_this_process, serve
+    from sim_bus.ethercat.segment import serve
 
     devices = [make_device(model, payload, SensorNoise(
         current=args.current_noise, joint_torque=args.torque_noise, seed=args.seed + k),
@@ -234,10 +237,10 @@ def _serve_line(args: argparse.Namespace, interface: str, model: ActuatorModel,
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    prefer_this_process()
     count = f"{args.slaves} slave{'s' if args.slaves > 1 else ''}"
 
     def ready(_) -> None:
+        answer_like_hardware()  # this thread answers every frame
         print(f"sim-bus: {count} on {args.bus} ready ({model.name or model.source}, payload "
               f"{payload.mass} kg at ({payload.x}, {payload.y}) m)", flush=True)
 
@@ -266,6 +269,7 @@ def _silence_timeout(args) -> float | None:
     return (DEFAULT_SILENCE_TIMEOUT if given is None else given) or None
 
 
+@reports_failures(PROG)
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)
@@ -277,8 +281,8 @@ def main(argv: list[str] | None = None) -> int:
         if interface is not None and args.silence_timeout is not None:
             raise ValueError(f"--bus {args.bus} and --silence-timeout: EtherCAT slaves watch "
                              "their master with the sync manager watchdog the master sets")
-        check_eds(args.eds, master=False)
-        nominal = load_model(args.model)
+        check_eds(args.eds, master=False, esi=load_esi_option(args))
+        nominal = load_model_option(args.model)
         model = with_truth_effects(nominal, args.truth_effect)
         payload = payload_from_args(args)
         check_payload(nominal, payload)
@@ -298,7 +302,7 @@ def main(argv: list[str] | None = None) -> int:
     where = describe_bus(bus_config(args))
     can_log = open_can_log(args) if args.can_log else None
     try:
-        network = open_bus_network(args, can_log)
+        network = open_can_network(bus_config(args), can_log)
     except Exception as exc:  # python-can raises per interface: CanError, OSError, ImportError
         if can_log is not None:
             can_log.stop()
@@ -314,6 +318,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     node.boot()
+    answer_like_hardware()
     print(f"sim-bus: node {args.node_id} on {where} ready ({model.name or model.source}, "
           f"payload {payload.mass} kg at ({payload.x}, {payload.y}) m)", flush=True)
     stop.wait()

@@ -15,7 +15,7 @@ from typing import NamedTuple
 
 from numba.extending import register_jitable
 
-from controller.cost import control_cost, state_cost
+from controller.cost import control_cost, control_cost_given, state_cost, state_cost_given
 from controller.problem import C_DT, C_FRICTION_SHARPNESS
 from model.dynamics import smooth_acceleration
 
@@ -56,8 +56,14 @@ class TerminalCost(NamedTuple):
 @register_jitable
 def discrete_step(q, qd, u, p, c) -> Step:
     """x+ and its Jacobians under current u, held over one step c[C_DT]."""
-    dt = c[C_DT]
     a, a_q, a_qd, a_u = smooth_acceleration(q, qd, u, p, c[C_FRICTION_SHARPNESS])
+    return step_given(q, qd, c[C_DT], a, a_q, a_qd, a_u)
+
+
+@register_jitable
+def step_given(q, qd, dt, a, a_q, a_qd, a_u) -> Step:
+    """The semi-implicit Euler step and its Jacobians from the acceleration and its partial
+    derivatives (the batched lane kernel computes those with its vectorised maths)."""
     qd_next = qd + dt * a
     return Step(q + dt * qd_next, qd_next, 1.0 + dt * dt * a_q, dt + dt * dt * a_qd, dt * a_q,
                 1.0 + dt * a_qd, dt * dt * a_u, dt * a_u)
@@ -68,6 +74,22 @@ def stage_cost(q, qd, u, q_ref, qd_ref, c) -> StageCost:
     ls, ls_q, ls_qd, ls_qq, ls_qdqd = state_cost(q, qd, q_ref, qd_ref, c)
     lc, lc_u, lc_uu = control_cost(u, c)
     return StageCost(ls + lc, ls_q, ls_qd, ls_qq, ls_qdqd, lc_u, lc_uu)
+
+
+@register_jitable
+def stage_cost_given(q, qd, u, q_ref, qd_ref, c, e_position, e_velocity, e_torque) -> StageCost:
+    """`stage_cost` from the barriers' exponentials computed by the caller (controller.cost)."""
+    ls, ls_q, ls_qd, ls_qq, ls_qdqd = state_cost_given(q, qd, q_ref, qd_ref, c, e_position,
+                                                       e_velocity)
+    lc, lc_u, lc_uu = control_cost_given(u, c, e_torque)
+    return StageCost(ls + lc, ls_q, ls_qd, ls_qq, ls_qdqd, lc_u, lc_uu)
+
+
+@register_jitable
+def terminal_cost_given(q, qd, q_ref, qd_ref, c, e_position, e_velocity) -> TerminalCost:
+    ls, ls_q, ls_qd, ls_qq, ls_qdqd = state_cost_given(q, qd, q_ref, qd_ref, c, e_position,
+                                                       e_velocity)
+    return TerminalCost(ls, ls_q, ls_qd, ls_qq, ls_qdqd)
 
 
 @register_jitable

@@ -1,17 +1,20 @@
 """The speed of the MPC: tick and cold solve against a plain numpy iLQR, and the batched tick for
-many joints. Library functions for the `bench` command.
+many joints, vectorised and scalar. Library functions for the `bench` command.
 
 Every figure comes from a closed loop on the exact model: the paper's sinusoid (crossing the
 -2.35 rad limit) tracked with N = 100 steps of 1 ms unless said otherwise, the cold first solve
 excluded from the tick figures.
 """
 
+import os
 import time
+from collections.abc import Callable
 
 import numba
 import numpy as np
 
 from controller import ilqr_reference
+from controller.lanes import default_threads
 from controller.mpc import BatchMpc, JointProblem, Mpc
 from controller.problem import OcpSettings, pack_cost
 from controller.reference import Sinusoid, reference_at
@@ -21,7 +24,8 @@ from model.dynamics import SUBSTEPS
 from model.parameters import Payload, load_model
 
 PAPER_TICK_US = 200.0  # paper: 100 steps of 1 ms on an i7-8850H laptop
-JOINT_COUNTS = (7, 32)  # one TALOS arm, the whole robot
+JOINT_COUNTS = (1, 7, 32)  # one joint, one TALOS arm, the whole robot
+THREAD_COUNTS = (1, 2)
 
 
 def _closed_loop_ticks(mpc: Mpc, ticks: int, dt: float) -> np.ndarray:
@@ -115,39 +119,93 @@ def joint_problems(joints: int, settings: OcpSettings = OcpSettings()) -> list[J
                          Sinusoid(frequency=0.2 * (1.0 + 0.02 * (j % 8)))) for j in range(joints)]
 
 
-def measure_joints(joints: int, ticks: int, settings: OcpSettings = OcpSettings()) -> dict:
-    """The batched MPC of `joints` joints in one compiled call per cycle, each on its exact
-    model in closed loop: tick median and p99 (us), the cold first solve excluded."""
-    batch = BatchMpc(joint_problems(joints, settings))
-    parameters = np.stack([joint.packed_parameters for joint in batch.joints])
-    limits = np.array([joint.limits.current_max for joint in batch.joints])
-    states = np.array([[p.reference.packed()[1] + p.reference.packed()[2], 0.0]
-                       for p in (joint.problem for joint in batch.joints)])
-    decisions = batch.tick(0.0, states[:, 0], states[:, 1])
-    dt = settings.dt
-    times = np.empty(ticks)
-    for k in range(ticks):
-        currents = np.clip([d.planned_current for d in decisions], -limits, limits)
-        _step_plants(states, currents, parameters, dt)
-        start = time.perf_counter()
-        decisions = batch.tick((k + 1) * dt, states[:, 0], states[:, 1])
-        times[k] = time.perf_counter() - start
-    failed = sum(not d.ok for d in decisions)
-    if failed:
-        raise RuntimeError(f"{failed} of {joints} joints' solves failed in the batch bench")
-    times *= 1e6
-    return {"ticks": ticks, "tick_median_us": round(float(np.median(times)), 2),
-            "tick_p99_us": round(float(np.percentile(times, 99)), 2),
-            "threads": numba.get_num_threads()}
+class _ClosedLoop:
+    """A batch of `joints` joints, each on its exact model, ticked one cycle at a time."""
+
+    def __init__(self, joints: int, settings: OcpSettings, kernel: str, threads: int):
+        self.batch = BatchMpc(joint_problems(joints, settings), kernel, threads)
+        self.parameters = np.stack([joint.packed_parameters for joint in self.batch.joints])
+        self.limits = np.array([joint.limits.current_max for joint in self.batch.joints])
+        self.states = np.array([[p.reference.packed()[1] + p.reference.packed()[2], 0.0]
+                                for p in (joint.problem for joint in self.batch.joints)])
+        self.dt = settings.dt
+        self.cycle = 0
+        self.decisions = self.batch.tick(0.0, self.states[:, 0], self.states[:, 1])
+
+    def ticks(self, count: int) -> np.ndarray:
+        """The next `count` ticks' durations (us)."""
+        times = np.empty(count)
+        for k in range(count):
+            currents = np.clip([d.planned_current for d in self.decisions], -self.limits,
+                               self.limits)
+            _step_plants(self.states, currents, self.parameters, self.dt)
+            self.cycle += 1
+            start = time.perf_counter()
+            self.decisions = self.batch.tick(self.cycle * self.dt, self.states[:, 0],
+                                             self.states[:, 1])
+            times[k] = time.perf_counter() - start
+        failed = sum(not d.ok for d in self.decisions)
+        if failed:
+            raise RuntimeError(f"{failed} of {len(self.decisions)} joints' solves failed in the "
+                               "batch bench")
+        return times * 1e6
 
 
-def run(ticks: int = 20_000, numpy_ticks: int = 300, joint_ticks: int = 5_000) -> dict:
+def measure_joints(joints: int, ticks: int, threads: int,
+                   settings: OcpSettings = OcpSettings()) -> dict:
+    """The batched MPC of `joints` joints in one compiled call per cycle, each joint on its exact
+    model in closed loop, with the vectorised kernel (joints in SIMD lanes) and the scalar one
+    (joint after joint): tick median and p99 (us), the cold first solve excluded. The two run
+    in alternating blocks of ticks, so a change in the host's load hits both alike; `threads`
+    is the lane blocks of the vectorised kernel and numba's thread count for both."""
+    previous = numba.get_num_threads()
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        loops = {kernel: _ClosedLoop(joints, settings, kernel, threads)
+                 for kernel in ("lanes", "scalar")}
+        block = max(1, min(500, ticks // 10))
+        times: dict[str, list[np.ndarray]] = {kernel: [] for kernel in loops}
+        done = 0
+        while done < ticks:
+            count = min(block, ticks - done)
+            for kernel, loop in loops.items():
+                times[kernel].append(loop.ticks(count))
+            done += count
+    finally:
+        numba.set_num_threads(previous)
+    result: dict = {"ticks": ticks, "threads": threads,
+                    "lane_blocks": len(loops["lanes"].batch.lane_blocks())}
+    for kernel, name in (("lanes", "vectorised"), ("scalar", "scalar")):
+        measured = np.concatenate(times[kernel])
+        result[f"{name}_median_us"] = round(float(np.median(measured)), 2)
+        result[f"{name}_p99_us"] = round(float(np.percentile(measured, 99)), 2)
+    result["vectorised_over_scalar"] = round(result["vectorised_median_us"]
+                                             / result["scalar_median_us"], 3)
+    return result
+
+
+def run(ticks: int = 20_000, numpy_ticks: int = 300, joint_ticks: int = 5_000,
+        progress: Callable[[str], None] = lambda stage: None) -> dict:
     """Everything `bench --json` prints: the paper's N = 100 at 1 ms, the paper's robot setting
-    (N = 5 at 3.3 ms) under `paper_robot`, and the batched MPC under `joints`."""
+    (N = 5 at 3.3 ms) under `paper_robot`, and the batched MPC under `joints`: for each joint
+    count, one and two threads, the vectorised and the scalar kernel side by side. The host's
+    load average and core count come with the figures (they move them). `progress` is told
+    each stage as it starts (the whole run takes a quarter of a minute or more)."""
+    stages = 2 + len(JOINT_COUNTS)
+    progress(f"[1/{stages}] MPC N = 100 at 1 ms: {ticks} ticks, {numpy_ticks} of numpy iLQR")
     result = measure(OcpSettings(), ticks, numpy_ticks)
     result["paper_tick_us"] = PAPER_TICK_US
     result["speedup_over_paper"] = round(PAPER_TICK_US / result["tick_median_us"], 1)
+    progress(f"[2/{stages}] MPC N = 5 at 3.3 ms (the paper's robot setting)")
     result["paper_robot"] = measure(OcpSettings(horizon=5, dt=3.3e-3), ticks, numpy_ticks)
-    result["joints"] = {str(joints): measure_joints(joints, joint_ticks)
-                        for joints in JOINT_COUNTS}
+    result["joints"] = {}
+    for stage, joints in enumerate(JOINT_COUNTS, start=3):
+        progress(f"[{stage}/{stages}] batched MPC of {joints} joints: {joint_ticks} ticks on "
+                 f"{', '.join(map(str, THREAD_COUNTS))} threads")
+        result["joints"][str(joints)] = {
+            f"threads_{threads}": measure_joints(joints, joint_ticks, threads)
+            for threads in THREAD_COUNTS}
+    result["default_threads"] = default_threads()
+    result["cores"] = os.cpu_count()
+    result["load_average"] = [round(load, 2) for load in os.getloadavg()]
     return result

@@ -5,7 +5,9 @@
 
 The barrier Hessian 2 w (Cs'^2 + Cs Cs'') is positive, so it is used whole instead of the
 Gauss-Newton part alone. Written with numpy ufuncs and registered as jitable: one source for
-the vectorised reference and, compiled into it, for the hot loop.
+the vectorised reference and, compiled into it, for the hot loop. The `*_given` forms take the
+exponentials from the caller, so the batched lane kernel can bring its own vectorised exp
+(controller.lane_math) and still share this algebra.
 """
 
 import numpy as np
@@ -40,7 +42,13 @@ def barrier(value, sharpness, weight, exp_high, exp_low) -> tuple:
     exp(a v), with exp_high = exp(-a hi) and exp_low = exp(a lo) precomputed by pack_cost.
     Absurd iterates overflow to inf, which the solver's line search rejects.
     """
-    e = np.exp(sharpness * value)
+    return barrier_given(np.exp(sharpness * value), sharpness, weight, exp_high, exp_low)
+
+
+@register_jitable
+def barrier_given(e, sharpness, weight, exp_high, exp_low) -> tuple:
+    """`barrier` from e = exp(sharpness value) computed by the caller: the batched lane kernel
+    (controller.lanes) brings an exp the compiler vectorises, and the algebra stays here."""
     e_high = e * exp_high
     e_low = exp_low / e
     cs = e_high + e_low
@@ -52,11 +60,18 @@ def barrier(value, sharpness, weight, exp_high, exp_low) -> tuple:
 @register_jitable
 def state_cost(q, qd, q_ref, qd_ref, c: np.ndarray) -> tuple:
     """Tracking and state barriers: l, l_q, l_qd, l_qq, l_qdqd (no cross term)."""
+    return state_cost_given(q, qd, q_ref, qd_ref, c, np.exp(c[C_ALPHA_POSITION] * q),
+                            np.exp(c[C_ALPHA_VELOCITY] * qd))
+
+
+@register_jitable
+def state_cost_given(q, qd, q_ref, qd_ref, c, e_position, e_velocity) -> tuple:
+    """`state_cost` from exp(alpha_q q) and exp(alpha_qd qd) computed by the caller."""
     eq, ev = q - q_ref, qd - qd_ref
-    bq, bq_d, bq_dd = barrier(q, c[C_ALPHA_POSITION], c[C_W_POSITION], c[C_E_POSITION_HIGH],
-                              c[C_E_POSITION_LOW])
-    bv, bv_d, bv_dd = barrier(qd, c[C_ALPHA_VELOCITY], c[C_W_VELOCITY], c[C_E_VELOCITY_HIGH],
-                              c[C_E_VELOCITY_LOW])
+    bq, bq_d, bq_dd = barrier_given(e_position, c[C_ALPHA_POSITION], c[C_W_POSITION],
+                                    c[C_E_POSITION_HIGH], c[C_E_POSITION_LOW])
+    bv, bv_d, bv_dd = barrier_given(e_velocity, c[C_ALPHA_VELOCITY], c[C_W_VELOCITY],
+                                    c[C_E_VELOCITY_HIGH], c[C_E_VELOCITY_LOW])
     return (c[C_Q_POSITION] * eq * eq + c[C_Q_VELOCITY] * ev * ev + bq + bv,
             2.0 * c[C_Q_POSITION] * eq + bq_d,
             2.0 * c[C_Q_VELOCITY] * ev + bv_d,
@@ -67,9 +82,15 @@ def state_cost(q, qd, q_ref, qd_ref, c: np.ndarray) -> tuple:
 @register_jitable
 def control_cost(u, c: np.ndarray) -> tuple:
     """Effort and the motor-torque barrier on drive_gain x current: l, l_u, l_uu."""
+    return control_cost_given(u, c, np.exp(c[C_ALPHA_TORQUE] * (c[C_DRIVE_GAIN] * u)))
+
+
+@register_jitable
+def control_cost_given(u, c, e_torque) -> tuple:
+    """`control_cost` from exp(alpha_tau drive_gain u) computed by the caller."""
     gain = c[C_DRIVE_GAIN]
-    bt, bt_d, bt_dd = barrier(gain * u, c[C_ALPHA_TORQUE], c[C_P_TORQUE], c[C_E_TORQUE_HIGH],
-                              c[C_E_TORQUE_LOW])
+    bt, bt_d, bt_dd = barrier_given(e_torque, c[C_ALPHA_TORQUE], c[C_P_TORQUE],
+                                    c[C_E_TORQUE_HIGH], c[C_E_TORQUE_LOW])
     return (c[C_R_CURRENT] * u * u + bt, 2.0 * c[C_R_CURRENT] * u + gain * bt_d,
             2.0 * c[C_R_CURRENT] + gain * gain * bt_dd)
 

@@ -25,6 +25,12 @@ from driver.clock import CycleClock, RingStats
 from protocol import cia402
 
 STALL_CYCLES = 10  # missed in a row: worth a message on the fault topic
+# why a cycle missed its deadline: woken late by the host; the drive's sample late (the
+# exchange, SYNC to the last TPDO or the frame's round trip); the decision (safety and MPC)
+# over the period; the telemetry's hand-off and the loop's own messages
+LATE_WAKE_UP, LATE_SAMPLE, DECISION, PUBLISH = ("late wake-up", "late sample",
+                                                "decision over budget", "publish back-pressure")
+MISSED_CAUSES = (LATE_WAKE_UP, LATE_SAMPLE, DECISION, PUBLISH)
 HISTORY_KEYS = ("t", "position", "velocity", "reference", "current", "planned_current",
                 "motor_current", "joint_torque")
 
@@ -48,6 +54,12 @@ class LoopReport:
     reason: str = "stopped"
     clock: CycleClock | None = None
     solve: RingStats = field(default_factory=RingStats)
+    # missed cycles by what took the cycle's time: MISSED_CAUSES, counted in `run`
+    missed_by_cause: dict[str, int] = field(
+        default_factory=lambda: dict.fromkeys(MISSED_CAUSES, 0))
+    # us per cycle the master spends besides the MPC's call: exchange with the drives,
+    # decoding, safety, encoding (a figure of its own: what the service adds to the solver)
+    master: RingStats = field(default_factory=RingStats)
     history: dict = field(default_factory=dict)
 
     @property
@@ -63,8 +75,32 @@ class LoopReport:
                 f"fallbacks; cold solve {self.cold_solve_us:.0f} us; period jitter p99 "
                 f"{self.jitter.percentile(99):.1f} us, max {self.jitter.max:.1f} us; MPC tick "
                 f"median {self.solve.percentile(50):.1f} us, p99 "
-                f"{self.solve.percentile(99):.1f} us, max {self.solve.max:.1f} us; "
-                f"{self.reason}")
+                f"{self.solve.percentile(99):.1f} us, max {self.solve.max:.1f} us; master "
+                f"(MPC excluded) median {self.master.percentile(50):.1f} us, p99 "
+                f"{self.master.percentile(99):.1f} us; missed by cause: "
+                + ", ".join(f"{cause} {n}" for cause, n in self.missed_by_cause.items())
+                + f"; {self.reason}")
+
+    def figures(self) -> dict:
+        """The run's figures as plain data (what `actuatord --report` writes as JSON): times
+        in us, missed cycles in total and by cause."""
+        def stats(ring: RingStats) -> dict:
+            return {"median_us": ring.percentile(50), "p99_us": ring.percentile(99),
+                    "max_us": ring.max}
+
+        return {"cycles": self.cycles, "missed": self.missed_cycles,
+                "missed_by_cause": dict(self.missed_by_cause), "fallbacks": self.fallbacks,
+                "cold_solve_us": self.cold_solve_us,
+                "jitter": {"p99_us": self.jitter.percentile(99), "max_us": self.jitter.max},
+                "mpc_tick": stats(self.solve), "master": stats(self.master),
+                "exit_code": self.exit_code, "reason": self.reason}
+
+    def count_missed(self, phases: dict[str, float], cycles: int) -> None:
+        """`cycles` missed, put down to the phase that took longest of the cycle behind them
+        (`phases`: s per cause), so a user can tell their machine from the service."""
+        if cycles:
+            cause = max(phases, key=phases.__getitem__)
+            self.missed_by_cause[cause] += cycles
 
 
 class CycleLoop:
@@ -90,6 +126,8 @@ class CycleLoop:
         self._stop = stop if stop is not None else threading.Event()
         self.report = LoopReport()
         self._t: float | None = None  # drive time of the last sample (None before the first)
+        self._mpc_time = 0.0  # s the last cycle spent in the policy's own call (set by _cycle)
+        self._exchange_time = 0.0  # s the last cycle waited for its sample (set by _cycle)
 
     @property
     def time(self) -> float:
@@ -119,8 +157,9 @@ class CycleLoop:
         clock = report.clock = CycleClock(options.period, options.lockstep)
         next_stats = options.stats_every
         missed = 0
+        behind: dict[str, float] = dict.fromkeys(MISSED_CAUSES, 0.0)  # the last cycle's phases
         while not self._stop.is_set():
-            clock.wait()
+            report.count_missed(behind, clock.wait())
             if clock.missed_cycles - missed >= STALL_CYCLES and self._t is not None:
                 self.fault(self._t, "controller",
                            f"loop stalled: {clock.missed_cycles - missed} cycles missed",
@@ -128,23 +167,31 @@ class CycleLoop:
             missed = clock.missed_cycles
             while self._requests:
                 self._requests.popleft()()
+            started = time.perf_counter()
             decide_time = self._cycle()
             if isinstance(decide_time, LoopReport):
                 return decide_time
+            master_time = time.perf_counter() - started - self._mpc_time
             if report.cycles == 0:
                 # the cold solve runs once before the rhythm starts: timed on its own, and the
                 # deadlines begin after it
                 report.cold_solve_us = decide_time * 1e6
                 clock.restart()
-            else:
-                clock.check_overrun()
+            phases = {LATE_WAKE_UP: clock.wake_lateness, LATE_SAMPLE: self._exchange_time,
+                      DECISION: decide_time, PUBLISH: 0.0}
+            if report.cycles:
+                report.count_missed(phases, clock.check_overrun())
                 report.solve.add(decide_time * 1e6)
+                report.master.add(master_time * 1e6)
             report.cycles += 1
+            published = time.perf_counter()
             self._published(decide_time)
             t = self._t
             if t >= next_stats:
                 next_stats += options.stats_every
                 self.publish(self._stats(t))
+            phases[PUBLISH] = time.perf_counter() - published
+            behind = phases
             if options.duration is not None and t >= options.duration - 1e-9:
                 return self._finish(0, f"ran {options.duration} s", t=t)
             if self._done():
@@ -197,8 +244,10 @@ class ControlLoop(CycleLoop):
 
     def _cycle(self) -> "float | LoopReport":
         drive, period = self._drive, self.options.period
+        exchange = time.perf_counter()
         try:
             sample = drive.sync()
+            self._exchange_time = time.perf_counter() - exchange
         except DriveError as exc:
             return self._finish(1, f"drive failed: {exc}", "drive",
                                 "stopped commanding; drive disabled on exit",
@@ -214,7 +263,7 @@ class ControlLoop(CycleLoop):
                                 "drive", "stopped commanding; drive disabled on exit", sample.t)
         start = time.perf_counter()
         safe = self._safe = self._net.decide(sample)
-        decide_time = time.perf_counter() - start
+        decide_time = self._mpc_time = time.perf_counter() - start
         try:
             drive.command_current(safe.current)
         except (CommandRangeError, DriveError) as exc:

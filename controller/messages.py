@@ -6,11 +6,19 @@ subscriber (Zenoh, an MCAP recording, a test) receives the same objects.
 
 from collections.abc import Callable, Sequence
 
+import numpy as np
 from google.protobuf.message import Message
 
+from controller import workspace as ws
 from controller.policy import PlanSnapshot
 from controller.safety import SafeCommand
 from driver import Sample
+from driver.interface import (
+    SAMPLE_JOINT_TORQUE,
+    SAMPLE_MOTOR_CURRENT,
+    SAMPLE_POSITION,
+    SAMPLE_VELOCITY,
+)
 from model.parameters import Limits
 from protocol import telemetry
 
@@ -75,16 +83,19 @@ def loop_stats(t: float, cycles: int, missed_cycles: int, jitter_p99_us: float,
                      solve_max_us=solve_max_us, dropped_messages=dropped_messages)
 
 
-def joint_states(t: float, names: Sequence[str], samples: Sequence[Sample],
-                 drive_states: Sequence[str], commands: Sequence[SafeCommand],
-                 decide_time: float) -> Message:
-    """Every joint of one cycle, in the robot file's order."""
+def joint_states(t: float, names: Sequence[str], table: np.ndarray,
+                 drive_states: Sequence[str], currents: np.ndarray, header: np.ndarray,
+                 status: Sequence[str], fallback: np.ndarray, decide_time: float) -> Message:
+    """Every joint of one cycle, in the robot file's order, from the cycle's arrays: `table`
+    the samples (rows of `driver.Sample` fields), `header` the MPC rows' headers
+    (`controller.workspace`), `currents` what went out, `fallback` where the net overrode."""
     return JointStates(
-        t=t, name=names, position=[s.position for s in samples],
-        velocity=[s.velocity for s in samples], effort=[s.joint_torque for s in samples],
-        motor_current=[s.motor_current for s in samples], current=[c.current for c in commands],
-        planned_current=[c.decision.planned_current for c in commands],
-        reference_position=[c.decision.reference_position for c in commands],
-        drive_state=drive_states, solver_status=[c.decision.status for c in commands],
-        iterations=[c.decision.iterations for c in commands],
-        fallback=[c.fault is not None for c in commands], solve_time_us=decide_time * 1e6)
+        t=t, name=names, position=table[:, SAMPLE_POSITION].tolist(),
+        velocity=table[:, SAMPLE_VELOCITY].tolist(),
+        effort=table[:, SAMPLE_JOINT_TORQUE].tolist(),
+        motor_current=table[:, SAMPLE_MOTOR_CURRENT].tolist(), current=currents.tolist(),
+        planned_current=header[:, ws.PLANNED_CURRENT].tolist(),
+        reference_position=header[:, ws.REFERENCE_POSITION].tolist(),
+        drive_state=drive_states, solver_status=status,
+        iterations=header[:, ws.ITERATIONS].astype(np.int64).tolist(),
+        fallback=fallback.tolist(), solve_time_us=decide_time * 1e6)

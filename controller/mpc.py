@@ -8,8 +8,11 @@ them directly, and the forward pass from the measured state is the line search. 
 must beat is the shifted cost corrected to the measured state by the value function's quadratic
 model, so the Armijo test stays meaningful. One simulation per tick instead of two.
 
-Joints run in parallel across cores (numba prange, one workspace row each); a single joint runs
-in the calling thread, where waking a thread team would cost more than it saves.
+Two compiled kernels tick a batch: `controller.lanes` puts the joints side by side in SIMD
+lanes (the default), `tick_joints` below runs each joint's scalar iLQR in turn, in parallel
+across cores (numba prange, one workspace row each; a single joint runs in the calling thread,
+where waking a thread team would cost more than it saves). The scalar one is the reference the
+lanes are tested against, and the kernel of joints whose model carries an extra effect.
 """
 
 import os
@@ -20,6 +23,7 @@ import numba
 import numpy as np
 from numba.np.unsafe.ndarray import to_fixed_tuple
 
+from controller import lanes
 from controller import workspace as ws
 from controller.action_model import discrete_step, stage_cost
 from controller.ilqr import (
@@ -258,16 +262,33 @@ def _decision(header: list[float]) -> Decision:
                     int(header[ws.ROLLOUTS]), header[ws.COST])
 
 
+KERNELS = ("lanes", "scalar")
+
+
 class BatchMpc:
     """The paper's controller for J independent joints (the paper's independent joint models),
-    ticked together. All joints share the horizon length (one row width)."""
+    ticked together. All joints share the horizon length (one row width).
 
-    def __init__(self, problems: Sequence[JointProblem]):
+    Two compiled kernels tick the batch with the same decisions (to rounding): "lanes" puts the
+    joints side by side in SIMD lanes (controller.lanes), "scalar" runs each joint's scalar
+    iLQR in turn (tick_joint, the reference). The default is "lanes" unless a joint's model
+    carries an extra effect, which only the scalar kernel computes. `threads` splits the lanes
+    in that many blocks, one per thread (default `lanes.default_threads()`); the scalar kernel
+    uses numba's thread count, as before."""
+
+    def __init__(self, problems: Sequence[JointProblem], kernel: str | None = None,
+                 threads: int | None = None):
         if not problems:
             raise ValueError("a batch needs at least one joint")
         horizons = {problem.settings.horizon for problem in problems}
         if len(horizons) != 1:
             raise ValueError(f"every joint needs the same horizon, got {sorted(horizons)}")
+        if kernel is not None and kernel not in KERNELS:
+            raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
+        if threads is not None and threads < 1:
+            raise ValueError(f"threads must be >= 1, got {threads}")
+        self._kernel_asked = kernel
+        self.threads = lanes.default_threads() if threads is None else threads
         self._build(list(problems))
 
     def _build(self, problems: list[JointProblem]) -> None:
@@ -275,6 +296,13 @@ class BatchMpc:
         self.horizon = n
         self.rows = np.zeros((len(problems), ws.row_size(n)))
         self.joints = [JointRow(problem, self.rows[j], n) for j, problem in enumerate(problems)]
+        supported = all(lanes.supports(joint.packed_parameters) for joint in self.joints)
+        if self._kernel_asked == "lanes" and not supported:
+            raise ValueError("the lanes kernel computes the paper's model only; a joint's model "
+                             "carries an extra effect: use kernel='scalar'")
+        self.kernel = self._kernel_asked or ("lanes" if supported else "scalar")
+        blocks = min(self.threads, lanes.chunks(len(problems)))
+        self._lanes = lanes.allocate(len(problems), n, blocks)
         # load the compiled code now, not in the first control cycle: one iteration each
         for joint in self.joints:
             joint.row[ws.COLD_ITERATIONS] = 1
@@ -287,6 +315,16 @@ class BatchMpc:
 
     def __len__(self) -> int:
         return len(self.joints)
+
+    def lane_blocks(self) -> list[range]:
+        """The joints each thread of the lanes kernel ticks (empty for the scalar kernel): runs
+        of whole chunks of lanes, so fewer blocks than threads when there are few joints."""
+        if self.kernel != "lanes":
+            return []
+        joints = len(self.joints)
+        count, blocks, width = lanes.chunks(joints), len(self._lanes[-1]), lanes.width(joints)
+        return [range(b * count // blocks * width, min((b + 1) * count // blocks * width, joints))
+                for b in range(blocks)]
 
     def prepare(self, joint: JointRow, position: float, velocity: float) -> None:
         """Write one joint's measured state for the next tick; a cold start begins from the
@@ -303,7 +341,10 @@ class BatchMpc:
 
     def run(self, t: float) -> None:
         """Tick every joint at time t (one compiled call)."""
-        tick_joints(self.rows, t, self.horizon)
+        if self.kernel == "lanes":
+            lanes.tick_lanes(self.rows, *self._lanes, t, self.horizon)
+        else:
+            tick_joints(self.rows, t, self.horizon)
 
     def decision(self, joint: JointRow) -> Decision:
         """What the last tick decided for this joint."""
@@ -322,6 +363,16 @@ class BatchMpc:
         return [_decision(header) for header in rows[:, :ws.HEADER].tolist()]
 
     def plan(self, joint: JointRow, t: float) -> PlanSnapshot:
+        if self.kernel == "lanes":
+            j = self.joints.index(joint)
+            trajectories, gains, _, _, current = self._lanes
+            which, ring = current[lanes.block_of(j, len(self.joints), len(current))]
+            chunk, lane = divmod(j, lanes.width(len(self.joints)))
+            # the steps in order from the ring (np.roll copies)
+            solution = np.roll(trajectories[which, chunk, :, :, lane], -ring, axis=0)
+            reference = np.roll(gains[chunk, :, lanes.REFERENCE_Q, lane], -ring)
+            return PlanSnapshot(t, joint.settings.dt, solution[:, lanes.Q],
+                                solution[:, lanes.QD], solution[:-1, lanes.U], reference)
         solution = joint.solution()
         return PlanSnapshot(t, joint.settings.dt, solution.X[:, 0].copy(),
                             solution.X[:, 1].copy(), solution.U.copy(),
@@ -349,10 +400,11 @@ class Mpc:
     exponential barriers, run at every control period (a batch of one)."""
 
     def __init__(self, model: ActuatorModel, settings: OcpSettings = OcpSettings(),
-                 payload: Payload = Payload(), reference: Reference = Sinusoid()):
+                 payload: Payload = Payload(), reference: Reference = Sinusoid(),
+                 kernel: str | None = None):
         self.model = model
         self.payload = payload
-        self.batch = BatchMpc([JointProblem(model, settings, payload, reference)])
+        self.batch = BatchMpc([JointProblem(model, settings, payload, reference)], kernel, 1)
         self._joint = self.batch.joints[0]
         self.parameters = self._joint.parameters
         self.limits = model.limits

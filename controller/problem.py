@@ -7,6 +7,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from controller.reference import REFERENCE_MARGIN
 from model.parameters import Limits
 
 # Indices of the packed cost vector the compiled solver reads.
@@ -71,6 +72,10 @@ class ResolutionError(ValueError):
         self.quantity = quantity
 
 
+class UnsafeWeights(ValueError):
+    """Weights with which the controller would pull the joint past its limits."""
+
+
 @dataclass(frozen=True)
 class OcpSettings:
     horizon: int = 100  # steps; the paper's 100 ms window at 1 ms
@@ -95,6 +100,27 @@ class OcpSettings:
 
     def with_weights(self, **changes: float) -> "OcpSettings":
         return replace(self, weights=replace(self.weights, **changes))
+
+    def check_weights(self) -> None:
+        """Refuse weights the controller cannot keep safe. The position barrier is what keeps
+        the joint inside its limits, so it must be on; and a reference may lie up to
+        REFERENCE_MARGIN beyond a limit, where the tracking cost pulls with 2 Q d and the
+        barrier at the limit pushes back with W alpha: the cost's minimum stays inside the
+        limit only while 2 Q d <= W alpha. Measured on the elbow (--sim, a setpoint 0.5 rad
+        beyond the lower limit): Q = 1000 = W alpha / (2 d) held, 2000 left the drive's
+        position window, and {"position": 1e6} or {"position_barrier": 0} faulted the drive
+        within 2.3 s on the default sinusoid. Raises UnsafeWeights naming the weights."""
+        w, alpha = self.weights, self.sharpness.position
+        if not w.position_barrier > 0:
+            raise UnsafeWeights(f"position_barrier {w.position_barrier:g}: expected > 0 (it "
+                                "keeps the joint inside its position limits)")
+        most = w.position_barrier * alpha / (2 * REFERENCE_MARGIN)
+        if w.position > most:
+            raise UnsafeWeights(
+                f"position {w.position:g} with position_barrier {w.position_barrier:g}: a "
+                f"reference {REFERENCE_MARGIN:g} rad beyond a limit would pull the joint past "
+                f"it; expected position <= position_barrier x {alpha:g} / "
+                f"{2 * REFERENCE_MARGIN:g} = {most:g} (or a larger position_barrier)")
 
     def check_resolution(self, velocity_max: float, period: float) -> None:
         """Refuse a step the controller cannot keep safe: at the velocity limit (rad/s), one

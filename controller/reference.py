@@ -75,9 +75,10 @@ def reference_from_dict(spec: dict, limits: Limits) -> Reference:
     if not isinstance(spec, dict):
         raise ReferenceError("reference must be a JSON object with a 'kind'")
     kind = spec.get("kind")
-    cls = _KINDS.get(kind)
+    cls = _KINDS.get(kind) if isinstance(kind, str) else None  # a list is not a kind
     if cls is None:
-        raise ReferenceError(f"reference kind {kind!r}: expected one of {', '.join(_KINDS)}")
+        raise ReferenceError(f"reference kind {repr(kind)[:40]}: expected one of "
+                             f"{', '.join(_KINDS)}")
     fields = set(cls.__dataclass_fields__)
     unknown = set(spec) - fields - {"kind"}
     if unknown:
@@ -86,10 +87,14 @@ def reference_from_dict(spec: dict, limits: Limits) -> Reference:
     values = {}
     for name in fields & set(spec):
         value = spec[name]
-        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(
-                value):
-            raise ReferenceError(f"{kind}.{name}: expected a finite number, got {value!r}")
-        values[name] = float(value)
+        try:  # an integer beyond a float's range overflows; that is not a number either
+            number = float(value) if isinstance(value, int | float) else math.nan
+        except OverflowError:
+            number = math.inf
+        if isinstance(value, bool) or not math.isfinite(number):
+            raise ReferenceError(f"{kind}.{name}: expected a finite number, got "
+                                 f"{repr(value)[:40]}")
+        values[name] = number
     missing = [name for name, f in cls.__dataclass_fields__.items()
                if name not in values and f.default is dataclasses.MISSING]
     if missing:

@@ -22,7 +22,7 @@ from typing import NamedTuple
 
 from controller.loop import ControlLoop
 from controller.mpc import Mpc
-from controller.problem import Weights
+from controller.problem import UnsafeWeights, Weights
 from controller.reference import ReferenceError, reference_from_dict
 from model.parameters import ActuatorModel, Payload
 
@@ -179,7 +179,23 @@ class RequestHandler:
     def _weights(self, spec: object) -> Callable[[], None]:
         changes = parse_weights(spec)
         mpc = self.mpc
-        return lambda: mpc.set_settings(mpc.settings.with_weights(**changes))
+        try:  # checked against the weights in force, as a reference is against the limits
+            mpc.settings.with_weights(**changes).check_weights()
+        except UnsafeWeights as exc:
+            raise RequestError(str(exc)) from None
+        loop = self.loop
+
+        def apply() -> None:
+            # again in the loop's thread: another change may have been applied in between
+            settings = mpc.settings.with_weights(**changes)
+            try:
+                settings.check_weights()
+            except UnsafeWeights as exc:
+                loop.fault(loop.time, "request", f"weights refused: {exc}", "weights unchanged")
+                return
+            mpc.set_settings(settings)
+
+        return apply
 
     def _change(self, what: str, body: Body,
                 build: Callable[[object], Callable[[], None]]) -> dict:

@@ -7,7 +7,10 @@ asked at all while the state is unbelievable, and is told to start afresh after.
 """
 
 import math
+from collections.abc import Sequence
 from typing import NamedTuple
+
+import numpy as np
 
 from controller import ilqr
 from controller.ilqr import STATUS_NAMES
@@ -93,3 +96,50 @@ def state_fault(position: float, velocity: float, limits: Limits) -> str | None:
         return (f"state out of range (q={position:.3f} rad, qd={velocity:.3f} rad/s): "
                 "holding position")
     return None
+
+
+class BatchSafety:
+    """`SafetyNet`'s rules over a batch of joints at once, on arrays (one numpy operation per
+    rule, whatever the number of joints): what the robot's cycle runs every millisecond. The
+    per-joint net stays the reference (a test holds the two equal) and names what went wrong
+    for the rare joint the batch screens out."""
+
+    def __init__(self, parameters: Sequence[ActuatorParameters], limits: Sequence[Limits]):
+        packed = np.array([p.packed() for p in parameters])
+        self._gravity_my = packed[:, dynamics.P_GRAVITY_MY].copy()
+        self._gravity_mx = packed[:, dynamics.P_GRAVITY_MX].copy()
+        self._torque_offset = np.array([p.torque_offset for p in parameters])
+        self._drive_gain = np.array([p.drive_gain for p in parameters])
+        self.current_max = np.array([lim.current_max for lim in limits])
+        self._position_low = np.array([lim.position_min - STATE_MARGIN for lim in limits])
+        self._position_high = np.array([lim.position_max + STATE_MARGIN for lim in limits])
+        self._velocity_high = np.array([VELOCITY_MARGIN * lim.velocity_max for lim in limits])
+
+    def hold_currents(self, positions: np.ndarray) -> np.ndarray:
+        """`holding_current` of every joint (A), within its limit (`positions`: one per joint
+        of the batch, in its order)."""
+        torque = (self._gravity_my * np.sin(positions) + self._gravity_mx * np.cos(positions)
+                  + self._torque_offset)
+        return np.clip(torque / self._drive_gain, -self.current_max, self.current_max)
+
+    def believed(self, positions: np.ndarray, velocities: np.ndarray) -> np.ndarray:
+        """Per joint: the state is one the policy may see (`state_fault` gives None)."""
+        with np.errstate(invalid="ignore"):
+            return ((positions >= self._position_low) & (positions <= self._position_high)
+                    & (np.abs(velocities) <= self._velocity_high))
+
+    def screened_currents(self, positions: np.ndarray, velocities: np.ndarray) -> np.ndarray:
+        """What `screen` commands for each joint (meaningful where not `believed`): hold the
+        position, or zero current where the state is not finite."""
+        finite = np.isfinite(positions) & np.isfinite(velocities)
+        return np.where(finite, self.hold_currents(np.where(finite, positions, 0.0)), 0.0)
+
+    def checked_currents(self, positions: np.ndarray, planned: np.ndarray, ok: np.ndarray
+                         ) -> np.ndarray:
+        """What `check` commands: the planned current clipped to the limit where the policy
+        succeeded with a finite current, else the holding current."""
+        usable = ok & np.isfinite(planned)
+        if usable.all():  # every cycle but a rare one: no holding current to work out
+            return np.clip(planned, -self.current_max, self.current_max)
+        return np.where(usable, np.clip(np.where(usable, planned, 0.0), -self.current_max,
+                                        self.current_max), self.hold_currents(positions))

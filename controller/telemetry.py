@@ -12,6 +12,7 @@ import zenoh
 
 from controller.messages import topic_of
 from controller.requests import Body
+from controller.ros2 import JointStatePublisher
 from protocol import telemetry as schema
 
 log = logging.getLogger(__name__)
@@ -33,9 +34,10 @@ class TelemetryPublisher:
     waited for."""
 
     def __init__(self, session: zenoh.Session, prefix: str = schema.DEFAULT_PREFIX,
-                 topics: Iterable[str] = tuple(schema.TOPICS)):
+                 topics: Iterable[str] = tuple(schema.TOPICS), ros2_domain: int | None = None):
         """`topics`: the keys under the prefix to publish (`schema.ROBOT_TOPICS` for a
-        robot)."""
+        robot). `ros2_domain`: also publish `/joint_states` as rmw_zenoh does in that ROS
+        domain (a single joint is named by the prefix's last segment, e.g. `elbow`)."""
         self.session = session
         self.prefix = prefix
         self.dropped = 0
@@ -58,6 +60,9 @@ class TelemetryPublisher:
             schema.key_expr(prefix, schema.AUDIT), encoding=zenoh.Encoding.APPLICATION_JSON,
             congestion_control=zenoh.CongestionControl.BLOCK,
             priority=zenoh.Priority.INTERACTIVE_HIGH)
+        joint = prefix.rstrip("/").rsplit("/", 1)[-1]
+        self._ros2 = (None if ros2_domain is None else
+                      JointStatePublisher(session, ros2_domain, joint))
         self._thread = threading.Thread(target=self._run, name="telemetry", daemon=True)
         self._thread.start()
 
@@ -105,6 +110,8 @@ class TelemetryPublisher:
             message = queue.popleft()
             try:
                 self._publishers[topic_of(message)].put(message.SerializeToString())
+                if self._ros2 is not None:
+                    self._ros2.publish(message)
             except Exception as exc:  # one bad message must not stop the telemetry
                 log.error("publishing %s failed: %s", type(message).__name__, exc)
 
@@ -114,3 +121,5 @@ class TelemetryPublisher:
         self._thread.join(5)
         for entity in [*self._publishers.values(), *self._queryables, self._audit, self._alive]:
             entity.undeclare()
+        if self._ros2 is not None:
+            self._ros2.close()

@@ -6,7 +6,11 @@ up: the names recordings use, so one layout serves live data and files.
 Viewers change the reference and the weights through two services,
 `{prefix}/reference` and `{prefix}/weights`, which go through actuatord's queryables like
 `dashboard set`: validated, applied at a cycle start, audited. A vanished actuatord (its
-liveliness token gone) is shown as an error status in the viewer."""
+liveliness token gone) is shown as an error status in the viewer, also to viewers that connect
+afterwards.
+
+Viewers connect to `dashboard.foxglove_front`, which serves both subprotocol names on the
+port and relays to the SDK's server on a loopback port of its own."""
 
 import json
 import logging
@@ -18,6 +22,7 @@ import zenoh
 from foxglove.websocket import Capability, ServiceRequest, StatusLevel
 
 from dashboard.changes import CHANGES, NoAnswer, request_change
+from dashboard.foxglove_front import ViewerFront
 from dashboard.liveliness import watch_publisher
 from protocol import telemetry
 
@@ -50,15 +55,20 @@ class ChangeFailed(RuntimeError):
 
 
 class FoxgloveBridge:
+    """The bridge on `port` at `host` (0: the kernel's pick; `ports` are the ones served),
+    and on each of `extra_ports` too. Raises OSError when a port cannot be listened on."""
+
     def __init__(self, session: zenoh.Session, key: str, prefix: str = telemetry.DEFAULT_PREFIX,
-                 host: str = "127.0.0.1", port: int = 8765):
+                 host: str = "127.0.0.1", port: int = 8765, extra_ports: list[int] = ()):
         self.session = session
         self.prefix = prefix
         self.server = foxglove.start_server(
-            name="actuator-link", host=host, port=port, capabilities=[Capability.Services],
+            name="actuator-link", host="127.0.0.1", port=0, capabilities=[Capability.Services],
             services=[self._service(what) for what in CHANGES])
         self._lock = threading.Lock()
         self._channels: dict[str, foxglove.Channel] = {}
+        self._status: str | None = None  # the status frame a new viewer is sent
+        self._status_lock = threading.Lock()  # liveliness callbacks and start-up both set it
         self.forwarded = 0
         # actuatord's topics exist before their first message, so a viewer can subscribe to
         # faults and the audit before there are any
@@ -66,13 +76,29 @@ class FoxgloveBridge:
             if zenoh.KeyExpr(key).intersects(zenoh.KeyExpr(telemetry.key_expr(prefix, topic))):
                 self._channel(telemetry.key_expr(prefix, topic))
         self._subscriber = session.declare_subscriber(key, self._on_sample)
-        self.server.publish_status(f"waiting for actuatord under {prefix}", StatusLevel.Warning,
-                                   PUBLISHER_STATUS)
+        self._publish_status(f"waiting for actuatord under {prefix}", StatusLevel.Warning)
+        try:
+            self.front = ViewerFront(self.server.port, host, [port, *extra_ports],
+                                     lambda: self._status)
+        except OSError:
+            self._subscriber.undeclare()
+            self.server.stop()
+            raise
         self._liveliness = watch_publisher(session, prefix, self._on_liveliness)
 
     @property
     def port(self) -> int:
-        return self.server.port
+        return self.front.ports[0]
+
+    @property
+    def ports(self) -> list[int]:
+        return self.front.ports
+
+    def _publish_status(self, message: str, level: StatusLevel) -> None:
+        with self._status_lock:
+            self._status = json.dumps({"op": "status", "level": int(level), "message": message,
+                                       "id": PUBLISHER_STATUS})
+            self.server.publish_status(message, level, PUBLISHER_STATUS)
 
     def _channel(self, key: str) -> foxglove.Channel | None:
         with self._lock:
@@ -81,7 +107,9 @@ class FoxgloveBridge:
                 return channel
             name = key.rsplit("/", 1)[-1]
             if name == telemetry.AUDIT:
-                channel = foxglove.Channel(key, message_encoding="json")
+                channel = foxglove.Channel(key, message_encoding="json", schema=foxglove.Schema(
+                    name=telemetry.AUDIT_SCHEMA_NAME, encoding="jsonschema",
+                    data=json.dumps(telemetry.AUDIT_SCHEMA).encode()))
             elif name in telemetry.TOPICS:
                 message = telemetry.TOPICS[name]
                 channel = foxglove.Channel(
@@ -102,11 +130,13 @@ class FoxgloveBridge:
 
     def _on_liveliness(self, alive: bool) -> None:
         if alive:
-            self.server.remove_status([PUBLISHER_STATUS])
+            with self._status_lock:
+                self._status = None
+                self.server.remove_status([PUBLISHER_STATUS])
         else:
-            self.server.publish_status(
+            self._publish_status(
                 f"actuatord under {self.prefix} vanished: its liveliness token is gone; the "
-                f"data shown is its last", StatusLevel.Error, PUBLISHER_STATUS)
+                f"data shown is its last", StatusLevel.Error)
 
     def _service(self, what: str) -> foxglove.Service:
         def json_schema(name: str, body: dict) -> foxglove.MessageSchema:
@@ -133,4 +163,5 @@ class FoxgloveBridge:
     def close(self) -> None:
         self._liveliness.undeclare()
         self._subscriber.undeclare()
+        self.front.close()
         self.server.stop()

@@ -1,9 +1,10 @@
 """The Foxglove layout, built with foxglove-sdk's `foxglove.layouts` (the current layout format:
 panel titles as the viewers show them, typed panel configs) instead of hand-written JSON that
-drifts from the telemetry. The shipped `dashboard/elbow_layout.json` is this module's output;
-a test regenerates it and compares.
+drifts from the telemetry. The shipped `dashboard/elbow_layout.json` (live bridge and Zenoh
+recordings) and `dashboard/elbow_experiment_layout.json` (experiment recordings: no MPC, no
+services) are this module's output; a test regenerates them and compares.
 
-    python3 -m dashboard.layout                          # rewrite dashboard/elbow_layout.json
+    python3 -m dashboard.layout                          # rewrite both shipped layouts
     python3 -m dashboard.layout --prefix actuators/elbow --prefix actuators/wrist -o arm.json
     python3 -m dashboard.layout --robot robots/talos_arm.toml -o talos_arm.json
 
@@ -25,6 +26,7 @@ import foxglove.layouts as fl
 from protocol import telemetry
 
 SHIPPED = "elbow_layout.json"
+SHIPPED_EXPERIMENT = "elbow_experiment_layout.json"
 LIMIT_COLOR = "#d62728"  # red: every limit line, dotted
 WINDOW_S = 20.0  # seconds of history the live plots follow
 
@@ -93,10 +95,13 @@ def _service_panel(title: str, service: str, example: dict) -> fl.ServiceCallPan
         button_text="send", editing_mode=True, timeout_seconds=5))
 
 
-def joint_view(prefix: str, joint: JointPaths) -> fl.SplitContainer:
+def joint_view(prefix: str, joint: JointPaths, experiment: bool = False) -> fl.SplitContainer:
     """Every panel for one actuatord: tracking, current against its limits (measured above
     commanded above the solver's plan, each its own style), torque, drive state, solver and
-    loop timing, faults, and the reference and weights services."""
+    loop timing, faults, and the reference and weights services. `experiment`: the panels an
+    experiment recording feeds (`recorder --exciting-trajectory/--sinusoid`): its tracking law
+    has no MPC (no solver topic, no planned current) and no services, so timing comes from
+    loop_stats alone (the law's decide time and the loop's jitter)."""
     position = _plot("position vs reference and limits", "rad", [
         _series(joint.position, "measured position", "#1f77b4", width=2),
         _series(joint.reference, "reference", "#7f7f7f", "dashed"),
@@ -104,7 +109,8 @@ def joint_view(prefix: str, joint: JointPaths) -> fl.SplitContainer:
     current = _plot("motor current vs limit", "A", [
         _series(joint.motor_current, "measured current", "#ff7f0e", width=2),
         _series(joint.commanded_current, "commanded current", "#2ca02c"),
-        _series(joint.planned_current, "solver current", "#9467bd", "dashed"),
+        *([] if experiment else [
+            _series(joint.planned_current, "solver current", "#9467bd", "dashed")]),
         *_limits(f"{joint.current_limit}.@negative", joint.current_limit, "current")])
     torque = _plot("joint torque (torque sensor)", "N.m", [
         _series(joint.joint_torque, "joint torque", "#8c564b")])
@@ -113,6 +119,10 @@ def joint_view(prefix: str, joint: JointPaths) -> fl.SplitContainer:
         _series(f"{solver}.solve_time_us", "MPC tick", "#17becf"),
         _series(f"{stats}.solve_p99_us", "MPC tick p99 (1 s)", "#1f77b4", "dashed"),
         _series(f"{stats}.period_jitter_p99_us", "period jitter p99 (1 s)", "#e377c2")])
+    if experiment:
+        timing = _plot("tracking law and loop jitter", "us", [
+            _series(f"{stats}.solve_p99_us", "tracking law p99 (1 s)", "#1f77b4", "dashed"),
+            _series(f"{stats}.period_jitter_p99_us", "period jitter p99 (1 s)", "#e377c2")])
     states = fl.StateTransitionsPanel(title="drive state and safety net",
                                       config=fl.StateTransitionsConfig(paths=[
         fl.StateTransitionsSeries(value=joint.drive_state, label="CiA 402 state"),
@@ -134,15 +144,15 @@ def joint_view(prefix: str, joint: JointPaths) -> fl.SplitContainer:
 
     return fl.SplitContainer(direction="column", items=[
         row(position, current, proportion=3), row(torque, timing, states, proportion=2),
-        row(faults, services, proportion=2)])
+        row(faults, *([] if experiment else [services]), proportion=2)])
 
 
-def build_layout(prefixes: list[str] | None = None) -> fl.Layout:
+def build_layout(prefixes: list[str] | None = None, experiment: bool = False) -> fl.Layout:
     """The layout for the actuatords under `prefixes` (default: the elbow); several get a tab
-    each."""
+    each. `experiment`: for experiment recordings (see joint_view)."""
     prefixes = prefixes or [telemetry.DEFAULT_PREFIX]
     joints = {prefix: JointPaths.own_topics(prefix) for prefix in prefixes}
-    views = [fl.TabItem(title=joint.name, content=joint_view(prefix, joint))
+    views = [fl.TabItem(title=joint.name, content=joint_view(prefix, joint, experiment))
              for prefix, joint in joints.items()]
     if len(views) == 1:
         return fl.Layout(content=views[0].content)
@@ -207,13 +217,14 @@ def layout_json(layout: fl.Layout) -> str:
     return json.dumps(json.loads(layout.to_json()), indent=2) + "\n"
 
 
-def shipped_path() -> Path:
-    return Path(str(files("dashboard") / SHIPPED))
+def shipped_path(experiment: bool = False) -> Path:
+    return Path(str(files("dashboard") / (SHIPPED_EXPERIMENT if experiment else SHIPPED)))
 
 
 def _robot_names(path: str) -> tuple[str, list[str]] | None:
     """The robot's name and its joints' names, in order, from a robot file (read as TOML
-    here: the dashboard layer does not import the commands that check robot files whole)."""
+    here: the dashboard layer imports only `protocol`, not `robot.description`, which checks
+    robot files whole)."""
     import tomllib
 
     try:
@@ -232,12 +243,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--robot", metavar="FILE",
                         help="the layout for actuatord --robot FILE (its prefix robots/NAME "
                              "unless --prefix gives one)")
+    parser.add_argument("--experiment", action="store_true",
+                        help="the layout for experiment recordings (no MPC, no services)")
     parser.add_argument("-o", "--output", type=Path, default=None,
-                        help=f"default: the shipped dashboard/{SHIPPED}")
+                        help=f"default: rewrite the shipped dashboard/{SHIPPED} and "
+                             f"dashboard/{SHIPPED_EXPERIMENT}")
     args = parser.parse_args(argv)
-    if (args.prefix or args.robot) and args.output is None:
-        parser.error("--prefix/--robot need -o FILE: the shipped layout is the elbow's")
-    output = args.output or shipped_path()
+    if (args.prefix or args.robot or args.experiment) and args.output is None:
+        parser.error("--prefix/--robot/--experiment need -o FILE: the shipped layouts are "
+                     "the elbow's")
+    if args.output is None:
+        for experiment in (False, True):
+            shipped_path(experiment).write_text(layout_json(build_layout(None, experiment)))
+            print(f"wrote {shipped_path(experiment)}")
+        return 0
+    output = args.output
     if args.robot:
         robot = _robot_names(args.robot)
         if robot is None:
@@ -246,7 +266,7 @@ def main(argv: list[str] | None = None) -> int:
         name, names = robot
         layout = robot_layout(args.prefix[0] if args.prefix else f"robots/{name}", names)
     else:
-        layout = build_layout(args.prefix)
+        layout = build_layout(args.prefix, args.experiment)
     output.write_text(layout_json(layout))
     print(f"wrote {output}")
     return 0

@@ -34,6 +34,7 @@ MASTER_HEARTBEAT_MS = 100  # the master's own heartbeat period
 # producer thread for a few hundred ms is not taken for a dead master, while a dead one is
 # noticed within the issue's 1 s (SYNC silence, sim_bus.canopen_watchdogs, is quicker)
 MASTER_HEARTBEAT_CONSUMER_MS = 8 * MASTER_HEARTBEAT_MS
+_ATTRIBUTE = "_actuator_link_bus_watch"  # where a network keeps its BusWatch
 
 
 def master_node_id(drive_node_id: int) -> int:
@@ -41,8 +42,138 @@ def master_node_id(drive_node_id: int) -> int:
     return 127 if drive_node_id != 127 else 126
 
 
+class BusWatch:
+    """What the master does once per CAN bus, whatever the number of drives on it: count the
+    frames the network receives (one wrap of canopen's entry point for received frames),
+    judge the load once a cycle, produce the master's heartbeat (once per master id, however
+    many drives consume it), and in real time poll every drive's heartbeat from one thread.
+    Each drive's `Health` joins the watch of its network (`BusWatch.of`); the jobs used to
+    run once per drive: on talos_32's 32-drive link every received frame passed 32 nested
+    counting wrappers and the bus carried 32 copies of the master's heartbeat."""
+
+    @classmethod
+    def of(cls, network: canopen.Network, lockstep: bool) -> "BusWatch":
+        """The network's watch, made with its first drive. Kept on the network itself (a
+        canopen Network is a mapping, so it cannot key a dictionary), and gone with it."""
+        watch = getattr(network, _ATTRIBUTE, None)
+        if watch is None:
+            watch = cls(network, lockstep)
+            setattr(network, _ATTRIBUTE, watch)
+        return watch
+
+    def __init__(self, network: canopen.Network, lockstep: bool):
+        self.network = network
+        self.lockstep = lockstep
+        self.frames = 0  # every frame this network received, ours echoed or not
+        self._frames_at_cycle = 0
+        self._cycle = 0  # the last cycle counted (drives report theirs; the first counts)
+        # more than this in one cycle is a flood: the bus's cyclic frames plus the margin
+        # (`expect_cyclic_frames`; a lone drive's own SYNC and PDOs are well inside it)
+        self.frame_limit = FLOOD_MARGIN_FRAMES
+        self._healths: list[Health] = []
+        self._lock = threading.Lock()
+        # master id -> [drives producing it, periodic task (real time), cycles per beat,
+        # cycles to the next beat (lock-step)]
+        self._beats: dict[int, list] = {}
+        self._thread_stop: threading.Event | None = None
+        deliver = network.notify
+
+        def counting_notify(can_id: int, data: bytearray, timestamp: float) -> None:
+            self.frames += 1
+            deliver(can_id, data, timestamp)
+
+        network.notify = counting_notify
+
+    def join(self, health: "Health") -> None:
+        with self._lock:
+            self._healths.append(health)
+
+    def leave(self, health: "Health") -> None:
+        with self._lock:
+            if health in self._healths:
+                self._healths.remove(health)
+            if not self._healths and self._thread_stop is not None:
+                self._thread_stop.set()
+                self._thread_stop = None
+
+    def expect_cyclic_frames(self, frames: int) -> None:
+        """The bus carries `frames` a cycle by design (SYNC and every drive's PDOs)."""
+        self.frame_limit = frames + FLOOD_MARGIN_FRAMES
+
+    def restart_count(self) -> None:
+        """Bus load counts from now: bring-up traffic is not load."""
+        self._frames_at_cycle = self.frames
+
+    def count_cycle(self, cycle: int, warnings: list[str]) -> None:
+        """Once per cycle of the bus (the first drive to report cycle `cycle` counts it):
+        the load, and in lock-step the master's heartbeats in cycles."""
+        if cycle <= self._cycle:
+            return
+        self._cycle = cycle
+        for producers in self._beats.values():
+            if producers[2]:
+                producers[3] -= 1
+                if producers[3] <= 0:
+                    producers[3] = producers[2]
+                    self.network.send_message(producers[4], bytes([cia301.NMT_OPERATIONAL]))
+        frames, self._frames_at_cycle = self.frames - self._frames_at_cycle, self.frames
+        if frames > self.frame_limit:
+            warnings.append(f"bus overloaded: {frames} frames in one cycle (at most "
+                            f"{self.frame_limit} expected)")
+
+    def start_producing(self, master_id: int, period: float) -> None:
+        """Beat as node `master_id` (NMT operational) every MASTER_HEARTBEAT_MS: on the wall
+        clock in real time (canopen's periodic send), every N cycles in lock-step; once for
+        every drive that asks."""
+        with self._lock:
+            producers = self._beats.get(master_id)
+            if producers is not None:
+                producers[0] += 1
+                return
+            cob_id = cia301.HEARTBEAT_BASE + master_id
+            if self.lockstep:
+                cycles = max(1, round(MASTER_HEARTBEAT_MS * 1e-3 / period))
+                self._beats[master_id] = [1, None, cycles, cycles, cob_id]
+            else:
+                task = self.network.send_periodic(cob_id, bytes([cia301.NMT_OPERATIONAL]),
+                                                  MASTER_HEARTBEAT_MS * 1e-3)
+                self._beats[master_id] = [1, task, 0, 0, cob_id]
+
+    def stop_producing(self, master_id: int) -> None:
+        with self._lock:
+            producers = self._beats.get(master_id)
+            if producers is None:
+                return
+            producers[0] -= 1
+            if producers[0] <= 0:
+                del self._beats[master_id]
+                if producers[1] is not None:
+                    producers[1].stop()
+
+    def watch_clock(self) -> None:
+        """Real time: one thread polls every drive's heartbeat (started with the first)."""
+        with self._lock:
+            if self._thread_stop is not None:
+                return
+            stop = self._thread_stop = threading.Event()
+        threading.Thread(target=self._watch_clock, args=(stop,), daemon=True,
+                         name="heartbeat-watch").start()
+
+    def _watch_clock(self, stop: threading.Event) -> None:
+        while True:
+            with self._lock:
+                healths = list(self._healths)
+            periods = [h.heartbeat_ms for h in healths if h.heartbeat_ms > 0]
+            # a quarter of the shortest producer period
+            if stop.wait(min(periods, default=MASTER_HEARTBEAT_MS) / 4000.0):
+                return
+            now = time.monotonic()
+            for health in healths:
+                health.check_clock(now)
+
+
 class Health:
-    """Boot-up, heartbeat and EMCY of node `node_id`, and the frame count of the bus.
+    """Boot-up, heartbeat and EMCY of node `node_id`; the bus's jobs through its `BusWatch`.
 
     `on_failure(error)` is called once when the drive is lost; `on_emergency(code, register)`
     for every EMCY. Both run in the network's receive thread (or the watchdog's).
@@ -53,6 +184,7 @@ class Health:
                  on_emergency: Callable[[int, int], None], warnings: list[str],
                  timeout_factor: float = 2.0):
         self.network = network
+        self.bus = BusWatch.of(network, lockstep)
         self.name = name
         self.lockstep = lockstep
         self.timeout_factor = timeout_factor
@@ -60,32 +192,24 @@ class Health:
         self.heartbeat_ms = 0
         self.last_heartbeat: float | None = None  # time.monotonic() of the last beat
         self.booted = threading.Event()  # set by the boot-up message (heartbeat state 0)
-        self.frames = 0  # every frame this network received, ours echoed or not
-        self._frames_at_cycle = 0
-        # more than this in one cycle is a flood: the bus's cyclic frames plus the margin
-        # (`expect_cyclic_frames`; a lone drive's own SYNC and PDOs are well inside it)
-        self.frame_limit = FLOOD_MARGIN_FRAMES
+        self._cycles = 0
         self._cycles_silent = 0
         self._in_use = False
         self._on_failure = on_failure
         self._on_emergency = on_emergency
-        self._watchdog_stop = threading.Event()
-        self._watchdog: threading.Thread | None = None
-        self._beat_task = None
-        self._beat_cob_id = 0
-        self._cycles_per_beat = 0
-        self._cycles_to_beat = 0
+        self._master_id: int | None = None
         network.subscribe(cia301.HEARTBEAT_BASE + node.id, self._on_heartbeat)
         node.emcy.add_callback(self._on_emcy)
-        # count at canopen's single entry point for received frames (a python-can bus's
-        # listener and the embedded link both call notify), so a flood is seen either way
-        deliver = network.notify
+        self.bus.join(self)
 
-        def counting_notify(can_id: int, data: bytearray, timestamp: float) -> None:
-            self.frames += 1
-            deliver(can_id, data, timestamp)
+    @property
+    def frames(self) -> int:
+        """Every frame this drive's network received."""
+        return self.bus.frames
 
-        network.notify = counting_notify
+    @property
+    def frame_limit(self) -> int:
+        return self.bus.frame_limit
 
     # --- boot-up and heartbeat --------------------------------------------------------------
 
@@ -99,22 +223,19 @@ class Health:
         self.last_heartbeat = time.monotonic()
         self._cycles_silent = 0
         self._in_use = True
-        self._frames_at_cycle = self.frames  # bring-up traffic is not load
-        if self.lockstep or self._watchdog is not None or heartbeat_ms <= 0:
-            return
-        self._watchdog = threading.Thread(target=self._watch_clock, daemon=True,
-                                          name=f"heartbeat-watch-{self.name}")
-        self._watchdog.start()
+        self.bus.restart_count()  # bring-up traffic is not load
+        if not self.lockstep and heartbeat_ms > 0:
+            self.bus.watch_clock()
 
     def expect_cyclic_frames(self, frames: int) -> None:
         """The bus carries `frames` a cycle by design (SYNC and every drive's PDOs): an
-        in-process link with 32 drives on it is not flooded by its 129."""
-        self.frame_limit = frames + FLOOD_MARGIN_FRAMES
+        in-process link with many drives on it is not flooded by their PDOs."""
+        self.bus.expect_cyclic_frames(frames)
 
     def restart_count(self) -> None:
         """Bus load counts from now: the bring-up of the other drives on a shared bus is not
         load (`driver.drive_group.CanOpenBus.started`)."""
-        self._frames_at_cycle = self.frames
+        self.bus.restart_count()
 
     def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if data and data[0] == cia301.NMT_BOOT_UP:
@@ -126,17 +247,10 @@ class Health:
         self._cycles_silent = 0
 
     def count_cycle(self, period: float) -> None:
-        """After each cycle: the bus load, and in lock-step the heartbeats in cycles (the
-        drive's judged, the master's produced)."""
-        if self._cycles_per_beat:
-            self._cycles_to_beat -= 1
-            if self._cycles_to_beat <= 0:
-                self._cycles_to_beat = self._cycles_per_beat
-                self.network.send_message(self._beat_cob_id, bytes([cia301.NMT_OPERATIONAL]))
-        frames, self._frames_at_cycle = self.frames - self._frames_at_cycle, self.frames
-        if frames > self.frame_limit:
-            self.warnings.append(f"bus overloaded: {frames} frames in one cycle (at most "
-                                 f"{self.frame_limit} expected)")
+        """After each cycle: the bus's jobs (once per bus), and in lock-step the drive's
+        heartbeat judged in cycles."""
+        self._cycles += 1
+        self.bus.count_cycle(self._cycles, self.warnings)
         if self.lockstep and self._in_use and self.heartbeat_ms > 0:
             self._cycles_silent += 1
             limit = round(self.timeout_factor * self.heartbeat_ms * 1e-3 / period)
@@ -144,17 +258,14 @@ class Health:
                 self._lost(f"{self._cycles_silent} cycles ({self._cycles_silent * period:.3f} s "
                            "of drive time)")
 
-    def _watch_clock(self) -> None:
-        """Real time: poll at a quarter of the producer period."""
-        poll = self.heartbeat_ms / 4000.0
-        timeout = self.timeout_factor * self.heartbeat_ms / 1000.0
-        while not self._watchdog_stop.wait(poll):
-            last = self.last_heartbeat
-            if last is None or not self._in_use:
-                continue
-            silent = time.monotonic() - last
-            if silent > timeout:
-                self._lost(f"{silent * 1e3:.0f} ms")
+    def check_clock(self, now: float) -> None:
+        """Real time, from the bus's watch thread: lost when silent past the timeout."""
+        last = self.last_heartbeat
+        if last is None or not self._in_use or self.heartbeat_ms <= 0:
+            return
+        silent = now - last
+        if silent > self.timeout_factor * self.heartbeat_ms / 1000.0:
+            self._lost(f"{silent * 1e3:.0f} ms")
 
     def _lost(self, how_long: str) -> None:
         self._in_use = False  # one verdict per loss
@@ -166,22 +277,15 @@ class Health:
     # --- the master's own heartbeat ---------------------------------------------------------
 
     def start_producing(self, master_id: int, period: float) -> None:
-        """Beat as node `master_id` (NMT operational) every MASTER_HEARTBEAT_MS: on the wall
-        clock in real time (canopen's periodic send), every N cycles in lock-step."""
+        """The master's heartbeat this drive consumes (the bus produces it once)."""
         self.stop_producing()
-        self._beat_cob_id = cia301.HEARTBEAT_BASE + master_id
-        if self.lockstep:
-            self._cycles_per_beat = max(1, round(MASTER_HEARTBEAT_MS * 1e-3 / period))
-            self._cycles_to_beat = self._cycles_per_beat
-        else:
-            self._beat_task = self.network.send_periodic(
-                self._beat_cob_id, bytes([cia301.NMT_OPERATIONAL]), MASTER_HEARTBEAT_MS * 1e-3)
+        self._master_id = master_id
+        self.bus.start_producing(master_id, period)
 
     def stop_producing(self) -> None:
-        self._cycles_per_beat = 0
-        if self._beat_task is not None:
-            self._beat_task.stop()
-            self._beat_task = None
+        if self._master_id is not None:
+            self.bus.stop_producing(self._master_id)
+            self._master_id = None
 
     # --- emergencies ------------------------------------------------------------------------
 
@@ -189,6 +293,6 @@ class Health:
         self._on_emergency(error.code, error.register)
 
     def close(self) -> None:
-        self._watchdog_stop.set()
         self._in_use = False
         self.stop_producing()
+        self.bus.leave(self)

@@ -96,11 +96,6 @@ class CanOpenTransport(Transport):
         on the bus while we listen (a master cycling at 10 Hz or faster is heard), or the
         drive already past switch on disabled. A lock-step link has one master by
         construction, so it is not listened to (its drive's state is still checked)."""
-        seen: dict[int, int] = {}
-
-        def count(can_id: int, data: bytes, timestamp: float) -> None:
-            seen[can_id] = seen.get(can_id, 0) + 1
-
         watched = {cia301.SYNC_COB_ID} | {base + self.node_id for base in cia301.RPDO_BASES}
         for n in range(objects.PDO_CHANNELS):
             if has(self.dictionary, objects.RPDO_COMM + n, 1):
@@ -108,25 +103,42 @@ class CanOpenTransport(Transport):
                 if not cob_id & cia301.PDO_INVALID and cob_id & cia301.COB_ID_MASK:
                     watched.add(cob_id & cia301.COB_ID_MASK)
         if not self.lockstep:
-            for cob_id in watched:
-                self.network.subscribe(cob_id, count)
-            time.sleep(FOREIGN_TRAFFIC_WINDOW)
-            for cob_id in watched:
-                self.network.unsubscribe(cob_id, count)
+            self._refuse_traffic(watched, FOREIGN_TRAFFIC_WINDOW)
+        try:
+            statusword = self.read(objects.STATUSWORD)
+        except DriveError:
+            # not answering: powered off, NMT stopped, or answering too late on a busy host.
+            # Listen longer before the reset that follows: a reset of a drive another master
+            # runs would stop that master's joint
+            if not self.lockstep:
+                self._refuse_traffic(watched, FOREIGN_TRAFFIC_WINDOW * 3)
+            return  # the boot-up wait says whether it is there at all
+        state = cia402.state_from_statusword(statusword)
+        # a drive stopping on its own (quick stop active: no torque, brake on) after its
+        # master died is safe to take over; the NMT reset that follows powers it off
+        if state not in (State.SWITCH_ON_DISABLED, State.NOT_READY_TO_SWITCH_ON, State.FAULT,
+                         State.QUICK_STOP_ACTIVE):
+            raise ForeignMaster(f"{self.name}: another master is driving it: the drive is "
+                                f"already in '{state.value}' (statusword 0x{statusword:04X})")
+
+    def _refuse_traffic(self, watched: set[int], window: float) -> None:
+        """ForeignMaster if any of the `watched` COB-IDs is on the bus within `window` s."""
+        seen: dict[int, int] = {}
+
+        def count(can_id: int, data: bytes, timestamp: float) -> None:
+            seen[can_id] = seen.get(can_id, 0) + 1
+
+        for cob_id in watched:
+            self.network.subscribe(cob_id, count)
+        time.sleep(window)
+        for cob_id in watched:
+            self.network.unsubscribe(cob_id, count)
         if seen:
             kinds = {cia301.SYNC_COB_ID: "SYNC"}
             frames = ", ".join(f"{n} x 0x{cob_id:03X} ({kinds.get(cob_id, 'RPDO')})"
                                for cob_id, n in sorted(seen.items()))
             raise ForeignMaster(f"{self.name}: another master is driving it: {frames} in "
-                                f"{FOREIGN_TRAFFIC_WINDOW * 1e3:.0f} ms")
-        try:
-            statusword = self.read(objects.STATUSWORD)
-        except DriveError:
-            return  # not answering: the boot-up wait says so
-        state = cia402.state_from_statusword(statusword)
-        if state not in (State.SWITCH_ON_DISABLED, State.NOT_READY_TO_SWITCH_ON, State.FAULT):
-            raise ForeignMaster(f"{self.name}: another master is driving it: the drive is "
-                                f"already in '{state.value}' (statusword 0x{statusword:04X})")
+                                f"{window * 1e3:.0f} ms")
 
     def read(self, index: int, subindex: int = 0) -> int:
         return self.sdo.read(index, subindex)
@@ -213,6 +225,10 @@ class CanOpenTransport(Transport):
     @property
     def failure(self) -> DriveError | None:
         return self.sync_cycle.failure
+
+    @property
+    def has_warnings(self) -> bool:
+        return bool(self._warnings)
 
     def warnings(self) -> list[str]:
         if not self._warnings:

@@ -208,6 +208,11 @@ class Cia402Drive(Drive):
         out, self._warnings = self._warnings, []
         return out + self.transport.warnings()
 
+    @property
+    def has_warnings(self) -> bool:
+        """Whether `warnings()` has anything to say (a cheap look, for a line's cycle)."""
+        return bool(self._warnings) or self.transport.has_warnings
+
     def command_current(self, current: float) -> None:
         if not isinstance(current, _NUMBER) or not math.isfinite(current):
             raise CommandRangeError(f"motor current command {current!r} is not a finite number")

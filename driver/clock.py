@@ -33,6 +33,27 @@ def prefer_real_time(priority: int = REAL_TIME_PRIORITY) -> str | None:
     return None
 
 
+MCL_CURRENT, MCL_FUTURE = 1, 2  # <sys/mman.h>
+
+
+def lock_memory() -> str | None:
+    """Keep this process's pages in RAM (mlockall), so no cycle waits for a page to come back
+    from swap or for a first touch of a page mapped lazily: what a real-time process on a robot
+    PC does before its loop starts. Pages mapped later are locked too only where the lock limit
+    is unlimited (root, or a raised RLIMIT_MEMLOCK); under a finite limit, locking future pages
+    would turn the next large allocation into a failure, so only those mapped now are locked.
+    Returns None, or why it was refused (the loop runs on without it)."""
+    import ctypes
+    import resource
+
+    soft, _ = resource.getrlimit(resource.RLIMIT_MEMLOCK)
+    flags = MCL_CURRENT | (MCL_FUTURE if soft == resource.RLIM_INFINITY else 0)
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.mlockall(flags) != 0:
+        return os.strerror(ctypes.get_errno())
+    return None
+
+
 @contextlib.contextmanager
 def collector_off_the_cycle() -> Iterator[None]:
     """Keep Python's cyclic garbage collector from stopping a running loop for tens of ms.
@@ -70,6 +91,12 @@ class RingStats:
         n = min(self.count, len(self._values))
         return float(np.percentile(self._values[:n], q)) if n else math.nan
 
+    def recent(self) -> np.ndarray:
+        """The values kept (the last `window`), oldest first."""
+        n = min(self.count, len(self._values))
+        start = self.count % len(self._values) if self.count > len(self._values) else 0
+        return np.roll(self._values[:n], -start)
+
 
 class CycleClock:
     def __init__(self, period: float, lockstep: bool):
@@ -83,10 +110,14 @@ class CycleClock:
         """Deadlines count from now (after a long first cycle, say)."""
         self._deadline = time.perf_counter()
         self._last_wake: float | None = None
+        self.wake_lateness = 0.0
 
-    def wait(self) -> None:
+    def wait(self) -> int:
         """Return at the next deadline; a deadline already more than a period past is skipped
-        and counted as missed."""
+        and counted as missed. Returns the deadlines this call skipped (what came before it,
+        the previous cycle or the host, overran); `wake_lateness` is how late this wake-up
+        came after its deadline (s, 0 in lock-step)."""
+        late = 0
         if not self.lockstep:
             self._deadline += self.period
             now = time.perf_counter()
@@ -100,11 +131,33 @@ class CycleClock:
             while time.perf_counter() < self._deadline:
                 pass
         wake = time.perf_counter()
+        self.wake_lateness = wake - self._deadline if not self.lockstep else 0.0
         if self._last_wake is not None:
             self.jitter_us.add(abs(wake - self._last_wake - self.period) * 1e6)
         self._last_wake = wake
+        return late
 
-    def check_overrun(self) -> None:
+    def check_overrun(self) -> bool:
         """Call when the cycle's work is done: counts it as missed if it overran its period."""
         if not self.lockstep and time.perf_counter() > self._deadline + self.period:
             self.missed_cycles += 1
+            return True
+        return False
+
+
+def bare_loop(duration: float, period: float = 1e-3,
+              priority: int = REAL_TIME_PRIORITY) -> CycleClock:
+    """This machine's floor: a cyclic sleep-and-wake loop with nothing else in it, for
+    `duration` s at `priority` (as a control loop runs; this thread only, given back after),
+    so a real-time figure can be read against what the host itself allows. The clock holds
+    the missed cycles and the jitter."""
+    refused = prefer_real_time(priority) if priority else None
+    try:
+        clock = CycleClock(period, lockstep=False)
+        for _ in range(int(round(duration / period))):
+            clock.wait()
+            clock.check_overrun()
+        return clock
+    finally:
+        if priority and refused is None:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))

@@ -2,9 +2,12 @@
 `EthercatTransport` per slave, all sharing the line's master (one frame per cycle for every
 joint). What the commands build for `--bus ethercat:IFACE`."""
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
+
+import pysoem
 
 from driver.cia402_drive import Cia402Drive
 from driver.ethercat_transport import open_ethercat_transports
@@ -29,16 +32,18 @@ def open_ethercat_drives(interface: str, joints: Sequence[JointOnLine], *,
                          period: float = 1e-3, lockstep: bool = False,
                          esi: str | Path | EsiDevice | None = None,
                          eds: str | Path | None = None, response_timeout: float | None = None,
-                         watchdog: float | None = None) -> list[Cia402Drive]:
+                         watchdog: float | None = None,
+                         open_master: Callable[[], Any] = pysoem.Master) -> list[Cia402Drive]:
     """The joints' drives on the line at `interface`, not started. Start every one before the
     first `sync` of any: the line goes to OP when the last is mapped, and the first `sync` of
     a cycle sends that cycle's frame for all of them (call each drive's `sync` once a cycle,
     then command each). `lockstep`: the slaves' watchdog is off and a cycle may take any wall
-    time; `watchdog` (s) sets it in real time (default the ESC's 100 ms)."""
+    time; `watchdog` (s) sets it in real time (default the ESC's 100 ms); `open_master`: see
+    `driver.ethercat_master.EthercatMaster`."""
     transports = open_ethercat_transports(
         interface, [j.position for j in joints], lockstep=lockstep, esi=esi,
         eds=[j.eds if j.eds is not None else eds for j in joints],
-        response_timeout=response_timeout, watchdog=watchdog)
+        response_timeout=response_timeout, watchdog=watchdog, open_master=open_master)
     drives = []
     try:
         for joint, transport in zip(joints, transports, strict=True):

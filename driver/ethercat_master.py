@@ -14,8 +14,10 @@ state and AL status code, as read right after the failed frame.
 
 import logging
 import socket
+import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 import pysoem
 
@@ -29,6 +31,7 @@ STATE_TIMEOUT_US = 2_000_000  # SOEM's EC_TIMEOUTSTATE: what a state change may 
 OP_FRAMES = 200  # frames sent after the OP request before giving up (OP comes with outputs)
 LOCKSTEP_RESPONSE_TIMEOUT = 1.0  # s: in lock-step a late frame is not a failure, only none is
 REALTIME_RESPONSE_TIMEOUT = 0.1  # s: the slaves' default process data watchdog
+DEFAULT_WATCHDOG = 0.1  # s: the ESC's reset value (ETG.1000.4: 1000 x 100 us)
 KEEP_ALIVE = 0.02  # s: a fifth of the ESC's default watchdog
 SCAN_RETRY = 0.1  # s between two scans of a line that did not answer right
 
@@ -39,13 +42,18 @@ class EthercatMaster:
     `lockstep`: the slaves' process data watchdog (a wall-clock timer in each ESC) is switched
     off (0x0420 = 0), because a lock-step host may pause for any wall time between two cycles;
     the master's own check, the working counter of every frame, counts cycles. In real time the
-    watchdog stays on (the ESC's 100 ms, or `watchdog` s), so the slaves stop their drives when
-    this master dies.
+    watchdog is on (the ESC's 100 ms, or `watchdog` s; written, never assumed), so the slaves
+    stop their drives when this master dies.
+
+    `open_master` makes the pysoem master (by default SOEM on the interface; a line of
+    virtual slaves in this process for `--sim`: `sim_bus.ethercat.linked.LinkedMaster`).
     """
 
     def __init__(self, interface: str, esi: EsiDevice, *, lockstep: bool = False,
-                 response_timeout: float | None = None, watchdog: float | None = None):
+                 response_timeout: float | None = None, watchdog: float | None = None,
+                 open_master: Callable[[], Any] = pysoem.Master):
         self.interface = interface
+        self._open_master = open_master
         self.esi = esi
         self.lockstep = lockstep
         if response_timeout is None:
@@ -64,6 +72,9 @@ class EthercatMaster:
         self._last_frame = 0.0  # time.monotonic() of the last process data frame
         # position -> (ready for OP, stage its outputs)
         self._claimed: dict[int, tuple[Callable[[], bool], Callable[[], None]]] = {}
+        # one user of SOEM at a time: the cycle, CoE accesses and the keeper
+        self.lock = threading.RLock()
+        self._keeper_stop: threading.Event | None = None
 
     # --- bring-up ----------------------------------------------------------------------------
 
@@ -104,7 +115,7 @@ class EthercatMaster:
 
     def _scan_once(self) -> DriveError | None:
         self.close_line()
-        master = pysoem.Master()
+        master = self._open_master()
         try:
             master.open(self.interface)
         except ConnectionError as exc:
@@ -141,13 +152,20 @@ class EthercatMaster:
         every slave is operational (a slave enters OP with its first valid outputs)."""
         if self.operational:
             return
+        with self.lock:
+            self._go_operational()
+
+    def _go_operational(self) -> None:
         master = self.master
         if not self.mapped:
             try:
-                if self.lockstep or self.watchdog is not None:
-                    milliseconds = 0.0 if self.lockstep else self.watchdog * 1e3
-                    for slave in self.slaves:
-                        slave.set_watchdog("processdata", milliseconds)
+                # written in real time too, never left as found: an earlier lock-step master
+                # (killed, or one that never closed) may have switched it off, and a slave
+                # without it keeps its drive enabled when this master dies
+                milliseconds = 0.0 if self.lockstep else (
+                    self.watchdog if self.watchdog is not None else DEFAULT_WATCHDOG) * 1e3
+                for slave in self.slaves:
+                    slave.set_watchdog("processdata", milliseconds)
                 master.config_map()
             except pysoem.ConfigMapError as exc:
                 raise DriveError(f"EtherCAT {self.interface}: reading the PDO assignment "
@@ -168,14 +186,16 @@ class EthercatMaster:
             if master.state_check(pysoem.OP_STATE, 1000) == pysoem.OP_STATE:
                 self.operational = True
                 self._last_frame = time.monotonic()
+                self._start_keeper()
                 return
         self._require_state(pysoem.OP_STATE, "OP")
 
     def request_state(self, state: int) -> None:
         """Ask every slave for `state` and wait for it (DriveError naming the refusals)."""
-        self.master.state = state
-        self.master.write_state()
-        self._require_state(state, ec.al_state_name(state))
+        with self.lock:
+            self.master.state = state
+            self.master.write_state()
+            self._require_state(state, ec.al_state_name(state))
 
     def _require_state(self, state: int, name: str) -> None:
         """Wait for every slave to reach `state`; DriveError naming each that did not, with
@@ -198,8 +218,34 @@ class EthercatMaster:
 
     def cycle(self) -> None:
         """Send the one frame of this cycle and check its working counter."""
-        self.frames += 1
-        self._frame()
+        with self.lock:
+            self.frames += 1
+            self._frame()
+
+    def _start_keeper(self) -> None:
+        """Real time: from OP on, a thread of the line's own sends a frame whenever the
+        cycle has sent none for KEEP_ALIVE s, so nothing the controller does (the cold solve
+        of 32 joints, an enable sequence, a garbage collection, a stalled cycle) starves the
+        slaves' watchdog: at worst the drives hold the last command a little longer. A real
+        master (SOEM's examples, ros2_control's EtherCAT drivers) keeps its own cyclic thread
+        for the same reason. Lock-step has none: there a frame is a cycle of drive time."""
+        if self.lockstep or self._keeper_stop is not None:
+            return
+        stop = self._keeper_stop = threading.Event()
+        threading.Thread(target=self._keep, args=(stop,), daemon=True,
+                         name=f"ethercat-keeper-{self.interface}").start()
+
+    def _keep(self, stop: threading.Event) -> None:
+        while not stop.wait(KEEP_ALIVE / 2):
+            with self.lock:
+                if stop.is_set():
+                    return
+                try:
+                    self.keep_alive()
+                except DriveError:
+                    return  # kept in self.failure: the next cycle raises it, naming the slave
+                except pysoem.NetworkInterfaceNotOpenError:
+                    return  # the interface went away under it: the next cycle says so
 
     def keep_alive(self) -> None:
         """Real time, while OP: a frame when none went out for KEEP_ALIVE s, so an acyclic
@@ -247,6 +293,10 @@ class EthercatMaster:
         expected working counter drops by its share."""
         if position in self._released or not 0 <= position < len(self.slaves):
             return
+        with self.lock:
+            self._release(position)
+
+    def _release(self, position: int) -> None:
         slave = self.slaves[position]
         if self.operational:
             share = (2 if slave.output else 0) + (1 if slave.input else 0)
@@ -257,8 +307,15 @@ class EthercatMaster:
 
     def close_line(self) -> None:
         """Every slave back to INIT and the interface closed. Best effort."""
+        if self._keeper_stop is not None:
+            self._keeper_stop.set()
+            self._keeper_stop = None
         if self.master is None:
             return
+        with self.lock:
+            self._close_master()
+
+    def _close_master(self) -> None:
         try:
             self.master.state = pysoem.INIT_STATE
             self.master.write_state()

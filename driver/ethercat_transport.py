@@ -9,22 +9,27 @@ mailbox when the statusword shows a fault, and handed to `on_emergency` before t
 that shows it.
 """
 
+import logging
 import struct
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import pysoem
 
 from driver.ethercat_master import EthercatMaster
 from driver.interface import DriveError, DriveLost, ProfileError
 from driver.transport import Transport
+from protocol import cia402, objects
 from protocol import eds_path as shipped_eds_path
 from protocol import esi_path as shipped_esi_path
 from protocol import ethercat as ec
-from protocol import objects
+from protocol.cia402 import State
 from protocol.dictionary import has, load_dictionary, variable
 from protocol.esi import EsiDevice, ethercat_dictionary, load_esi
 from protocol.pdo import MappedObject, PdoLayout
+
+log = logging.getLogger(__name__)
 
 STATUSWORD_FAULT = 0x0008  # CiA 402 statusword bit 3
 EMERGENCY_POLLS = 8  # cycles to look for the emergency behind a fault bit before giving up
@@ -75,6 +80,18 @@ class EthercatTransport(Transport):
         if slave is not self._listening:  # a new scan made new slave objects
             slave.add_emergency_callback(self._on_emergency)
             self._listening = slave
+        self._disable_what_was_left()
+
+    def _disable_what_was_left(self) -> None:
+        """A drive an earlier master left powered (killed in lock-step, where no watchdog
+        watched it, or mid-way through its own start) is switched off before anything is
+        configured: a master never inherits an enabled drive or its last target."""
+        state = cia402.state_from_statusword(self.read(objects.STATUSWORD))
+        if state in (State.SWITCH_ON_DISABLED, State.NOT_READY_TO_SWITCH_ON, State.FAULT):
+            return
+        log.warning("%s: drive found in '%s', left by an earlier master: disabling it",
+                    self.name, state.value)
+        self.write(objects.CONTROLWORD, 0, cia402.Command.DISABLE_VOLTAGE.value)
 
     def read(self, index: int, subindex: int = 0) -> int:
         var = self._variable(index, subindex)
@@ -94,6 +111,11 @@ class EthercatTransport(Transport):
                              f"aborted: 0x{exc.abort_code:08X} {exc.desc}") from None
         for k, obj in enumerate(self._outputs):
             if (obj.index, obj.subindex) == (index, subindex):
+                if self.line.mapped and self._mapped:
+                    # what the image carries now (the line may have written it as a whole,
+                    # `driver.drive_group.EthercatLine`), with this object changed
+                    with self.line.lock:
+                        self._staged[:] = self._out_codec.struct.unpack(self.slave.output)
                 self._staged[k] = value  # the next frame carries it too
                 self._stage()
 
@@ -102,9 +124,10 @@ class EthercatTransport(Transport):
         register access SOEM gave up on after its few ms): an SDO abort is the drive's
         answer and is not retried."""
         for attempt in range(MAILBOX_ATTEMPTS):
-            self.line.keep_alive()
             try:
-                return access(index, subindex, *data)
+                with self.line.lock:
+                    self.line.keep_alive()
+                    return access(index, subindex, *data)
             except (pysoem.WkcError, pysoem.MailboxError, pysoem.PacketError) as exc:
                 if attempt == MAILBOX_ATTEMPTS - 1:
                     raise DriveError(f"{self.name}: CoE access 0x{index:04X}:{subindex:02X} "
@@ -180,7 +203,8 @@ class EthercatTransport(Transport):
 
     def _stage(self) -> None:
         if self.line.mapped and self._mapped:
-            self.slave.output = self._out_codec.struct.pack(*self._staged)
+            with self.line.lock:
+                self.slave.output = self._out_codec.struct.pack(*self._staged)
 
     def exchange(self) -> tuple[int, ...]:
         line = self.line
@@ -241,15 +265,18 @@ def open_ethercat_transports(interface: str, positions: Sequence[int], *,
                              lockstep: bool = False, esi: str | Path | EsiDevice | None = None,
                              eds: str | Path | Sequence[str | Path | None] | None = None,
                              response_timeout: float | None = None,
-                             watchdog: float | None = None) -> list[EthercatTransport]:
+                             watchdog: float | None = None,
+                             open_master: Callable[[], Any] = pysoem.Master
+                             ) -> list[EthercatTransport]:
     """One transport per slave position on the line at `interface`, sharing its master (one
     frame per cycle for all of them). `esi` defaults to the shipped elbow drive ESI; `eds` is
-    every slave's EDS, or a list with one per position (drives of different joints differ)."""
+    every slave's EDS, or a list with one per position (drives of different joints differ).
+    `open_master`: see `driver.ethercat_master.EthercatMaster`."""
     if not isinstance(esi, EsiDevice):
         esi = load_esi(esi if esi is not None else shipped_esi_path())
     if eds is None or isinstance(eds, str | Path):
         eds = [eds] * len(positions)
     line = EthercatMaster(interface, esi, lockstep=lockstep, response_timeout=response_timeout,
-                          watchdog=watchdog)
+                          watchdog=watchdog, open_master=open_master)
     return [EthercatTransport(line, position, eds=path)
             for position, path in zip(positions, eds, strict=True)]

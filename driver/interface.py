@@ -24,6 +24,12 @@ class Sample(NamedTuple):
     statusword: int
 
 
+# the column of each field where a cycle's samples are stacked into one array (rows: joints),
+# as the robot's cycle works on them
+(SAMPLE_T, SAMPLE_POSITION, SAMPLE_VELOCITY, SAMPLE_MOTOR_CURRENT, SAMPLE_JOINT_TORQUE,
+ SAMPLE_STATUSWORD) = range(len(Sample._fields))
+
+
 class DriveError(RuntimeError):
     """Base of everything a drive reports as going wrong."""
 

@@ -102,6 +102,11 @@ class Transport(ABC):
         late frame, an overloaded bus)."""
         return []
 
+    @property
+    def has_warnings(self) -> bool:
+        """Whether `warnings()` has anything to say."""
+        return False
+
     @abstractmethod
     def stop(self) -> None:
         """Leave cyclic operation (CANopen: NMT pre-operational; EtherCAT: PRE-OP). Best

@@ -1,6 +1,7 @@
 """Model TOML writing: the files `identify` and `model-gap` produce. The reading side, with
 validation, is `model.parameters.load_model`."""
 
+import os
 from dataclasses import fields
 from pathlib import Path
 
@@ -32,4 +33,20 @@ def write_model(path: Path, parameters: ActuatorParameters, like: ActuatorModel,
                            "provenance": provenance.get(key, like.provenance.get(key, ""))}
     if effects:
         doc["effects"] = effects
-    path.write_text(tomli_w.dumps(doc))
+    write_atomically(path, tomli_w.dumps(doc).encode())
+
+
+def write_atomically(path: Path, data: bytes) -> None:
+    """`data` as the file `path`, whole or not at all: written beside it and renamed over it,
+    so a full disk or a crash leaves no half-written file (and an older file intact). Raises
+    OSError."""
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.writing")
+    try:
+        with open(temporary, "xb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise

@@ -91,6 +91,13 @@ class ActuatorParameters:
         return replace(self, effects=self.effects.with_table(name, table))
 
 
+# an actuator's SI parameters and limits lie far within these magnitudes; beyond them the
+# dynamics, the drive's integer units and the solver over- or underflow (K_j = 1e-300 made a
+# joint torque reading no PDO holds), so a file outside them is a mistake, not a robot
+MAGNITUDE_MAX = 1e6
+POSITIVE_MIN = 1e-6
+
+
 @dataclass(frozen=True)
 class Payload:
     mass: float = 0.0
@@ -99,8 +106,12 @@ class Payload:
 
     def __post_init__(self) -> None:
         for name in ("mass", "x", "y"):
-            if not math.isfinite(getattr(self, name)):
+            value = getattr(self, name)
+            if not math.isfinite(value):
                 raise ValueError(f"payload {name} must be finite")
+            if abs(value) > MAGNITUDE_MAX:  # m (x^2 + y^2) would overflow past ~1e154
+                raise ValueError(f"payload {name} {value:g}: expected at most "
+                                 f"{MAGNITUDE_MAX:g} in size (kg, m)")
         if self.mass < 0:
             raise ValueError(f"payload mass must be >= 0 kg, got {self.mass}")
 
@@ -165,11 +176,15 @@ def load_model(path: str | Path | None = None) -> ActuatorModel:
     for name in _POSITIVE:
         if values[name] <= 0:
             raise ModelFileError(f"{path}: [parameters].{name}: expected > 0, got {values[name]}")
+        if values[name] < POSITIVE_MIN:
+            raise ModelFileError(f"{path}: [parameters].{name}: {values[name]:g}; expected at "
+                                 f"least {POSITIVE_MIN:g} (SI units)")
     for name in _NON_NEGATIVE:
         if values[name] < 0:
             raise ModelFileError(f"{path}: [parameters].{name}: expected >= 0, got {values[name]}")
     limit_names = [f.name for f in fields(Limits)]
-    limits = Limits(**_numbers(path, doc, "limits", limit_names))
+    limit_values = _numbers(path, doc, "limits", limit_names)
+    limits = Limits(**limit_values)
     if not limits.position_min < limits.position_max:
         raise ModelFileError(f"{path}: [limits]: position_min must be below position_max")
     if limits.velocity_max <= 0 or limits.current_max <= 0:
@@ -181,6 +196,11 @@ def load_model(path: str | Path | None = None) -> ActuatorModel:
             raise ModelFileError(f"{path}: [parameters].{name}: {values[name]:g} N.m; expected "
                                  f"at most the drive's peak torque drive_gain x current_max = "
                                  f"{peak:g} N.m in size")
+    for table, numbers in (("parameters", values), ("limits", limit_values)):
+        for name, value in numbers.items():
+            if abs(value) > MAGNITUDE_MAX:
+                raise ModelFileError(f"{path}: [{table}].{name}: {value:g}; expected at most "
+                                     f"{MAGNITUDE_MAX:g} in size (SI units)")
 
     provenance = _strings(path, doc, "provenance", param_names, required=True)
     provenance.update({f"limits.{k}": v for k, v in

@@ -38,6 +38,10 @@ _STATUSWORD_PATTERNS = (
     (0x004F, 0x0008, State.FAULT),
 )
 
+# operation enabled, the one state a running cycle accepts (its row of the table above), for
+# checks over many statuswords at once
+OPERATION_ENABLED_MASK, OPERATION_ENABLED_BITS = 0x006F, 0x0027
+
 _STATE_BITS = {
     State.NOT_READY_TO_SWITCH_ON: 0x0000,
     State.SWITCH_ON_DISABLED: 0x0040,

@@ -3,24 +3,141 @@ have an object, may an object be mapped into a PDO, what is its default. One ans
 master (which EDS objects to use and map), the virtual drive (which mapping writes to accept)
 and the EtherCAT side (the same CiA 402 dictionary over CoE)."""
 
+import configparser
+import io
+import math
 from pathlib import Path
 
 import canopen
-from canopen.objectdictionary import ObjectDictionary, ODVariable
+from canopen.objectdictionary import ObjectDictionary, ODVariable, datatypes
 
+from protocol import objects
 from protocol.cia301 import SIGNED_TYPES
+from protocol.input_files import EDS_MAX, read_input_file
 from protocol.pdo import CODEC_BITS, MappedObject, split_mapping_entry
+
+# every DataType canopen can read and write; anything else would reach the cycle as raw bytes
+KNOWN_TYPES = frozenset(ODVariable.STRUCT_TYPES) | frozenset(datatypes.DATA_TYPES)
+# the predefined record types (PDO communication and mapping, SDO, identity)
+_RECORD_TYPES = frozenset(range(0x20, 0x24))
+# objects the master's unit scaling divides by: a default, where given, must be > 0
+_POSITIVE_DEFAULTS = ((objects.RATED_CURRENT, 0, "rated current"),
+                      (objects.RATED_TORQUE, 0, "rated torque"),
+                      (objects.ENCODER_RESOLUTION, 1, "encoder increments"),
+                      (objects.ENCODER_RESOLUTION, 2, "motor revolutions"))
 
 
 def load_dictionary(path: str | Path, node_id: int | None = None) -> ObjectDictionary:
-    """Parse an EDS; `node_id` resolves `$NODEID` defaults (CANopen COB-IDs). ValueError
-    names the file when it is not an EDS canopen can read."""
+    """Parse and check an EDS; `node_id` resolves `$NODEID` defaults (CANopen COB-IDs).
+    The file is stat'ed first (a regular file of at most 8 MiB), read as UTF-8 (a byte-order
+    mark dropped; Latin-1, as older vendor tools write, accepted) with any line ends, and
+    checked whole (`check_dictionary`), so a drive is never opened with an EDS whose objects
+    the cycle cannot decode. ValueError in one line naming the file."""
+    data = read_input_file(path, "an EDS (CANopen electronic data sheet)", EDS_MAX)
     try:
-        return canopen.import_od(str(path), node_id)
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path}: cannot read EDS: {exc}") from None
-    except Exception as exc:  # configparser and canopen raise many kinds on a malformed file
-        raise ValueError(f"{path}: not a valid EDS: {exc}") from None
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        text = data.decode("latin-1")
+    text = text.replace("\r\n", "\n").replace("\r", "\n")
+    raw = configparser.RawConfigParser(inline_comment_prefixes=(";",))  # as canopen reads it
+    raw.optionxform = str
+    try:
+        raw.read_string(text, str(path))
+    except configparser.Error as exc:
+        raise ValueError(f"{path}: not a valid EDS: {_one_line(exc)}") from None
+    _check_data_types(raw, path)
+    source = io.StringIO(text)
+    source.name = "drive.eds"  # canopen picks its parser by the suffix; the content decides
+    try:
+        dictionary = canopen.import_od(source, node_id)
+    except Exception as exc:  # canopen raises many kinds on a malformed file
+        raise ValueError(f"{path}: not a valid EDS: {_one_line(exc)}") from None
+    check_dictionary(dictionary, path)
+    return dictionary
+
+
+def _check_data_types(raw: configparser.RawConfigParser, path: str | Path) -> None:
+    """Every DataType names a CiA 301 type canopen can encode (canopen itself reads an unknown
+    one as DOMAIN: a statusword that would reach the cycle as raw bytes)."""
+    for section in raw.sections():
+        text = raw.get(section, "DataType", fallback=None)
+        if text is None:
+            continue
+        try:
+            data_type = int(text, 0)
+        except ValueError:
+            data_type = None
+        record = raw.get(section, "ObjectType", fallback="0x7").strip() in ("0x8", "0x9",
+                                                                            "0x08", "0x09")
+        if data_type not in KNOWN_TYPES and not (record and data_type in _RECORD_TYPES):
+            raise ValueError(f"{path}: [{section}] DataType={text.strip()}: expected a CiA "
+                             "301 basic type (0x0001..0x001B, e.g. 0x0006 UNSIGNED16)")
+
+
+def _one_line(exc: Exception) -> str:
+    """configparser's errors span lines (the file, the line number, the line): one line."""
+    if isinstance(exc, configparser.MissingSectionHeaderError):
+        return f"line {exc.lineno}: expected a [section] header before {exc.line.strip()!r:.60}"
+    if isinstance(exc, configparser.ParsingError):
+        number, line = exc.errors[0]
+        return f"line {number}: expected KEY=VALUE or [section], got {line.strip()!r:.60}"
+    if isinstance(exc, configparser.DuplicateSectionError | configparser.DuplicateOptionError):
+        return f"line {exc.lineno}: {exc.message.split(':', 1)[-1].strip()}" if hasattr(
+            exc, "message") else " ".join(str(exc).split())
+    return " ".join(f"{type(exc).__name__}: {exc}".split())[:300]
+
+
+def _variables(dictionary: ObjectDictionary):
+    for obj in dictionary.values():
+        yield from (obj.values() if hasattr(obj, "values") else (obj,))
+
+
+def integer_range(var: ODVariable) -> tuple[int, int]:
+    """The values an integer object's DataType holds."""
+    bits = len(var)
+    if var.data_type in datatypes.SIGNED_TYPES:
+        return -(1 << (bits - 1)), (1 << (bits - 1)) - 1
+    return 0, (1 << bits) - 1
+
+
+def check_dictionary(dictionary: ObjectDictionary, source: str | Path) -> None:
+    """Refuse what the drive and the master could not use, naming the object: a default
+    outside its type's range or its own LowLimit..HighLimit, a non-positive rated current,
+    rated torque or encoder resolution (the unit scaling divides by them), an inverted
+    software position window 0x607D. ValueError in one line."""
+    for var in _variables(dictionary):
+        where = f"{source}: object 0x{var.index:04X}:{var.subindex:02X} ({var.name})"
+        for label, value in (("DefaultValue", var.default), ("ParameterValue", var.value)):
+            if value is None or var.data_type not in ODVariable.STRUCT_TYPES:
+                continue
+            if var.data_type in datatypes.FLOAT_TYPES:
+                if not math.isfinite(value):
+                    raise ValueError(f"{where}: {label} {value}: expected a finite number")
+                continue
+            low, high = integer_range(var)
+            if var.data_type == datatypes.BOOLEAN:
+                low, high = 0, 1
+            if var.min is not None:
+                low = max(low, var.min)
+            if var.max is not None:
+                high = min(high, var.max)
+            if not low <= value <= high:
+                raise ValueError(f"{where}: {label} {value}: expected {low}..{high} (its "
+                                 "DataType and limits)")
+    for index, subindex, name in _POSITIVE_DEFAULTS:
+        var = variable(dictionary, index, subindex)
+        value = None if var is None else next(
+            (v for v in (var.value, var.default) if v is not None), None)
+        if value is not None and not value > 0:
+            raise ValueError(f"{source}: object 0x{index:04X}:{subindex:02X} ({name}) "
+                             f"default {value}: expected > 0")
+    low, high = (variable(dictionary, objects.SOFTWARE_POSITION_LIMIT, k) for k in (1, 2))
+    if low is not None and high is not None:
+        low_value, high_value = (next((v for v in (var.value, var.default) if v is not None),
+                                      None) for var in (low, high))
+        if low_value is not None and high_value is not None and not low_value < high_value:
+            raise ValueError(f"{source}: software position limit 0x607D: min {low_value} >= "
+                             f"max {high_value} increments; expected min < max")
 
 
 def variable(dictionary: ObjectDictionary, index: int, subindex: int = 0) -> ODVariable | None:

@@ -4,12 +4,13 @@ image and the master's checks need; the object dictionary itself stays in the ED
 
 import copy
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from canopen.objectdictionary import ObjectDictionary, ODVariable
 
 from protocol import ethercat as ec
+from protocol.input_files import ESI_MAX, read_input_text
 
 # ESI <DataType> names of the base types and their CoE data type codes (ETG.1000.6)
 DATA_TYPES = {"BOOL": 0x0001, "SINT": 0x0002, "INT": 0x0003, "DINT": 0x0004, "USINT": 0x0005,
@@ -18,6 +19,19 @@ DATA_TYPES = {"BOOL": 0x0001, "SINT": 0x0002, "INT": 0x0003, "DINT": 0x0004, "US
 SM_TYPES = {"MBoxOut": ec.SM_TYPE_MAILBOX_OUT, "MBoxIn": ec.SM_TYPE_MAILBOX_IN,
             "Outputs": ec.SM_TYPE_OUTPUTS, "Inputs": ec.SM_TYPE_INPUTS}
 FMMU_USES = {"Outputs": ec.SII_FMMU_OUTPUTS, "Inputs": ec.SII_FMMU_INPUTS}
+# bits of each base type: an entry's BitLen must be its type's
+TYPE_BITS = {"BOOL": 1, "SINT": 8, "INT": 16, "DINT": 32, "USINT": 8, "UINT": 16, "UDINT": 32,
+             "REAL": 32, "LREAL": 64, "LINT": 64, "ULINT": 64}
+U8, U16, U32 = 0xFF, 0xFFFF, 0xFFFF_FFFF
+# what the SII and an ESC can hold (ETG.2010, ETG.1000.4): the SII's size word counts KiBit
+# (so 128-byte steps), an ESC has up to 16 sync managers and FMMUs in a 64 KiB address space,
+# a PDO's entry count is one byte (0xFF reserved) and an entry is at most 64 bits
+EEPROM_BYTES = (128, 65536)
+MAX_SYNC_MANAGERS = 16
+MAX_FMMUS = 16
+MAX_PDO_ENTRIES = 254
+RXPDO_INDICES = range(0x1600, 0x1800)
+TXPDO_INDICES = range(0x1A00, 0x1C00)
 
 
 class EsiError(ValueError):
@@ -84,6 +98,7 @@ class EsiDevice:
     coe_details: int  # ec.COE_DETAILS_* bits
     eeprom_bytes: int
     config_data: bytes  # SII words 0.. (PDI control, configuration, alias)
+    source: str = ""  # the file it was read from, to name it in errors
 
     @property
     def identity(self) -> tuple[int, int, int]:
@@ -124,23 +139,56 @@ def ethercat_dictionary(dictionary: ObjectDictionary, device: EsiDevice) -> Obje
     return seen
 
 
+def check_against_dictionary(device: EsiDevice, dictionary: ObjectDictionary) -> None:
+    """The ESI's PDOs fit the drive's dictionary (its EDS): each PDO's mapping object exists
+    with a sub-index for every entry, and every entry is a PDO-mappable object of the entry's
+    length, as the slave accepts them when the master writes the mapping over CoE. EsiError
+    names the PDO and the entry."""
+    for pdo in device.rxpdos + device.txpdos:
+        where = f"PDO 0x{pdo.index:04X}"
+        mapping = dictionary.get(pdo.index)
+        if mapping is None or isinstance(mapping, ODVariable):
+            raise EsiError(f"{where}: the EDS has no mapping object 0x{pdo.index:04X}")
+        slots = len([k for k in mapping.subindices if k > 0])
+        if len(pdo.entries) > slots:
+            raise EsiError(f"{where}: {len(pdo.entries)} entries; the EDS's mapping object "
+                           f"holds at most {slots}")
+        for entry in pdo.entries:
+            if not entry.index:
+                continue
+            obj = dictionary.get(entry.index)
+            var = obj if isinstance(obj, ODVariable) and entry.subindex == 0 else (
+                obj.get(entry.subindex) if obj is not None and not isinstance(obj, ODVariable)
+                else None)
+            if var is None or not var.pdo_mappable or len(var) != entry.bits:
+                raise EsiError(f"{where}: entry 0x{entry.index:04X}:{entry.subindex:02X} "
+                               f"({entry.bits} bits): expected a PDO-mappable object of the "
+                               "EDS with that length")
+
+
 def load_esi(path: str | Path) -> EsiDevice:
-    """The first device of an ESI file. EsiError names the file and what is wrong."""
+    """The first device of an ESI file, checked whole (ranges, and that its SII image fits its
+    EEPROM) so nothing downstream meets a value it cannot encode. The file is stat'ed first
+    (a regular file of at most 32 MiB). EsiError names the file and what is wrong."""
     try:
-        text = Path(path).read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise EsiError(f"{path}: cannot read ESI: {exc}") from None
+        text = read_input_text(path, "an ESI (EtherCAT slave information XML)", ESI_MAX)
+    except ValueError as exc:
+        raise EsiError(str(exc)) from None
     try:
-        return parse_esi(text)
+        return replace(parse_esi(text), source=str(path))
     except EsiError as exc:
         raise EsiError(f"{path}: {exc}") from None
 
 
 def parse_esi(text: str) -> EsiDevice:
+    """An ESI's first device, every number in the range its field holds (ETG.2000 and the
+    SII's) and its SII image within its EEPROM. EsiError names the element."""
     try:
         root = ET.fromstring(text)
     except ET.ParseError as exc:
         raise EsiError(f"not XML: {exc}") from None
+    except RecursionError:
+        raise EsiError("not XML that can be read: nested too deeply") from None
     if root.tag != "EtherCATInfo":
         raise EsiError(f"root element is <{root.tag}>, expected <EtherCATInfo>")
     vendor = _required(root, "Vendor")
@@ -157,25 +205,68 @@ def parse_esi(text: str) -> EsiDevice:
             if _boolean(mailbox.get(attribute, "0")):
                 coe_details |= bit
     eeprom = device.find("Eeprom")
-    return EsiDevice(
-        vendor_id=_number(_text(vendor, "Id"), "Vendor/Id"),
+    config_text = eeprom.findtext("ConfigData", "") if eeprom is not None else ""
+    try:
+        config_data = bytes.fromhex(config_text)
+    except ValueError:
+        raise EsiError(f"Eeprom/ConfigData {config_text.strip()[:40]!r}: expected hexadecimal "
+                       "bytes") from None
+    parsed = EsiDevice(
+        vendor_id=_number(_text(vendor, "Id"), "Vendor/Id", 0, U32),
         vendor_name=_text(vendor, "Name"),
-        product_code=_number(type_element.get("ProductCode"), "Type@ProductCode"),
-        revision=_number(type_element.get("RevisionNo"), "Type@RevisionNo"),
+        product_code=_number(type_element.get("ProductCode"), "Type@ProductCode", 0, U32),
+        revision=_number(type_element.get("RevisionNo"), "Type@RevisionNo", 0, U32),
         type_name=(type_element.text or "").strip(),
         name=_text(device, "Name"),
         group=_text(device, "GroupType"),
-        profile=_number(device.findtext("Profile/ProfileNo", "0"), "Profile/ProfileNo"),
+        profile=_number(device.findtext("Profile/ProfileNo", "0"), "Profile/ProfileNo", 0, U16),
         fmmus=tuple(_fmmu(e) for e in device.findall("Fmmu")),
         sync_managers=tuple(_sync_manager(e) for e in device.findall("Sm")),
         rxpdos=tuple(_pdo(e) for e in device.findall("RxPdo")),
         txpdos=tuple(_pdo(e) for e in device.findall("TxPdo")),
         coe_details=coe_details,
         eeprom_bytes=_number(eeprom.findtext("ByteSize", "2048") if eeprom is not None
-                             else "2048", "Eeprom/ByteSize"),
-        config_data=bytes.fromhex(eeprom.findtext("ConfigData", "") if eeprom is not None
-                                  else ""),
+                             else "2048", "Eeprom/ByteSize", *EEPROM_BYTES),
+        config_data=config_data,
     )
+    _check_layout(parsed)
+    return parsed
+
+
+def _check_layout(device: EsiDevice) -> None:
+    """What no single field shows: counts, the EEPROM size's steps, sync manager windows
+    inside the ESC's address space, PDOs on a sync manager of their direction, and the SII
+    image within the EEPROM."""
+    from protocol.sii import build_sii  # sii reads EsiDevice: imported when checking
+
+    if device.eeprom_bytes % 128:
+        raise EsiError(f"Eeprom/ByteSize {device.eeprom_bytes}: expected a multiple of 128 "
+                       "bytes (the SII counts KiBit)")
+    if len(device.sync_managers) > MAX_SYNC_MANAGERS or len(device.fmmus) > MAX_FMMUS:
+        raise EsiError(f"{len(device.sync_managers)} <Sm> and {len(device.fmmus)} <Fmmu>: an "
+                       f"ESC has at most {MAX_SYNC_MANAGERS} of each")
+    for sm in device.sync_managers:
+        if sm.start + max(sm.default_size, sm.max_size) > 0x10000:
+            raise EsiError(f"Sm {sm.kind} at 0x{sm.start:04X} with {sm.max_size} bytes: "
+                           "expected to end within the ESC's 64 KiB")
+    for kind, pdos, indices in (("Outputs", device.rxpdos, RXPDO_INDICES),
+                                ("Inputs", device.txpdos, TXPDO_INDICES)):
+        for pdo in pdos:
+            where = f"PDO 0x{pdo.index:04X}"
+            if pdo.index not in indices:
+                raise EsiError(f"{where}: expected an index 0x{indices.start:04X}.."
+                               f"0x{indices.stop - 1:04X} for a {kind[:-1].lower()} PDO")
+            if not (pdo.sync_manager < len(device.sync_managers)
+                    and device.sync_managers[pdo.sync_manager].kind == kind):
+                raise EsiError(f"{where}: Sm={pdo.sync_manager}; expected the number of an "
+                               f"<Sm>{kind}</Sm>")
+            if len(pdo.entries) > MAX_PDO_ENTRIES:
+                raise EsiError(f"{where}: {len(pdo.entries)} entries; at most "
+                               f"{MAX_PDO_ENTRIES}")
+    try:
+        build_sii(device)
+    except (ValueError, OverflowError) as exc:  # struct.error is a ValueError
+        raise EsiError(f"its SII image: {exc}") from None
 
 
 def _required(element: ET.Element, path: str) -> ET.Element:
@@ -189,15 +280,18 @@ def _text(element: ET.Element, path: str) -> str:
     return (_required(element, path).text or "").strip()
 
 
-def _number(text: str | None, where: str) -> int:
-    """ESI numbers: decimal or '#x' hexadecimal."""
+def _number(text: str | None, where: str, low: int, high: int) -> int:
+    """ESI numbers: decimal or '#x' hexadecimal, within [low, high] (what the field holds)."""
     if text is None:
         raise EsiError(f"missing {where}")
     text = text.strip()
     try:
-        return int(text[2:], 16) if text[:2].lower() == "#x" else int(text)
+        value = int(text[2:], 16) if text[:2].lower() == "#x" else int(text)
     except ValueError:
-        raise EsiError(f"{where}: {text!r} is not a number (decimal or #x hex)") from None
+        raise EsiError(f"{where}: {text[:40]!r} is not a number (decimal or #x hex)") from None
+    if not low <= value <= high:
+        raise EsiError(f"{where}: {text[:40]}: expected {low}..{high}")
+    return value
 
 
 def _boolean(text: str) -> bool:
@@ -215,39 +309,44 @@ def _sync_manager(element: ET.Element) -> SyncManager:
     kind = (element.text or "").strip()
     if kind not in SM_TYPES:
         raise EsiError(f"<Sm>{kind}</Sm>: expected one of {', '.join(SM_TYPES)}")
-    size = _number(element.get("DefaultSize", "0"), f"Sm {kind} DefaultSize")
+    size = _number(element.get("DefaultSize", "0"), f"Sm {kind} DefaultSize", 0, U16)
     return SyncManager(
         kind=kind,
-        start=_number(element.get("StartAddress"), f"Sm {kind} StartAddress"),
+        start=_number(element.get("StartAddress"), f"Sm {kind} StartAddress", 0, U16),
         default_size=size,
-        min_size=_number(element.get("MinSize", str(size)), f"Sm {kind} MinSize"),
-        max_size=_number(element.get("MaxSize", str(size)), f"Sm {kind} MaxSize"),
-        control=_number(element.get("ControlByte"), f"Sm {kind} ControlByte"),
+        min_size=_number(element.get("MinSize", str(size)), f"Sm {kind} MinSize", 0, U16),
+        max_size=_number(element.get("MaxSize", str(size)), f"Sm {kind} MaxSize", 0, U16),
+        control=_number(element.get("ControlByte"), f"Sm {kind} ControlByte", 0, U8),
         enable=_boolean(element.get("Enable", "0")),
     )
 
 
 def _pdo(element: ET.Element) -> Pdo:
-    index = _number(element.findtext("Index"), f"<{element.tag}> Index")
+    index = _number(element.findtext("Index"), f"<{element.tag}> Index", 0, U16)
     where = f"<{element.tag}> 0x{index:04X}"
     entries = []
     for entry in element.findall("Entry"):
-        entry_index = _number(entry.findtext("Index"), f"{where} Entry Index")
+        entry_index = _number(entry.findtext("Index"), f"{where} Entry Index", 0, U16)
         type_name = (entry.findtext("DataType") or "").strip()
         if entry_index and type_name not in DATA_TYPES:
             raise EsiError(f"{where}: data type {type_name!r} is not one of "
                            f"{', '.join(DATA_TYPES)}")
+        bits = _number(entry.findtext("BitLen"), f"{where} Entry BitLen", 1, 64)
+        if entry_index and bits != TYPE_BITS[type_name]:
+            raise EsiError(f"{where}: entry 0x{entry_index:04X} BitLen {bits}: expected "
+                           f"{TYPE_BITS[type_name]} for {type_name}")
         entries.append(PdoEntry(
             index=entry_index,
-            subindex=_number(entry.findtext("SubIndex", "0"), f"{where} Entry SubIndex"),
-            bits=_number(entry.findtext("BitLen"), f"{where} Entry BitLen"),
+            subindex=_number(entry.findtext("SubIndex", "0"), f"{where} Entry SubIndex", 0,
+                             U8),
+            bits=bits,
             name=(entry.findtext("Name") or "").strip(),
             data_type=DATA_TYPES.get(type_name, 0),
         ))
     return Pdo(
         index=index,
         name=(element.findtext("Name") or "").strip(),
-        sync_manager=_number(element.get("Sm"), f"{where} Sm"),
+        sync_manager=_number(element.get("Sm"), f"{where} Sm", 0, U8),
         entries=tuple(entries),
         fixed=_boolean(element.get("Fixed", "0")),
         mandatory=_boolean(element.get("Mandatory", "0")),

@@ -10,6 +10,8 @@ import struct
 from dataclasses import dataclass
 from functools import cached_property
 
+import numpy as np
+
 from protocol import objects as od
 
 
@@ -57,6 +59,13 @@ class PdoLayout:
     def size(self) -> int:
         return self.struct.size
 
+    @cached_property
+    def dtype(self) -> np.dtype:
+        """The same layout as a packed numpy record (fields f0, f1, ... in wire order): a
+        line's process image decodes every slave's PDO in one `np.frombuffer`."""
+        return np.dtype([(f"f{k}", _DTYPE[(o.bits, o.signed)])
+                         for k, o in enumerate(self.objects)])
+
     @property
     def indices(self) -> tuple[int, ...]:
         return tuple(o.index for o in self.objects)
@@ -64,6 +73,8 @@ class PdoLayout:
 
 _FORMAT = {(8, False): "B", (8, True): "b", (16, False): "H", (16, True): "h",
            (32, False): "I", (32, True): "i"}
+_DTYPE = {(8, False): "u1", (8, True): "i1", (16, False): "<u2", (16, True): "<i2",
+          (32, False): "<u4", (32, True): "<i4"}
 CODEC_BITS = frozenset(bits for bits, _ in _FORMAT)  # object sizes a PDO can carry here
 
 CONTROLWORD = MappedObject(od.CONTROLWORD, 0, 16, False)

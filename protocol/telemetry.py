@@ -18,6 +18,7 @@ Key expressions live under a prefix, e.g. `actuators/elbow`:
                          when the process is (dashboards show it)
 """
 
+import time
 from functools import cache
 
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
@@ -111,12 +112,43 @@ TOPICS = {"state": "State", "command": "Command", "plan": "Plan", "solver": "Sol
 # what `actuatord --robot` publishes: every joint in one message per cycle instead of the
 # single joint's state, command and solver topics
 ROBOT_TOPICS = {"joints": "JointStates", "fault": "Fault", "loop_stats": "LoopStats"}
+# the audit lines (JSON, controller.requests.audit_line) as a named JSON schema, so viewers
+# show `actuator.Audit` rather than a generated name
+AUDIT_SCHEMA_NAME = f"{PACKAGE}.Audit"
+AUDIT_SCHEMA = {
+    "title": AUDIT_SCHEMA_NAME, "type": "object",
+    "description": "one change request to actuatord, accepted or refused, at most 1 KiB",
+    "properties": {
+        "time": {"type": "string", "description": "UTC, ISO 8601, when it was handled"},
+        "t": {"type": "number", "description": "s, drive time"},
+        "request": {"type": "string", "description": "reference | weights | parameters"},
+        "payload_bytes": {"type": "integer", "description": "size of the request body"},
+        "payload": {"type": "string", "description": "the body, quoted as far as fits"},
+        "accepted": {"type": "boolean"},
+        "reason": {"type": "string", "description": "why it was refused (empty if not)"}}}
 PARAMETERS = "parameters"
 REFERENCE = "reference"
 WEIGHTS = "weights"
 AUDIT = "audit"
 LIVELINESS = "alive"
 DEFAULT_PREFIX = "actuators/elbow"
+
+
+class TimeBase:
+    """The run's time base: the wall clock (ns since the Unix epoch) at drive time 0, fixed at
+    the first message stamped and advanced by drive time (`t`) from then on. Stamps on it keep
+    the drive's rate and the experiment's duration however fast a lock-step run goes, and read
+    as dates, not as 1970 plus a few seconds."""
+
+    def __init__(self, epoch_ns: int | None = None):
+        self.epoch_ns = epoch_ns
+
+    def stamp(self, t: float) -> int:
+        """ns since the Unix epoch of drive time `t` (s)."""
+        drive_ns = int(round(t * 1e9))
+        if self.epoch_ns is None:
+            self.epoch_ns = time.time_ns() - drive_ns
+        return self.epoch_ns + drive_ns
 
 
 def key_expr(prefix: str, topic: str) -> str:

@@ -3,13 +3,16 @@ write, is allowed), a header `t,q,current,joint_torque` (s, rad, A, N.m) after o
 `# key=value` metadata lines, one row per sample."""
 
 import csv
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
+from model.model_file import write_atomically
 from recorder.recording import Recording, RecordingError
 
 COLUMNS = ("t", "q", "current", "joint_torque")
+MAX_LINE = 1024 * 1024  # characters: a row is some 50; extra columns are allowed
 
 
 def read_csv(path: Path) -> Recording:
@@ -21,13 +24,27 @@ def read_csv(path: Path) -> Recording:
                              "an MCAP file") from None
     except OSError as exc:
         raise RecordingError(f"{path}: cannot read: {exc.strerror}") from None
+    except csv.Error as exc:  # a field over the csv module's limit (128 KiB), a NUL byte
+        raise RecordingError(f"{path}: not a CSV recording: {exc}") from None
+
+
+def _lines(path: Path, fh) -> Iterator[tuple[int, str]]:
+    """(number, line) with each line read at most MAX_LINE characters at a time, so a huge
+    file without line ends (garbage, a binary) is refused after a megabyte, not read whole."""
+    number = 0
+    while line := fh.readline(MAX_LINE + 1):
+        number += 1
+        if len(line) > MAX_LINE:
+            raise RecordingError(f"{path}:{number}: a line of over {MAX_LINE} characters; "
+                                 f"expected a CSV recording ({','.join(COLUMNS)} rows)")
+        yield number, line
 
 
 def _read_csv(path: Path) -> Recording:
     metadata: dict[str, str] = {}
     rows: list[list[float]] = []
     with open(path, newline="", encoding="utf-8-sig") as fh:
-        lines = iter(enumerate(fh, start=1))
+        lines = _lines(path, fh)
         header = None
         for number, line in lines:
             if line.startswith("#"):
@@ -62,10 +79,11 @@ def _read_csv(path: Path) -> Recording:
 
 
 def write_csv(recording: Recording, path: Path) -> None:
-    with open(path, "w", newline="") as fh:
-        for key, value in recording.metadata.items():
-            fh.write(f"# {key}={value}\n")
-        fh.write(",".join(COLUMNS) + "\n")
-        for row in zip(recording.t, recording.q, recording.current, recording.joint_torque,
-                       strict=True):
-            fh.write(f"{row[0]:.6f},{row[1]:.9f},{row[2]:.6f},{row[3]:.6f}\n")
+    """The recording as CSV, written whole or not at all (`write_atomically`: a full disk
+    leaves no truncated file). Raises OSError."""
+    lines = [f"# {key}={value}\n" for key, value in recording.metadata.items()]
+    lines.append(",".join(COLUMNS) + "\n")
+    lines += [f"{row[0]:.6f},{row[1]:.9f},{row[2]:.6f},{row[3]:.6f}\n"
+              for row in zip(recording.t, recording.q, recording.current,
+                             recording.joint_torque, strict=True)]
+    write_atomically(path, "".join(lines).encode())

@@ -10,14 +10,16 @@ reader checks; `recorder repair` adds the summary and indexes. (A SIGKILL inside
 write can stop it between pages: that chunk is then cut short, the file refused naming the cut,
 and `recorder repair` keeps every complete chunk.)
 
-Times: `log_time` is the wall clock (ns since the Unix epoch) when the recorder wrote the message,
-as MCAP viewers expect; `publish_time` is the time the message speaks for (drive time for
-experiments), the same as the `t` inside the message.
+Times (ns since the Unix epoch): `publish_time` is the time the message speaks for, its `t`
+(drive time) on the run's time base (`protocol.telemetry.TimeBase`: the wall clock at drive
+time 0). An experiment's `log_time` is the same, so viewers and `mcap info` show the
+experiment's true duration and 1 kHz rate even when lock-step ran it eight times faster than
+real time; a Zenoh recording's `log_time` is the wall clock when each sample arrived.
 """
 
 import time
 import zlib
-from collections.abc import Collection, Iterator
+from collections.abc import Callable, Collection, Iterator
 from pathlib import Path
 from typing import NamedTuple
 
@@ -29,6 +31,7 @@ from mcap.writer import CompressionType, Writer
 
 from controller.messages import Subscriber, topic_of
 from protocol import telemetry
+from protocol.telemetry import TimeBase
 from recorder.mcap_records import MAGIC, DamagedMcap, DataSection, chunk_records
 from recorder.recording import Recording, RecordingError
 
@@ -37,6 +40,8 @@ CHUNK_SIZE = 16 * 1024
 # it reaches the file in one write.
 WRITE_BUFFER = 4 * CHUNK_SIZE
 METADATA_NAME = "recording"
+# what a Zenoh recording keeps: every telemetry topic of one joint or of a robot
+SAMPLE_SCHEMAS = {**telemetry.TOPICS, **telemetry.ROBOT_TOPICS}
 
 
 class _DataFile:
@@ -68,10 +73,18 @@ def _provisional_end(data_section_crc: int) -> bytes:
 
 class McapRecorder:
     """Writes telemetry messages to an MCAP file, one channel per topic. Opening raises OSError
-    when the file cannot be created."""
+    when the file cannot be created.
 
-    def __init__(self, path: str | Path, metadata: dict[str, str] | None = None):
+    A write that fails later (a full disk) does not raise into the control loop: the recorder
+    keeps the error in `failure`, calls `on_failure` once (the command stops the run) and
+    writes nothing more, so the file ends at its last flushed chunk, which `recorder repair`
+    keeps."""
+
+    def __init__(self, path: str | Path, metadata: dict[str, str] | None = None,
+                 on_failure: Callable[[], None] = lambda: None):
         self.path = Path(path)
+        self.failure: OSError | None = None
+        self._on_failure = on_failure
         self._file = _DataFile(self.path)
         self._writer = Writer(self._file, chunk_size=CHUNK_SIZE,
                               compression=CompressionType.ZSTD, enable_data_crcs=True)
@@ -81,6 +94,8 @@ class McapRecorder:
         self._counts: dict[int, int] = {}
         self._sequence = 0
         self.messages = 0
+        self.time_base = TimeBase()
+        self._time_bases: dict[str, TimeBase] = {}  # Zenoh samples: one per key prefix
         if metadata:
             self._writer.add_metadata(METADATA_NAME, {k: str(v) for k, v in metadata.items()})
         self._end_here()
@@ -101,14 +116,46 @@ class McapRecorder:
         """One message. `publish_time_ns`: the time the message speaks for (drive time for an
         experiment); `log_time_ns`: when it was logged, the wall clock now unless given (a
         Zenoh recording passes the time the sample arrived)."""
+        if self.failure is not None:
+            return
         log_time = time.time_ns() if log_time_ns is None else log_time_ns
         self._file.written = False
-        self._writer.add_message(channel_id, log_time, data, publish_time_ns, self._sequence)
-        self._sequence += 1
-        self.messages += 1
-        self._counts[channel_id] += 1
-        if self._file.written:  # a chunk was closed: get it to the file now
-            self._end_here()
+        try:
+            self._writer.add_message(channel_id, log_time, data, publish_time_ns,
+                                     self._sequence)
+            self._sequence += 1
+            self.messages += 1
+            self._counts[channel_id] += 1
+            if self._file.written:  # a chunk was closed: get it to the file now
+                self._end_here()
+        except OSError as exc:
+            self._failed(exc)
+
+    def _failed(self, exc: OSError) -> None:
+        self.failure = exc
+        self._on_failure()
+
+    def write_sample(self, key: str, data: bytes, arrival_ns: int) -> bool:
+        """A telemetry sample received on Zenoh key `key`: logged at its arrival, published at
+        its drive time on the time base of its prefix (each actuatord has its own drive clock,
+        anchored at the first sample that arrives from it). A sample that does not parse is
+        kept as it came, published at its arrival. False (nothing written) for a key whose
+        last segment names no telemetry message."""
+        prefix, _, topic = key.rpartition("/")
+        message = SAMPLE_SCHEMAS.get(topic)
+        if message is None:
+            return False
+        try:
+            t = telemetry.decode(message, data).t
+        except DecodeError:
+            publish = arrival_ns
+        else:
+            if prefix not in self._time_bases:
+                self._time_bases[prefix] = TimeBase(arrival_ns - int(round(t * 1e9)))
+            publish = self._time_bases[prefix].stamp(t)
+        self.write(self.channel(key, message), data, publish_time_ns=publish,
+                   log_time_ns=arrival_ns)
+        return True
 
     def messages_on(self, channel_id: int) -> int:
         """Messages written on a channel so far (those in the open chunk included)."""
@@ -125,28 +172,42 @@ class McapRecorder:
     def subscriber(self, topics: Collection[str], prefix: str) -> Subscriber:
         """A control-loop subscriber that writes the messages on `topics` (e.g. 'state'), each
         on the channel named as its Zenoh key under `prefix` (so one Foxglove layout serves the
-        live bridge and every recording), logged at the wall clock with its drive time as
-        publish time."""
+        live bridge and every recording), logged and published at its drive time on the run's
+        time base."""
         channels = {topic: self.channel(telemetry.key_expr(prefix, topic),
                                         telemetry.TOPICS[topic]) for topic in topics}
 
         def write(message) -> None:
             channel = channels.get(topic_of(message))
             if channel is not None:
-                self.write(channel, message.SerializeToString(),
-                           publish_time_ns=int(round(message.t * 1e9)))
+                stamp = self.time_base.stamp(message.t)
+                self.write(channel, message.SerializeToString(), publish_time_ns=stamp,
+                           log_time_ns=stamp)
 
         return write
 
     def close(self) -> None:
-        """Finish the file: the last chunk, the real DataEnd, summary, indexes, statistics."""
-        self._writer.finish()
-        self._file.file.close()
+        """Finish the file: the last chunk, the real DataEnd, summary, indexes, statistics.
+        After a failed write (or if finishing fails) the file is left as it stands, ending at
+        its last flushed chunk: `failure` says why."""
+        try:
+            if self.failure is None:
+                self._writer.finish()
+        except OSError as exc:
+            self._failed(exc)
+        try:
+            self._file.file.close()
+        except OSError as exc:  # what was buffered could not be flushed
+            if self.failure is None:
+                self._failed(exc)
 
     def discard(self) -> None:
         """Close and delete the file: for a run that failed before its first message, so no
         file is left that claims to be a recording."""
-        self._file.file.close()
+        try:
+            self._file.file.close()
+        except OSError:  # what was buffered could not be flushed: the file goes anyway
+            pass
         self.path.unlink(missing_ok=True)
 
 
@@ -155,6 +216,7 @@ class McapMessage(NamedTuple):
     schema: str  # schema name, e.g. 'actuator.State'
     log_time: int  # ns
     data: bytes
+    publish_time: int  # ns
 
 
 def _contents(path: Path) -> Iterator[McapMessage | Metadata]:
@@ -181,7 +243,7 @@ def _contents(path: Path) -> Iterator[McapMessage | Metadata]:
                     raise RecordingError(f"{path}: a message near byte {offset} is on channel "
                                          f"{item.channel_id}, which no Channel record defines")
                 topic, schema = channels[item.channel_id]
-                yield McapMessage(topic, schema, item.log_time, item.data)
+                yield McapMessage(topic, schema, item.log_time, item.data, item.publish_time)
             elif isinstance(item, Metadata):
                 yield item
 
@@ -192,6 +254,15 @@ def iter_mcap(path: Path) -> Iterator[McapMessage]:
     for item in _contents(path):
         if isinstance(item, McapMessage):
             yield item
+
+
+def recording_metadata(path: Path) -> dict[str, str]:
+    """The `recording` metadata record's entries (empty when there is none)."""
+    metadata: dict[str, str] = {}
+    for item in _contents(path):
+        if isinstance(item, Metadata) and item.name == METADATA_NAME:
+            metadata.update(item.metadata)
+    return metadata
 
 
 def read_mcap(path: Path) -> Recording:

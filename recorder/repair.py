@@ -16,6 +16,7 @@ from pathlib import Path
 from mcap.records import Attachment, Channel, Chunk, Header, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
+from protocol.input_files import RECORDING_MAX, InputFileError, check_input_file, present
 from recorder.mcap_records import DataSection, chunk_records
 from recorder.recording import RecordingError
 
@@ -79,6 +80,11 @@ def repair_recording(source: str | Path, destination: str | Path) -> RepairRepor
     Raises RecordingError when `source` is not an MCAP file or holds not even its header,
     or when `destination` is `source`; OSError when `destination` cannot be written."""
     source, destination = Path(source), Path(destination)
+    try:
+        if present(source):  # stat'ed before opening: a FIFO or a device is never read
+            check_input_file(source, "an MCAP recording", RECORDING_MAX)
+    except InputFileError as exc:
+        raise RecordingError(str(exc)) from None
     if destination.exists() and source.exists() and os.path.samefile(source, destination):
         raise RecordingError(f"{destination}: is the file being repaired; write the repaired "
                              "copy to another file")

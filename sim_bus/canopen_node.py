@@ -85,7 +85,7 @@ class CanOpenNode:
         self.master_watch = MasterWatch(
             network.subscribe, device.read,
             has(device.dictionary, objects.CONSUMER_HEARTBEAT, 1), device.master_lost,
-            lockstep, silence_timeout, f"node {node_id}")
+            lockstep, silence_timeout, f"node {node_id}", on_idle=device.run_alone)
         self._counting = has(device.dictionary, objects.SYNC_COUNTER_OVERFLOW)
         self._sync_length_reported = False
         self._late_once = self._twice_once = self._reboot_in_cycle = False

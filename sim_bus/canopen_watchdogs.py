@@ -82,14 +82,17 @@ class MasterWatch:
     """Declares the master lost (`on_lost(reason)`) when a consumer heartbeat of 0x1016 stops
     (monitoring starts with the first beat of that node, CiA 301), or when no SYNC and no
     RPDO came for `silence_timeout` s since the first one after NMT start (None: no silence
-    watch). Once per loss: `rearm()` after a reset."""
+    watch). Once per loss: `rearm()` after a reset. `on_idle(now)` runs at every look (real
+    time), for the drive's own time once its master is gone (`Cia402Device.run_alone`)."""
 
     def __init__(self, subscribe: Callable, read: Callable[[int, int], int], has_1016: bool,
                  on_lost: Callable[[str], None], lockstep: bool,
-                 silence_timeout: float | None, name: str):
+                 silence_timeout: float | None, name: str,
+                 on_idle: Callable[[float], None] | None = None):
         self._subscribe, self._read = subscribe, read
         self._has_1016 = has_1016
         self._on_lost = on_lost
+        self._on_idle = on_idle
         self._lockstep = lockstep
         self._silence_timeout = None if lockstep else silence_timeout
         self._name = name
@@ -178,6 +181,8 @@ class MasterWatch:
             elif (self._silence_timeout is not None and last_activity is not None
                   and now - last_activity > self._silence_timeout):
                 self._lose(f"no SYNC or RPDO for {(now - last_activity) * 1e3:.0f} ms")
+            if self._on_idle is not None:
+                self._on_idle(now)
 
     def _lose(self, reason: str) -> None:
         with self._lock:

@@ -17,17 +17,26 @@ must and raise `DeviceAccessError` with the CiA 301 abort code, which a CANopen 
 CoE mailbox both send back as is.
 """
 
+import functools
 import logging
 import math
 import threading
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
+from canopen.objectdictionary import datatypes
+
 from model.parameters import ActuatorModel, Payload
 from protocol import cia301, cia402, objects
 from protocol import eds_path as shipped_eds_path
 from protocol.cia402 import State
-from protocol.dictionary import default_value, load_dictionary, mappable_object
+from protocol.dictionary import (
+    default_value,
+    integer_range,
+    load_dictionary,
+    mappable_object,
+    variable,
+)
 from sim_bus.faults import ENCODER_JUMP, Fault
 from sim_bus.plant import Plant, SensorNoise
 
@@ -38,6 +47,12 @@ QUICK_STOP_OPTION_DEFAULT = 2
 # the issue's choice for a drive whose EDS has no 0x6007: a lost master means quick stop
 ABORT_CONNECTION_DEFAULT = objects.ABORT_QUICK_STOP
 DEFAULT_PERIOD = 1e-3  # s: the elbow's 1 kHz, while 0x1006 is 0 (not configured yet)
+
+# what the drive's hardware fixes (its encoder, its motor's ratings): where an EDS gives no
+# default for these, the virtual drive answers its own hardware's values (those of the shipped
+# elbow drive's EDS), as a real drive answers what it is, not 0
+_HARDWARE_OBJECTS = ((objects.ENCODER_RESOLUTION, 1), (objects.ENCODER_RESOLUTION, 2),
+                     (objects.RATED_CURRENT, 0), (objects.RATED_TORQUE, 0))
 
 EmergencyHandler = Callable[[int, int], None]  # (error code, error register)
 FaultHandler = Callable[[Fault], None]
@@ -60,6 +75,34 @@ _TORQUE_ACTUAL = (objects.TORQUE_ACTUAL, 0)
 _STATUSWORDS = {state: cia402.statusword_for(state) for state in State}
 _WRITABLE = frozenset(("rw", "wo", "rww", "rwr"))
 _READABLE = frozenset(("rw", "ro", "const", "rww", "rwr"))
+
+
+def _saturate(value: float, bounds: tuple[int, int]) -> int:
+    low, high = bounds
+    return low if not value > low else high if not value < high else round(value)
+
+
+def _value_range(dictionary, key: tuple[int, int]) -> tuple[int, int]:
+    """The integer range an object holds (its DataType's); int64's without the object."""
+    var = variable(dictionary, *key)
+    if var is None or var.data_type not in datatypes.INTEGER_TYPES:
+        return -(1 << 63), (1 << 63) - 1
+    return integer_range(var)
+
+
+@functools.cache
+def hardware_values() -> dict[tuple[int, int], int]:
+    """The virtual drive's own hardware values (`_HARDWARE_OBJECTS` in the shipped EDS)."""
+    shipped = load_dictionary(shipped_eds_path())
+    return {key: default_value(variable(shipped, *key)) for key in _HARDWARE_OBJECTS}
+
+
+def power_on_value(var) -> int | str | bytes:
+    """What an object holds after a reset: the EDS's default, else for a hardware object the
+    drive's own value, else 0."""
+    if var.value is None and var.default is None:
+        return hardware_values().get((var.index, var.subindex), 0)
+    return default_value(var)
 
 
 class DeviceAccessError(Exception):
@@ -89,6 +132,9 @@ class Cia402Device:
         self.model = model
         self.eds_path = Path(eds_path) if eds_path is not None else shipped_eds_path()
         self.dictionary = load_dictionary(self.eds_path, node_id)
+        self._reading_range = {key: _value_range(self.dictionary, key) for key in (
+            _POSITION_ACTUAL, _VELOCITY_ACTUAL, _MOTOR_CURRENT_ACTUAL, _JOINT_TORQUE_SENSOR,
+            _CURRENT_ACTUAL, _TORQUE_ACTUAL)}
         self._variables = {}
         for obj in self.dictionary.values():
             for var in (obj.values() if hasattr(obj, "values") else (obj,)):
@@ -103,6 +149,7 @@ class Cia402Device:
         self.injected: list[tuple[int, Fault]] = []  # (cycle, fault) as they happened
         self.cycle_count = 0
         self.master_loss: str | None = None  # why the master was declared lost, until reset
+        self._alone: tuple[float, int] | None = None  # see `run_alone`
         self._values: dict[tuple[int, int], int] = {}
         self._stored: dict[tuple[int, int], int] = {}  # see `store`
         self.reset_application()
@@ -139,6 +186,11 @@ class Cia402Device:
     def power_stage_on(self) -> bool:
         return self._state in _POWERED
 
+    @property
+    def at_rest(self) -> bool:
+        """Power stage off and the joint standing still: nothing changes without a master."""
+        return self._state not in _POWERED and self.plant.velocity == 0.0
+
     def _set_state(self, state: State) -> None:
         self._state = state
         self._statusword = _STATUSWORDS[state]  # sampled every cycle, changes with the state
@@ -149,7 +201,7 @@ class Cia402Device:
         """Power-on values for every object, power stage off (CANopen NMT reset node)."""
         with self._lock:
             for key, var in self._variables.items():
-                self._values[key] = default_value(var)
+                self._values[key] = power_on_value(var)
             self._values.update(self._stored)
             self._after_reset()
             self.master_loss = None
@@ -171,7 +223,7 @@ class Cia402Device:
         with self._lock:
             for key, var in self._variables.items():
                 if key[0] < 0x2000:
-                    self._values[key] = default_value(var)
+                    self._values[key] = power_on_value(var)
             self._after_reset()
             self.master_loss = None
 
@@ -400,6 +452,39 @@ class Cia402Device:
                 self._set_state(cia402.next_state(self._state, cia402.Command.QUICK_STOP))
                 self._finish_quick_stop()
 
+    def master_found(self) -> None:
+        """A master started cyclic exchange with the drive (EtherCAT: PRE-OP -> SAFE-OP):
+        its loss will be reacted to again. On CAN the NMT reset that every master starts with
+        does this. Without it a drive reacts to the first master it loses only, and a later
+        master's death leaves it enabled."""
+        with self._lock:
+            self.master_loss = None
+            self._alone = None
+
+    def run_alone(self, now: float) -> None:
+        """Real time only, from the exposing node's idle loop (`now`: its monotonic clock, s):
+        a drive whose master is gone keeps its own control loop running, one cycle a period,
+        so its quick stop ends in switch on disabled once the motor stands still and a loaded
+        joint moves as it would, without anyone sending a SYNC or a frame. Cycles the bus
+        drives (a new master's) take precedence: while they come nothing runs here. Lock-step
+        never calls this: its drive time is the bus's cycles only."""
+        if self.master_loss is None and self._alone is None:
+            return  # the every-frame case, without the lock
+        with self._lock:
+            if self.master_loss is None or self.at_rest:
+                self._alone = None
+                return
+            if self._alone is None or self._alone[1] != self.cycle_count:
+                self._alone = (now, self.cycle_count)  # from here on, or the bus cycled it
+                return
+            since = self._alone[0]
+            cycles = int((now - since) / self._period)
+            for _ in range(cycles):
+                self.cycle(self._values[_SYNC_ECHO])
+                if self.at_rest:
+                    break
+            self._alone = (since + cycles * self._period, self.cycle_count)
+
     def _finish_quick_stop(self) -> None:
         """Quick stop in a torque drive: no torque, brake engaged; once the joint stands
         still the drive goes on to switch on disabled (option codes 1..4, 0x605A)."""
@@ -444,18 +529,23 @@ class Cia402Device:
         in the next sample (its emergency goes out at once)."""
         v = self._values
         v[_STATUSWORD] = self._statusword
-        # round() of a float is already an int
+        # round() of a float is already an int; each reading saturates at what its object
+        # holds, as a sensor's converter does (an absurd model must not overflow the PDO)
         per_rad = self.increments_per_rad
         current = m.motor_current
-        v[_POSITION_ACTUAL] = round(m.position * per_rad)
-        v[_VELOCITY_ACTUAL] = round(m.velocity * per_rad)
-        v[_MOTOR_CURRENT_ACTUAL] = objects.amps_to_milliamps(current)
-        v[_JOINT_TORQUE_SENSOR] = round(m.joint_torque_reading * objects.MILLI)
+        r = self._reading_range
+        v[_POSITION_ACTUAL] = _saturate(m.position * per_rad, r[_POSITION_ACTUAL])
+        v[_VELOCITY_ACTUAL] = _saturate(m.velocity * per_rad, r[_VELOCITY_ACTUAL])
+        v[_MOTOR_CURRENT_ACTUAL] = _saturate(current * objects.MILLI, r[_MOTOR_CURRENT_ACTUAL])
+        v[_JOINT_TORQUE_SENSOR] = _saturate(m.joint_torque_reading * objects.MILLI,
+                                            r[_JOINT_TORQUE_SENSOR])
         if self.rated_current > 0:
-            v[_CURRENT_ACTUAL] = round(current / self.rated_current * objects.MILLI)
+            v[_CURRENT_ACTUAL] = _saturate(current / self.rated_current * objects.MILLI,
+                                           r[_CURRENT_ACTUAL])
         if self.rated_torque > 0:
-            v[_TORQUE_ACTUAL] = round(
-                self.drive_gain * current / self.rated_torque * objects.MILLI)
+            v[_TORQUE_ACTUAL] = _saturate(
+                self.drive_gain * current / self.rated_torque * objects.MILLI,
+                r[_TORQUE_ACTUAL])
 
     # --- faults -----------------------------------------------------------------------------
 

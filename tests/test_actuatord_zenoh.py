@@ -6,10 +6,13 @@ import subprocess
 import sys
 import time
 
+import pytest
 import zenoh
 
 from protocol import telemetry
 from tests.conftest import free_port
+
+pytestmark = pytest.mark.subprocess  # runs the commands as processes
 
 PREFIX = "test/elbow"
 
@@ -133,6 +136,15 @@ def test_recorder_writes_live_telemetry_to_mcap(tmp_path):
     recording = load_recording(output)
     assert len(recording) > 100
     assert all(telemetry.decode("Command", data).current_limit == 6.0
-               for topic, _, _, data in iter_mcap(Path(output)) if topic.endswith("/command"))
+               for topic, _, _, data, _ in iter_mcap(Path(output)) if topic.endswith("/command"))
     # log_time: the wall clock when each sample arrived
-    assert all(started <= log_time <= time.time_ns() for _, _, log_time, _ in iter_mcap(output))
+    assert all(started <= log_time <= time.time_ns() for _, _, log_time, *_ in iter_mcap(output))
+    # publish_time: the drive time the sample speaks for, on one time base for the prefix
+    from mcap.reader import make_reader
+
+    with open(output, "rb") as fh:
+        stamps = [(message.publish_time, telemetry.decode("State", message.data).t)
+                  for _, channel, message in make_reader(fh).iter_messages(log_time_order=False)
+                  if channel.topic == f"{PREFIX}/state"]
+    epochs = {publish - round(t * 1e9) for publish, t in stamps}
+    assert len(epochs) == 1 and abs(epochs.pop() - started) < 60e9

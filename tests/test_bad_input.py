@@ -11,6 +11,8 @@ import pytest
 
 from model.parameters import default_model_path
 
+pytestmark = pytest.mark.subprocess  # runs the commands as processes
+
 SIM = ["--sim", "--no-multicast-scouting"]
 CSV = "# payload_mass=0\nt,q,current,joint_torque\n0.000,-1.0,0.1,0.2\n0.001,-1.0,0.1,0.2\n"
 

@@ -10,12 +10,14 @@ import can
 import pytest
 
 from commands import actuatord, sim_bus
-from commands.options import bus_config, check_drive_arguments, open_drive
+from commands.bus_options import bus_config, check_drive_arguments, open_drive
 from model.parameters import Payload, load_model
 from protocol import pdo
 from sim_bus.canopen_node import CanOpenNode
 from sim_bus.device import Cia402Device
 from tests.conftest import sim_bus_process
+
+pytestmark = pytest.mark.subprocess  # runs the commands as processes
 
 NODE = 2
 SYNC = 0x80
@@ -168,7 +170,7 @@ def test_log_level_is_on_every_command():
 
 def test_a_fault_logged_by_a_library_and_reported_by_the_command_shows_once():
     code = ("import logging\n"
-            "from commands.options import configure_logging, job_error\n"
+            "from commands.log_options import configure_logging, job_error\n"
             "configure_logging('recorder', 'warning')\n"
             "logging.getLogger('driver.canopen_drive').error('%s', 'node 2: heartbeat lost')\n"
             "logging.getLogger('driver.canopen_drive').info('not shown at warning')\n"

@@ -25,6 +25,8 @@ from tests.conftest import free_port
 from tests.test_actuatord_zenoh import PREFIX, dashboard_session, start_actuatord
 from tests.test_robot_loop import ARM
 
+pytestmark = pytest.mark.subprocess  # runs the commands as processes
+
 FOXGLOVE_SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
 
 
@@ -37,6 +39,7 @@ class FoxgloveClient:
         self.channels: dict[str, dict] = {}  # topic -> advertised channel
         self.services: dict[str, dict] = {}  # name -> advertised service
         self.statuses: list[dict] = []
+        self.server_info: dict | None = None
         self.messages: dict[int, list[bytes]] = {}  # subscription id -> payloads
         self.answers: dict[int, tuple[bool, bytes | str]] = {}  # call id -> (ok, payload)
 
@@ -60,7 +63,9 @@ class FoxgloveClient:
             frame = await asyncio.wait_for(self.ws.recv(), max(deadline - time.monotonic(), 0))
             if isinstance(frame, str):
                 message = json.loads(frame)
-                if message["op"] == "advertise":
+                if message["op"] == "serverInfo":
+                    self.server_info = message
+                elif message["op"] == "advertise":
                     self.channels.update({c["topic"]: c for c in message["channels"]})
                 elif message["op"] == "advertiseServices":
                     self.services.update({s["name"]: s for s in message["services"]})
@@ -174,35 +179,55 @@ def test_foxglove_reference_service_is_applied_audited_and_a_vanished_actuatord_
     assert f"actuatord under {PREFIX} vanished" in vanished[0]["message"]
 
 
-def test_viewers_offering_only_the_old_subprotocol_connect_through_the_legacy_port():
-    """foxglove-sdk refuses `foxglove.websocket.v1` (HTTP 400); `--legacy-port` serves it and
-    relays frames both ways: advertisements, subscriptions and service calls work."""
-    zenoh_port, ws_port, legacy_port = free_port(), free_port(), free_port()
-    old = ["foxglove.websocket.v1"]
-    bridge = subprocess.Popen(
-        [sys.executable, "-m", "commands.dashboard", "foxglove", "--prefix", PREFIX, "--port",
-         str(ws_port), "--legacy-port", str(legacy_port), "--listen",
-         f"tcp/127.0.0.1:{zenoh_port}", "--no-multicast-scouting"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+@pytest.mark.subprocess
+def test_a_ws_protocol_viewer_on_the_default_port_and_a_late_viewer_told_of_the_vanished():
+    """`@foxglove/ws-protocol`'s client offers only `foxglove.websocket.v1` (foxglove-sdk alone
+    answers it HTTP 400): on the bridge's one port it gets serverInfo, the channels with named
+    schemas, messages that decode and service calls; a viewer offering `foxglove.sdk.v1`
+    shares the port. A viewer that connects after actuatord vanished is shown the error."""
+    zenoh_port, ws_port = free_port(), free_port()
+    actuatord = start_actuatord(zenoh_port, "--duration", "600")
+    assert "enabled" in actuatord.stdout.readline()
+    bridge = start_bridge(zenoh_port, ws_port)
 
-    async def viewer() -> tuple[FoxgloveClient, tuple]:
-        with pytest.raises(websockets.InvalidStatus, match="HTTP 400"):
-            await websockets.connect(f"ws://127.0.0.1:{ws_port}", subprotocols=old)
-        client = await FoxgloveClient.connect(legacy_port, subprotocols=old)
+    async def viewers() -> tuple:
+        client = await FoxgloveClient.connect(ws_port, subprotocols=["foxglove.websocket.v1"])
         async with client.ws:
-            await client.subscribe(f"{PREFIX}/state")
-            answer = await client.call(f"{PREFIX}/{telemetry.REFERENCE}",
-                                       {"kind": "setpoint", "position": -1.0})
-        return client, answer
+            await client.until(lambda: client.server_info is not None)
+            state = await client.subscribe(f"{PREFIX}/state")
+            await client.until(lambda: len(client.messages[state]) >= 20)
+            await client.unsubscribe(state)
+            await client.until(lambda: f"{PREFIX}/audit" in client.channels)
+            answer = await client.call(f"{PREFIX}/{telemetry.WEIGHTS}", {"position": -1})
+        modern = await FoxgloveClient.connect(ws_port, subprotocols=["foxglove.sdk.v1"])
+        async with modern.ws:
+            await modern.subscribe(f"{PREFIX}/command")
+        actuatord.kill()
+        actuatord.communicate(timeout=30)
+        await asyncio.sleep(1.0)  # the token is gone and the status published to nobody
+        late = await FoxgloveClient.connect(ws_port, subprotocols=["foxglove.websocket.v1"])
+        async with late.ws:
+            await late.until(lambda: any(s["level"] == 2 for s in late.statuses), 30)
+        return client, answer, modern, late
 
     try:
-        assert "foxglove.websocket.v1 on port" in bridge.stdout.readline()
-        client, (ok, message) = asyncio.run(viewer())
+        client, (ok, reason), modern, late = asyncio.run(viewers())
     finally:
-        stop(bridge)
+        stop(bridge, actuatord)
     assert client.ws.subprotocol == "foxglove.websocket.v1"
-    assert client.channels[f"{PREFIX}/state"]["schemaName"] == "actuator.State"
-    assert not ok and f"no actuatord answered on {PREFIX}/reference" in message
+    assert modern.ws.subprotocol == "foxglove.sdk.v1"
+    assert client.server_info["name"] == "actuator-link"
+    assert "services" in client.server_info["capabilities"]
+    state = client.channels[f"{PREFIX}/state"]
+    assert state["encoding"] == "protobuf" and state["schemaName"] == "actuator.State"
+    decoded = [telemetry.decode("State", p) for p in client.messages[1]]
+    assert len(decoded) >= 20 and all(m.drive_state == "operation enabled" for m in decoded)
+    audit = client.channels[f"{PREFIX}/audit"]
+    assert audit["schemaName"] == "actuator.Audit" and audit["schemaEncoding"] == "jsonschema"
+    assert not any(c["schemaName"].startswith("schema-") for c in client.channels.values())
+    assert not ok and "weights" in reason
+    assert f"actuatord under {PREFIX} vanished" in late.statuses[-1]["message"]
+    assert late.server_info is not None  # serverInfo first, then the replayed status
 
 
 def schema_fields(schema_name: str, descriptor_set: bytes) -> set[str]:
@@ -280,11 +305,21 @@ def recorded_fields(path) -> dict[str, set[str]]:
             for c in summary.channels.values()}
 
 
+def message_counts(path) -> dict[str, int]:
+    """topic -> messages on it, from an MCAP file's statistics."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as fh:
+        summary = make_reader(fh).get_summary()
+    return {c.topic: summary.statistics.channel_message_counts.get(c.id, 0)
+            for c in summary.channels.values()}
+
+
 def test_robot_layout_plots_every_joint_from_fields_the_robot_publishes():
     """`python3 -m dashboard.layout --robot FILE`: every joint of the file, each path a field
     of the message actuatord --robot publishes on that topic, every index a joint."""
-    from commands.robot_file import load_robot
     from dashboard.layout import robot_layout
+    from robot.description import load_robot
 
     robot = load_robot(ARM)
     prefix = f"robots/{robot.name}"
@@ -360,11 +395,21 @@ def test_layout_topics_and_fields_exist_on_the_bridge_and_in_both_recordings(tmp
                           str(experiment_recording)], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     recorded = recorded_fields(experiment_recording)
-    # experiments record what the loop's safety net says too (the fault topic)
+    # experiments record what the loop's safety net says too (the fault topic), and the loop's
+    # statistics; they have no MPC: the experiment layout plots what they hold, every panel
+    # but the fault's (events) fed with messages
     assert set(recorded) == {telemetry.key_expr(telemetry.DEFAULT_PREFIX, t)
-                             for t in ("state", "command", "fault")}
-    for topic, fields in recorded.items():
-        assert wanted.get(topic, set()) <= fields, topic
+                             for t in ("state", "command", "fault", "loop_stats")}
+    from dashboard.layout import build_layout, layout_json, shipped_path
+
+    experiment_layout = build_layout(experiment=True)
+    assert shipped_path(experiment=True).read_text() == layout_json(experiment_layout)
+    wanted, services = layout_references(experiment_layout)
+    assert not services
+    for topic, fields in wanted.items():
+        assert topic in recorded and fields <= recorded[topic], topic
+    counts = message_counts(experiment_recording)
+    assert all(counts[topic] for topic in wanted if not topic.endswith("/fault")), counts
 
 
 def tui_screen(app) -> str:

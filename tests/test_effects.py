@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from commands.options import with_truth_effects
+from commands.sim_options import with_truth_effects
 from controller.mpc import Mpc
 from controller.reference import Sinusoid
 from driver import Sample

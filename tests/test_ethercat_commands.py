@@ -22,6 +22,8 @@ from protocol.esi import load_esi
 from recorder.reader import load_recording
 from sim_bus.ethercat.netns import VirtualLink
 
+pytestmark = pytest.mark.subprocess  # runs the commands as processes
+
 REPO = Path(__file__).resolve().parent.parent
 ZENOH = "--no-multicast-scouting"
 STOP_WITHIN = 2.0  # s from SIGTERM/SIGINT to sim-bus's end report

@@ -10,10 +10,16 @@ import time
 import pysoem
 import pytest
 
-from driver.drive_group import DriveGroup, Segment
+from driver.drive_group import DriveGroup, EthercatLine
 from driver.ethercat_drive import JointOnLine, open_ethercat_drives
 from driver.ethercat_transport import open_ethercat_transports
-from driver.interface import DriveError, DriveFault, DriveLost, ProfileError
+from driver.interface import (
+    SAMPLE_MOTOR_CURRENT,
+    DriveError,
+    DriveFault,
+    DriveLost,
+    ProfileError,
+)
 from model.parameters import load_model
 from protocol import esi_path, objects
 from protocol import ethercat as ec
@@ -122,8 +128,8 @@ def test_a_line_is_one_segment_of_a_drive_group(link):
     with slaves(link, 3) as line, link.entered():
         drives = open_ethercat_drives(link.master_port, [joint(k) for k in range(3)],
                                       lockstep=True)
-        group = DriveGroup(names, [Segment(f"ethercat:{link.master_port}",
-                                           list(zip(names, drives, strict=True)))])
+        group = DriveGroup(names, [EthercatLine(f"ethercat:{link.master_port}",
+                                                list(zip(names, drives, strict=True)))])
         try:
             group.start()
             frames = drives[0].transport.line.frames
@@ -131,7 +137,8 @@ def test_a_line_is_one_segment_of_a_drive_group(link):
                 samples = group.sync()
                 group.command_currents([0.2, 0.0, -0.2])
             assert drives[0].transport.line.frames == frames + 50
-            assert [round(s.motor_current, 1) for s in samples] == [0.2, 0.0, -0.2]
+            assert [round(current, 1) for current in samples[:, SAMPLE_MOTOR_CURRENT]] == [
+                0.2, 0.0, -0.2]
             states = group.quick_stop_all()
         finally:
             group.close()
@@ -214,9 +221,9 @@ def test_master_loss_trips_the_watchdog_and_the_drive_stops_on_its_brake(link):
         for _ in range(50):
             drive.sync()
             drive.command_current(0.2)
-        # the master dies: no close, no more frames
-        time.sleep(0.5)
+        # the master dies: no close, no more frames (its socket goes with its process)
         drive.transport.line.master.close()
+        time.sleep(0.5)
         [slave] = line.report()
     assert slave["al_status"] == ec.AlState.SAFE_OP | ec.AL_ERROR
     assert slave["al_status_code"] == ec.AL_SM_WATCHDOG
@@ -270,3 +277,29 @@ def test_malformed_frames_do_not_stop_the_line(link):
     wkcs = [ec.datagram_result(a, ec.datagram_spans(a)[0])[1] for a in answers]
     assert wkcs == [0, 2]  # the unknown command untouched, then the good frame by both
     assert len(report) == 2
+
+
+def test_a_stalled_controller_holds_the_command_instead_of_tripping_the_watchdog(link):
+    """Real time: the line's own keeper sends frames while the cycle stalls (a cold solve, a
+    collection), so the slaves' 100 ms watchdog never fires for a master that is alive."""
+    with slaves(link, 2) as line, link.entered():
+        drives = open_ethercat_drives(link.master_port, [joint(0), joint(1)], lockstep=False)
+        group = DriveGroup(["a", "b"], [EthercatLine(f"ethercat:{link.master_port}",
+                                                     list(zip(["a", "b"], drives,
+                                                              strict=True)))])
+        try:
+            group.start()
+            for _ in range(20):
+                group.sync()
+                group.command_currents([0.1, -0.1])
+                time.sleep(0.001)
+            time.sleep(0.5)  # five watchdog times without a cycle
+            for _ in range(20):
+                table = group.sync()
+                group.command_currents([0.1, -0.1])
+                time.sleep(0.001)
+            assert [round(c, 1) for c in table[:, SAMPLE_MOTOR_CURRENT]] == [0.1, -0.1]
+        finally:
+            group.close()
+        report = line.report()
+    assert [r["master_loss"] for r in report] == [None, None]

@@ -5,7 +5,7 @@ master as `--sim` links it, so a flood and a late TPDO are reported there as on 
 
 import pytest
 
-from commands.options import parse_fault
+from commands.sim_options import parse_fault
 from controller.loop import ControlLoop, LoopOptions
 from controller.messages import topic_of
 from controller.mpc import Mpc

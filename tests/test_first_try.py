@@ -4,7 +4,11 @@ every time (the drive's first SYNC used to wait 0.3-0.5 s for its physics to com
 import subprocess
 import sys
 
+import pytest
+
 from tests.conftest import udp_bus_spec
+
+pytestmark = pytest.mark.subprocess  # runs the commands as processes
 
 TRIES = 10
 

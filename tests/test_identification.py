@@ -16,6 +16,8 @@ from recorder.csv_io import write_csv
 from recorder.reader import load_recording
 from tests.conftest import virtual_pair
 
+pytestmark = pytest.mark.subprocess  # runs the commands as processes
+
 TRUE = load_model()
 SHORT = ["--velocity-min", "0.8", "--steps", "3", "--no-progress"]  # 15 s of data each
 

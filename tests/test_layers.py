@@ -74,8 +74,32 @@ def test_the_readme_table_names_every_package_and_its_rule():
     assert RULES["protocol"] == set() and RULES["model"] == set()
     assert RULES["dashboard"] == {"protocol"}
     assert RULES["commands"] is None
+    # the robot and its wiring sit below the commands, above every layer a robot is made of
+    assert RULES["robot"] == {"protocol", "model", "driver", "sim_bus", "controller"}
     # nothing below the commands may import them
     assert all(rule is None or "commands" not in rule for rule in RULES.values())
+
+
+def test_pyproject_packages_every_package_folder():
+    """A package left out of the list is missing from a wheel (an editable install hides it)."""
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    folders = {".".join(p.parent.relative_to(ROOT).parts) for p in ROOT.glob("*/**/__init__.py")
+               if p.parent.parts[len(ROOT.parts)] not in ("tests", "docs", "examples")}
+    assert set(project["tool"]["setuptools"]["packages"]) == folders
+
+
+def test_only_the_robot_layer_puts_a_virtual_drive_behind_a_master():
+    """The wiring of a robot is a library layer: a command hands typed values to `robot/`,
+    which alone links a master to an embedded virtual drive (tests may too)."""
+    linkers = {"EmbeddedDrive", "EmbeddedBus"}
+    offences = []
+    for layer in sorted(set(RULES) - {"robot", "sim_bus"}):
+        for path, module in modules(ROOT / layer):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.ImportFrom) and node.module == "sim_bus.embedded":
+                    offences += [f"{module} imports {alias.name}" for alias in node.names
+                                 if alias.name in linkers]
+    assert not offences, offences
 
 
 @pytest.mark.parametrize("layer", sorted(RULES))

@@ -20,6 +20,8 @@ from protocol import cia301, eds_path, objects
 from protocol.cia402 import State, state_from_statusword
 from tests.conftest import can_semantics_network, udp_bus_spec, virtual_drive_process
 
+pytestmark = pytest.mark.subprocess  # runs the commands as processes
+
 ACTUATORD = "commands.actuatord"  # the module behind the actuatord console script
 PAYLOAD = ("--payload-mass", "2", "--payload-position", "0,0.05")
 LIMITS = load_model().limits

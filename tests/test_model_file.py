@@ -3,7 +3,7 @@ import sys
 
 import pytest
 
-from commands.options import parse_payload
+from commands.model_options import parse_payload
 from model.parameters import ModelFileError, default_model_path, load_model
 
 DEFAULT = default_model_path().read_text()

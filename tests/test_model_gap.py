@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import tomli_w
 
-from commands.options import with_truth_effects
+from commands.sim_options import with_truth_effects
 from controller.mpc import Mpc
 from model import dynamics
 from model.effects import EFFECTS, Effects
@@ -25,6 +25,8 @@ from model.gap.selection import contest
 from model.identify import Experiment, identify
 from model.parameters import ActuatorParameters, Payload, load_model
 from recorder.reader import load_recording
+
+pytestmark = pytest.mark.subprocess  # runs the commands as processes
 
 HIDDEN = {
     "stribeck": "stribeck:breakaway_friction=1.5,velocity=0.05",

@@ -15,6 +15,8 @@ from recorder.reader import load_recording
 from recorder.recording import RecordingError
 from recorder.repair import repair_recording
 
+pytestmark = pytest.mark.subprocess  # runs the commands as processes
+
 
 def start(path) -> subprocess.Popen:
     proc = subprocess.Popen([sys.executable, "-m", "commands.recorder", "--exciting-trajectory",

@@ -18,6 +18,7 @@ from mcap.writer import CompressionType, Writer
 
 from protocol import telemetry
 from recorder.csv_io import write_csv
+from recorder.exciting import ExcitingTrajectory
 from recorder.mcap_io import McapRecorder, iter_mcap
 from recorder.mcap_records import DataSection, chunk_records
 from recorder.reader import load_recording
@@ -331,22 +332,36 @@ def test_a_recording_that_fails_before_its_first_sample_leaves_no_file(tmp_path)
         f"{tmp_path / 'missing'} does not exist"]
 
 
-def test_experiment_recordings_log_wall_clock_time_and_publish_drive_time(tmp_path):
+@pytest.mark.subprocess
+def test_a_lockstep_recording_shows_its_true_duration_and_rate(tmp_path):
+    """What `mcap info` prints comes from the summary's statistics: a lock-step run (far faster
+    than real time) must still span the trajectory's drive time at 1 kHz, dated now."""
     output = tmp_path / "run.mcap"
     started = time.time_ns()
-    proc = subprocess.run([sys.executable, "-m", "commands.recorder", "--sinusoid", "--duration",
-                           "0.5", "--sim", "--lockstep", "--no-progress", "-o", str(output)],
+    proc = subprocess.run([sys.executable, "-m", "commands.recorder", "--exciting-trajectory",
+                           "--position-low", "-1.5", "--position-high", "-0.9", "--steps", "1",
+                           "--velocity-min", "1", "--velocity-max", "1", "--sim", "--lockstep",
+                           "--no-progress", "-o", str(output)],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     with open(output, "rb") as fh:
-        messages = [(channel.topic, message) for _, channel, message
-                    in make_reader(fh).iter_messages(log_time_order=False)]
-    first = messages[0][1]
-    assert abs(first.log_time - started) < 60e9  # not 1970 (drive time from 1 ms)
-    assert all(started <= message.log_time <= time.time_ns() for _, message in messages)
-    for topic, message in messages:
+        reader = make_reader(fh)
+        statistics = reader.get_summary().statistics
+        channels = reader.get_summary().channels
+        messages = [(channels[message.channel_id].topic, message) for _, _, message
+                    in reader.iter_messages(log_time_order=False)]
+    duration = ExcitingTrajectory(-1.5, -0.9, 1.0, 1.0, 1).duration
+    span = (statistics.message_end_time - statistics.message_start_time) / 1e9
+    assert abs(span - duration) <= 0.01 * duration, (span, duration)
+    state = next(cid for cid, channel in channels.items() if channel.topic.endswith("/state"))
+    rate = (statistics.channel_message_counts[state] - 1) / span
+    assert abs(rate - 1000) <= 10, rate
+    assert abs(statistics.message_start_time - started) < 60e9  # dated now, not 1970
+    for topic, message in messages:  # both times: the message's drive time on the run's base
         t = telemetry.decode(telemetry.TOPICS[topic.rsplit("/", 1)[1]], message.data).t
-        assert message.publish_time == round(t * 1e9)
+        assert message.publish_time == message.log_time
+        assert message.publish_time - statistics.message_start_time == pytest.approx(
+            (t - 1e-3) * 1e9, abs=2)
 
 
 @pytest.mark.parametrize("case,needle", [

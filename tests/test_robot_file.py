@@ -5,8 +5,8 @@ from pathlib import Path
 
 import pytest
 
-from commands.robot_file import RobotFileError, load_robot
 from protocol.bus_load import can_bus_load, can_frame_bits, ethercat_segment_load
+from robot.description import RobotFileError, load_robot
 
 ROBOTS = Path(__file__).resolve().parent.parent / "robots"
 MODELS = ROBOTS / "models"

@@ -6,11 +6,17 @@ import subprocess
 import sys
 from pathlib import Path
 
-from commands.options import open_robot
-from commands.robot_file import load_robot
+import numpy as np
+
 from controller.messages import JointStates
+from driver import Sample
+from driver.drive_group import EthercatLine
+from driver.ethercat_transport import EthercatTransport
+from driver.interface import SAMPLE_POSITION, SAMPLE_STATUSWORD, SAMPLE_T
 from protocol import cia301, telemetry
-from protocol.cia402 import State
+from protocol.cia402 import State, state_from_statusword
+from robot.description import load_robot
+from robot.wiring import open_robot
 from sim_bus.faults import Fault
 from sim_bus.plant import SensorNoise
 from tests.conftest import free_port
@@ -35,21 +41,37 @@ class _SyncCounter:
             self.syncs += 1
 
 
-def test_a_link_carrying_the_whole_robot_is_not_taken_for_a_flood():
-    """--sim puts talos_32's EtherCAT line on one in-process link: 32 drives, 129 frames a
-    cycle by design. The flood check judges frames beyond the bus's cyclic traffic (it warned
-    on every joint in every cycle when it judged 32 frames a cycle whatever the bus)."""
+def test_sim_keeps_an_ethercat_line_on_ethercat_one_image_a_cycle():
+    """--sim links talos_32's line of virtual slaves to the master's process image in this
+    process: every joint is driven through the EtherCAT transport (CoE bring-up, cyclic
+    synchronous torque through the ESI), each cycle is one exchange of the whole image, and
+    each drive's physics advances exactly one period per cycle. (It used to turn the line into
+    one CANopen link carrying 129 frames a cycle, which no real bus could.)"""
     connection = open_robot(load_robot(ROBOTS / "talos_32.toml"), sim=True, lockstep=True,
                             seed=0, period=1e-3, response_timeout=1.0)
     try:
         group = connection.group
+        [line] = group.segments
+        assert isinstance(line, EthercatLine) and len(line.joints) == 32
+        assert all(isinstance(drive.transport, EthercatTransport) for drive in group.drives)
         group.start()
-        for _ in range(5):
-            group.sync()
-            group.command_currents([0.0] * len(group))
+        image = group.drives[0].transport.line
+        frames, cycles = image.frames, {d.cycle_count for d in connection.devices.values()}
+        assert len(cycles) == 1
+        for _ in range(25):
+            table = group.sync()
+            group.command_currents(np.zeros(len(group)))
         assert group.warnings() == []
-        health = group.drives[0].transport.health
-        assert health.frame_limit == 1 + 32 * 4 + 32  # SYNC, 1 RPDO and 3 TPDOs a drive, margin
+        assert image.frames == frames + 25
+        assert {d.cycle_count for d in connection.devices.values()} == {cycles.pop() + 25}
+        assert table.shape == (32, len(Sample._fields))
+        assert set(table[:, SAMPLE_T]) == {25e-3}
+        # in operation enabled, each joint where its drive says it is
+        assert all(state_from_statusword(int(word)) is State.OPERATION_ENABLED
+                   for word in table[:, SAMPLE_STATUSWORD])
+        for row, name in zip(table, group.names, strict=True):
+            device = connection.devices[name]
+            assert abs(row[SAMPLE_POSITION] - device.plant.position) < 1e-5, name
     finally:
         connection.close()
 
@@ -69,7 +91,9 @@ def test_one_sync_per_bus_per_cycle_and_every_joint_sampled_in_it():
             samples = group.sync()
             group.command_currents([0.0] * len(group))
         assert [c.syncs for c in counters] == [20, 20, 20, 20]  # four buses, one SYNC each
-        assert len({s.t for s in samples}) == 1 and samples[0].t == 20e-3
+        # one row per joint, all sampled in the same cycle
+        assert samples.shape == (len(robot.joints), len(Sample._fields))
+        assert set(samples[:, SAMPLE_T]) == {20e-3}
         devices = connection.devices
         assert {d.cycle_count for d in devices.values()} == {20}
         # each drive commissioned for its joint: the wrists' 3 A, the shoulders' 6 A

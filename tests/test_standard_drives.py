@@ -27,6 +27,8 @@ from tests.conftest import (
     virtual_drive_process,
 )
 
+pytestmark = pytest.mark.subprocess  # runs the commands as processes
+
 DATA = Path(__file__).parent / "data"
 CST_STANDARD = DATA / "cst_standard.eds"
 POSITION_VELOCITY_ONLY = DATA / "position_velocity_only.eds"

@@ -6,6 +6,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import canopen
 import numpy as np
+import pytest
 
 from driver.canopen_drive import CanOpenDrive
 from model import dynamics
@@ -15,6 +16,8 @@ from protocol import eds_path, objects
 from protocol.cia402 import State, state_from_statusword
 from tests.conftest import sim_bus_process, udp_bus_spec
 from tests.test_drive_virtual_bus import HALF_COUNT, current_profile
+
+pytestmark = pytest.mark.subprocess  # runs the commands as processes
 
 
 def test_master_drives_sim_bus_process_and_motion_matches_the_model():

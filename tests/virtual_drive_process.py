@@ -14,12 +14,13 @@ import threading
 
 import canopen
 
-from commands.options import parse_payload
+from commands.model_options import parse_payload
 from model.parameters import load_model
 from protocol.bus_spec import parse_bus_spec
 from sim_bus.canopen_node import CanOpenNode
 from sim_bus.device import Cia402Device
 from sim_bus.plant import SensorNoise
+from sim_bus.priority import answer_like_hardware
 
 
 def main() -> int:
@@ -38,6 +39,7 @@ def main() -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     node.boot()
+    answer_like_hardware()
     print("ready", flush=True)
     stop.wait()
     node.close()

@@ -200,6 +200,7 @@ class SlaveFirmware:
                 lambda table: (getter(table),))
         self._outputs_seen = self._op_requested = False
         self.objects.pdo_config_allowed = False
+        self.device.master_found()  # whoever starts the process data now is the master to watch
         self._write_inputs()
         self.esc.set_sync_manager_active(self.outputs_sm, True)
         self.esc.set_sync_manager_active(self.inputs_sm, True)

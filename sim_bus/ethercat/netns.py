@@ -86,6 +86,56 @@ class VirtualLink:
         self.close()
 
 
+class NamespacePair:
+    """Two network namespaces of our own, master side and line side, joined by one veth per
+    interface name in `interfaces`, each end named the same in its namespace (as a robot file
+    names its lines: `ethercat:eth1` on the robot PC and on the drives' side alike). Commands
+    run in one with `command(side, argv)`; both are deleted on close."""
+
+    def __init__(self, interfaces: list[str]):
+        if shutil.which("ip") is None:
+            raise LinkUnavailable("no `ip` command (iproute2) to make a network namespace")
+        token = secrets.token_hex(3)
+        self.master, self.line = f"ecat-m-{token}", f"ecat-s-{token}"
+        made = []
+        try:
+            for name in (self.master, self.line):
+                result = _ip("netns", "add", name)
+                if result.returncode:
+                    raise LinkUnavailable(f"cannot make a network namespace: "
+                                          f"{result.stderr.strip()}")
+                made.append(name)
+            for k, interface in enumerate(interfaces):
+                peer = f"ecatpeer{k}"
+                for args in (("-n", self.master, "link", "add", interface, "type", "veth",
+                              "peer", "name", peer, "netns", self.line),
+                             ("-n", self.line, "link", "set", peer, "name", interface),
+                             ("-n", self.master, "link", "set", interface, "up"),
+                             ("-n", self.line, "link", "set", interface, "up")):
+                    result = _ip(*args)
+                    if result.returncode:
+                        raise LinkUnavailable(f"cannot make the veth for {interface}: "
+                                              f"{result.stderr.strip()}")
+        except BaseException:
+            for name in made:
+                _ip("netns", "del", name)
+            raise
+
+    def command(self, side: str, argv: list[str]) -> list[str]:
+        """`argv` run inside the `side` namespace ('master' or 'line')."""
+        return ["ip", "netns", "exec", getattr(self, side), *argv]
+
+    def close(self) -> None:
+        for name in (self.master, self.line):
+            _ip("netns", "del", name)
+
+    def __enter__(self) -> "NamespacePair":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
 def _ip(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run(["ip", *args], capture_output=True, text=True, timeout=10)
 
@@ -145,11 +195,12 @@ def _serve_line(namespace: str, port: str, count: int, model: ActuatorModel, pay
                 noise: SensorNoise, pipe) -> None:
     """The slave process: into the namespace, the drives on the port until SIGTERM, then the
     end state of every slave down the pipe."""
-    from sim_bus.ethercat.segment import prefer_this_process, serve
+    from sim_bus.ethercat.segment import serve
+    from sim_bus.priority import answer_like_hardware
 
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    prefer_this_process()  # not permitted: the line still works, SOEM retrying more often
+    answer_like_hardware()  # not permitted: the line still works, SOEM retrying more often
     try:
         libc = ctypes.CDLL(None, use_errno=True)
         with open(f"/run/netns/{namespace}") as target:

@@ -8,7 +8,6 @@ counter (0x0300) instead of being answered, as a frame with a broken checksum wo
 """
 
 import logging
-import os
 import socket
 import threading
 import time
@@ -27,7 +26,6 @@ log = logging.getLogger(__name__)
 
 POLL = 0.01  # s: how often the loop looks at the stop event and the watchdogs when idle
 FRAME_BUFFER = 2048  # a maximum Ethernet frame fits
-SLAVE_PRIORITY = 10  # SCHED_RR priority of a slaves' process (1..99; it blocks on its socket)
 
 
 class Segment:
@@ -57,9 +55,12 @@ class Segment:
         return answered
 
     def check_watchdogs(self, now: float) -> None:
+        """The ESCs' process data watchdogs, and the drives' own time once their master is
+        gone (`Cia402Device.run_alone`): wall-clock jobs of the real-time loop."""
         with self.lock:
-            for esc in self.escs:
+            for esc, firmware in zip(self.escs, self.firmwares, strict=True):
                 esc.check_watchdog(now)
+                firmware.device.run_alone(now)
 
     def report(self) -> list[dict]:
         """Each slave's end state, in line order: EtherCAT state and AL status code, the
@@ -101,19 +102,6 @@ def pass_frame(escs: Sequence[Esc], frame: bytearray, length: int, now: float) -
         esc.now = now
         esc.process(frame, view, spans)
     frame[ec.SOURCE_MAC_OFFSET] |= ec.SOURCE_MAC_PROCESSED_BIT
-    return True
-
-
-def prefer_this_process() -> bool:
-    """Ask for round-robin real-time scheduling for the slaves' process, best effort (False
-    when not permitted). An ESC answers within microseconds and SOEM allows a register access
-    about 2 ms: on a busy host a process of virtual slaves needs the scheduler's preference to
-    keep that, or the master retries (and a lock-step cycle waits) far more often. It blocks
-    on its socket between frames, so it takes no more CPU than the frames need."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(SLAVE_PRIORITY))
-    except (OSError, AttributeError):
-        return False
     return True
 
 

@@ -1,10 +1,11 @@
 """Robot files: which joints a robot has, where each drive sits and what model it follows.
 
 A robot file is TOML that people edit by hand, so every error names the file, the joint and
-the field. It is checked whole before any bus is opened: every model file loads, node ids and
-slave positions are unique per bus, limits only narrow the model's, and every bus carries its
-joints' cyclic traffic within its budget (`protocol.bus_load`), else the file is refused with
-the load figure and the fastest period that would fit.
+the field. It is checked whole before any bus is opened: every model file loads, every EDS
+loads and offers what the torque loop needs (through the shipped ESI's PDOs on EtherCAT), node
+ids and slave positions are unique per bus, limits only narrow the model's, and every bus
+carries its joints' cyclic traffic within its budget (`protocol.bus_load`), else the file is
+refused with the load figure and the fastest period that would fit.
 
     [robot]
     name = "talos_arm_left"
@@ -38,6 +39,13 @@ from model.parameters import ActuatorModel, Limits, ModelFileError, load_model
 from protocol import bus_load
 from protocol import pdo as pdo_layout
 from protocol.bus_spec import BusSpecError, is_ethercat, parse_bus_spec
+from protocol.input_files import (
+    TEXT_MAX,
+    InputFileError,
+    check_input_file,
+    present,
+    read_input_file,
+)
 
 DEFAULT_BITRATE = bus_load.CAN_CLASSIC_MAX_BITRATE
 DEFAULT_HEARTBEAT_MS = 100  # the drives' and the master's heartbeat (driver default)
@@ -106,15 +114,17 @@ def cyclic_frame_bytes() -> list[int]:
 def load_robot(path: str | Path) -> RobotSpec:
     """Read and check a robot file; RobotFileError names what is wrong."""
     path = Path(path)
+    if not present(path):
+        raise RobotFileError(f"{path}: robot file not found")
     try:
-        with open(path, "rb") as fh:
-            doc = tomllib.load(fh)
-    except FileNotFoundError:
-        raise RobotFileError(f"{path}: robot file not found") from None
+        doc = tomllib.loads(read_input_file(path, "a robot file (TOML)", TEXT_MAX).decode(
+            "utf-8-sig"))
+    except InputFileError as exc:
+        raise RobotFileError(str(exc)) from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise RobotFileError(f"{path}: not valid TOML: {exc}") from None
-    except (OSError, RecursionError) as exc:
-        raise RobotFileError(f"{path}: cannot read: {exc}") from None
+    except RecursionError:
+        raise RobotFileError(f"{path}: nested too deeply for a robot file") from None
     _keys(path, "", doc, {"robot", "buses", "joints"}, {"robot", "joints"})
     robot = _table(path, "[robot]", doc["robot"])
     _keys(path, "[robot]", robot, {"name", "period_us"}, {"name"})
@@ -132,8 +142,10 @@ def load_robot(path: str | Path) -> RobotSpec:
         raise RobotFileError(f"{path}: {len(entries)} joints; at most {MAX_JOINTS} accepted")
     joints: list[JointSpec] = []
     models: dict[Path | None, ActuatorModel] = {}
+    dictionaries: dict[tuple[Path, bool], object] = {}
     for number, entry in enumerate(entries, start=1):
-        joints.append(_joint(path, number, _table(path, f"joint {number}", entry), models))
+        joints.append(_joint(path, number, _table(path, f"joint {number}", entry), models,
+                             dictionaries))
     _unique(path, joints)
     for bus in bitrates:
         if bus not in {j.bus for j in joints}:
@@ -151,7 +163,7 @@ def load_robot(path: str | Path) -> RobotSpec:
 
 
 def _joint(path: Path, number: int, entry: dict,
-           models: dict[Path | None, ActuatorModel]) -> JointSpec:
+           models: dict[Path | None, ActuatorModel], dictionaries: dict) -> JointSpec:
     name = _string(path, f"joint {number}.name", entry.get("name"))
     where = f"joint {name!r}"
     _keys(path, where, entry, {"name", "bus", "node_id", "slave", "model", "eds", "limits",
@@ -174,13 +186,15 @@ def _joint(path: Path, number: int, entry: dict,
     model_path = _relative(path, f"{where}.model", entry.get("model"))
     if model_path not in models:
         try:
+            if model_path is not None and present(model_path):  # else: "not found"
+                check_input_file(model_path, "a model TOML", TEXT_MAX)
             models[model_path] = load_model(model_path)
-        except ModelFileError as exc:
+        except (ModelFileError, InputFileError) as exc:
             raise RobotFileError(f"{path}: {where}.model: {exc}") from None
     model = models[model_path]
     eds = _relative(path, f"{where}.eds", entry.get("eds"))
-    if eds is not None and not eds.is_file():
-        raise RobotFileError(f"{path}: {where}.eds: {eds}: no such file")
+    if eds is not None:
+        _check_eds(path, where, eds, model, is_ethercat(bus), dictionaries)
     model = replace(model, limits=_limits(path, where, model.limits,
                                           _table(path, f"{where}.limits",
                                                  entry.get("limits", {}))))
@@ -193,6 +207,32 @@ def _joint(path: Path, number: int, entry: dict,
             raise RobotFileError(f"{path}: {where}.friction_sharpness: expected > 0, got "
                                  f"{sharpness}")
     return JointSpec(name, bus, address, model, eds, weights, reference, sharpness)
+
+
+def _check_eds(path: Path, where: str, eds: Path, model: ActuatorModel, ethercat: bool,
+               checked: dict) -> None:
+    """A joint's EDS loads (`protocol.dictionary` checks it whole) and offers what the torque
+    loop needs with the joint's drive gain, through the shipped ESI's PDOs on EtherCAT: the
+    check the master repeats when it opens the drive, done here so that a robot file is refused
+    whole before any bus is opened. Each file is parsed once per load."""
+    from driver.interface import ProfileError
+    from driver.profile import select_profile
+    from protocol import esi_path
+    from protocol.dictionary import load_dictionary
+    from protocol.esi import EsiError, check_against_dictionary, ethercat_dictionary, load_esi
+
+    key = (eds.resolve(), ethercat)
+    try:
+        if key not in checked:
+            dictionary = load_dictionary(eds)
+            if ethercat:
+                esi = load_esi(esi_path())
+                check_against_dictionary(esi, dictionary)
+                dictionary = ethercat_dictionary(dictionary, esi)
+            checked[key] = dictionary
+        select_profile(checked[key], model.parameters.drive_gain)
+    except (ValueError, EsiError, ProfileError) as exc:
+        raise RobotFileError(f"{path}: {where}.eds: {exc}") from None
 
 
 def default_reference(limits: Limits) -> Sinusoid:

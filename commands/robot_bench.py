@@ -1,0 +1,119 @@
+"""`bus-bench --robot FILE`: a robot in real time as it would run on its PC, the virtual drives
+in one process (`sim-bus --robot`) and the master in another (`actuatord --robot`), started
+`--starts` times, beside this machine's own floor (a bare 1 kHz loop) measured in the same
+run: how many starts reached their first cycle and their end, missed cycles by cause, jitter,
+the MPC tick and the master's own cost.
+
+EtherCAT lines run over a veth between two network namespaces of the bench's own, each end
+named as the robot file names the line (root); CAN buses, which this kind of machine has no
+kernel driver for, run over `udp_multicast` (a group and port per bus). The robot file is
+rewritten for that into a folder of the bench's own; the user's is only read."""
+
+import contextlib
+import json
+import random
+import subprocess
+import sys
+import tempfile
+import tomllib
+from pathlib import Path
+
+import tomli_w
+
+from driver.clock import bare_loop
+from protocol.bus_spec import is_ethercat, parse_bus_spec
+from robot.description import load_robot
+from sim_bus.ethercat.netns import NamespacePair
+
+START_TIMEOUT = 180.0  # s for sim-bus to build and serve every drive on a busy host
+
+
+def stage(text: str) -> None:
+    print(f"bus-bench: {text}", file=sys.stderr, flush=True)
+
+
+def run(robot_path: str, duration: float, starts: int) -> dict:
+    """Everything `bus-bench --robot` prints (one JSON object)."""
+    robot = load_robot(robot_path)
+    stage(f"this machine's floor: a bare 1 kHz loop at real-time priority for {duration:g} s")
+    floor = bare_loop(duration)
+    lines = sorted({parse_bus_spec(bus)["channel"] for bus in robot.buses() if is_ethercat(bus)})
+    runs = []
+    with tempfile.TemporaryDirectory(prefix="bus-bench-") as folder, \
+            contextlib.ExitStack() as stack:
+        path = _with_buses_here(Path(robot_path), Path(folder))
+        pair = stack.enter_context(NamespacePair(lines)) if lines else None
+        for start in range(1, starts + 1):
+            stage(f"start {start}/{starts}: {len(robot.joints)} joints of {robot.name}, "
+                  f"{duration:g} s in real time")
+            runs.append(_one_start(pair, path, duration, Path(folder) / f"run{start}.json"))
+    cycles = round(duration * 1e6 / robot.period_us)
+    return {
+        "robot": robot.name, "joints": len(robot.joints), "duration_s": duration,
+        "floor": {"cycles": cycles, "missed": floor.missed_cycles,
+                  "missed_percent": round(100 * floor.missed_cycles / cycles, 3),
+                  "jitter_p99_us": round(floor.jitter_us.percentile(99), 1),
+                  "jitter_max_us": round(floor.jitter_us.max, 1)},
+        "starts": {"asked": starts, "started": sum(r["started"] for r in runs),
+                   "ran_to_the_end": sum(r.get("exit_code") == 0 for r in runs)},
+        "runs": runs,
+    }
+
+
+def _one_start(pair: NamespacePair | None, path: Path, duration: float, report: Path) -> dict:
+    """One start: the drives' process until ready, actuatord for `duration`, the drives
+    stopped; actuatord's figures (its --report) with whether it started."""
+    def inside(side: str, argv: list[str]) -> list[str]:
+        return pair.command(side, argv) if pair is not None else argv
+
+    drives = subprocess.Popen(
+        inside("line", [sys.executable, "-m", "commands.sim_bus", "--robot", str(path)]),
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        ready = drives.stdout.readline()
+        if "ready" not in ready:
+            return {"started": False, "error": f"sim-bus did not start: {ready.strip()} "
+                                               f"{drives.stderr.read().strip()[-300:]}"}
+        master = subprocess.run(
+            inside("master", [sys.executable, "-m", "commands.actuatord", "--robot", str(path),
+                              "--duration", f"{duration:g}", "--no-multicast-scouting",
+                              "--report", str(report)]),
+            capture_output=True, text=True, timeout=duration * 20 + START_TIMEOUT)
+    finally:
+        drives.send_signal(2)  # SIGINT: sim-bus reports and ends
+        try:
+            drives.wait(20)
+        except subprocess.TimeoutExpired:
+            drives.kill()
+            drives.wait(10)
+    out = {"started": " enabled;" in master.stdout}
+    if report.exists():
+        out.update(json.loads(report.read_text()))
+    errors = [line for line in master.stderr.splitlines() if ": error: " in line]
+    if errors:
+        out["error"] = errors[0]
+    return out
+
+
+def _with_buses_here(path: Path, folder: Path) -> Path:
+    """The robot file rewritten into `folder` for this machine: each CAN bus on a
+    udp_multicast group and port of its own, model and EDS paths made absolute (they were
+    relative to the original's folder)."""
+    doc = tomllib.loads(path.read_text(encoding="utf-8-sig"))
+    home = path.resolve().parent
+    buses: dict[str, str] = {}
+    for joint in doc["joints"]:
+        bus = joint["bus"]
+        if not is_ethercat(bus):
+            if bus not in buses:
+                buses[bus] = (f"udp_multicast:239.74.{len(buses) + 1}.1:"
+                              f"{random.randint(20000, 60000)}")
+            joint["bus"] = buses[bus]
+        for key in ("model", "eds"):
+            if key in joint:
+                joint[key] = str(home / joint[key])
+    if "buses" in doc:
+        doc["buses"] = {buses.get(bus, bus): settings for bus, settings in doc["buses"].items()}
+    rewritten = folder / path.name
+    rewritten.write_text(tomli_w.dumps(doc))
+    return rewritten

@@ -1,0 +1,227 @@
+"""An EtherCAT line linked in one process: the master's side of pysoem's API (what
+`driver.ethercat_master` calls of `pysoem.Master` and its slaves) served straight by a
+`Segment` of virtual slaves, with no wire, no raw socket and no root.
+
+What `--sim` runs for an EtherCAT robot: the master's own code (scan, identity check, PDO
+assignment by CoE, the state machine's requests and refusals, the process data image, the
+working counter) against the same slave controllers and firmware as on a veth, through their
+physical interface: register writes (AL control, sync managers, watchdog) and sync manager
+buffer accesses go through `Esc`'s rules, so a completed output buffer runs the drive's cycle
+exactly as a frame's does. What it leaves out is the wire: frames, datagrams, the mailbox's
+framing (CoE SDO requests reach the slave's object layer directly, with its abort codes) and
+wall-clock watchdogs (master and slaves live and die together). Those are exercised over a
+veth (`sim_bus.ethercat.netns`), against SOEM and KickCAT.
+"""
+
+import struct
+import time
+from collections.abc import Callable
+
+import pysoem
+
+from protocol import ethercat as ec
+from protocol.dictionary import mappable_object
+from sim_bus.ethercat.esc import Esc
+from sim_bus.ethercat.firmware import SlaveFirmware
+from sim_bus.ethercat.mailbox import SdoAbort
+from sim_bus.ethercat.segment import Segment
+
+_U16 = struct.Struct("<H")
+FIRST_STATION_ADDRESS = 0x1001  # SOEM's: position 0 gets 0x1001
+WORKING_COUNTER_PER_SLAVE = 3  # an output write counts 2, an input read 1 (LRW)
+
+
+class LinkedSlave:
+    """One slave as pysoem shows it to a master: identity, state, process data bytes, CoE."""
+
+    def __init__(self, position: int, esc: Esc, firmware: SlaveFirmware):
+        self.position = position
+        self._esc, self._firmware = esc, firmware
+        esi = firmware.esi
+        self.man, self.id, self.rev = esi.identity
+        self.name = esi.name
+        self.state = 0
+        self.al_status = 0
+        self.output = b""
+        self.input = b""
+        self._outputs: tuple[int, int] | None = None  # (SM2 start, length) once mapped
+        self._inputs: tuple[int, int] | None = None
+        self._input_buffer = bytearray()
+
+    # --- registers, as FPWR/FPRD would reach them -------------------------------------------
+
+    def _write(self, address: int, data: bytes) -> bool:
+        return self._esc._write(address, memoryview(data))
+
+    def _read_state(self) -> None:
+        memory = self._esc.memory
+        self.state = _U16.unpack_from(memory, ec.REG_AL_STATUS)[0]
+        self.al_status = _U16.unpack_from(memory, ec.REG_AL_STATUS_CODE)[0]
+
+    def write_state(self) -> None:
+        """Request `state` (with the error acknowledge, as SOEM's state requests carry it)."""
+        self._write(ec.REG_AL_CONTROL, _U16.pack(self.state | ec.AL_ERROR))
+
+    def set_watchdog(self, name: str, milliseconds: float) -> None:
+        """The process data watchdog (`name` 'processdata'), 0: off."""
+        if name != "processdata":
+            raise ValueError(f"no watchdog {name!r} here")
+        self._write(ec.REG_WATCHDOG_DIVIDER, _U16.pack(ec.WATCHDOG_DIVIDER_DEFAULT))
+        self._write(ec.REG_WATCHDOG_TIME_PROCESS_DATA,
+                    _U16.pack(int(round(milliseconds * 10))))  # 100 us ticks
+
+    def _sync_manager(self, kind: str, length: int) -> tuple[int, int]:
+        sm = self._firmware.esi.sync_manager(kind)
+        number = self._firmware.esi.sm_number(kind)
+        self._write(ec.REG_SM0 + number * ec.SM_SIZE,
+                    ec.SYNC_MANAGER.pack(sm.start, length, sm.control, 0,
+                                         ec.SM_ACTIVATE_ENABLE if length else 0, 0))
+        return sm.start, length
+
+    # --- CoE (the slave's object layer: SDO semantics and abort codes) -----------------------
+
+    def _coe(self, index: int, subindex: int, access: Callable):
+        if self._esc.al_status & ec.AL_STATE_MASK == ec.AlState.INIT:
+            raise pysoem.MailboxError(self.position + 1, 0, "mailbox not running in INIT")
+        try:
+            return access()
+        except SdoAbort as exc:
+            raise pysoem.SdoError(self.position + 1, index, subindex, exc.code,
+                                  f"SDO abort 0x{exc.code:08X}") from None
+
+    def sdo_read(self, index: int, subindex: int) -> bytes:
+        return self._coe(index, subindex,
+                         lambda: bytes(self._firmware.objects.upload(index, subindex)))
+
+    def sdo_write(self, index: int, subindex: int, data: bytes) -> None:
+        self._coe(index, subindex,
+                  lambda: self._firmware.objects.download(index, subindex, bytes(data)))
+
+    def add_emergency_callback(self, callback: Callable) -> None:
+        """CoE emergencies of the drive, as pysoem hands them over (error_code, error_reg);
+        delivered when the drive raises them (no mailbox in between)."""
+        self._firmware.device.add_emergency_handler(
+            lambda code, register: callback(_Emergency(code, register)))
+
+    def mbx_receive(self) -> int:
+        return 0  # emergencies arrive through the callback as they happen
+
+    # --- process data -------------------------------------------------------------------------
+
+    def _map(self) -> int:
+        """SM2/SM3 sized for the PDOs assigned by CoE (SOEM's config_map); bytes mapped."""
+        objects = self._firmware.objects
+        sizes = []
+        for assign in (ec.RXPDO_ASSIGN, ec.TXPDO_ASSIGN):
+            entries = [mappable_object(self._firmware.device.dictionary, e)
+                       for e in objects.assigned_entries(assign)]
+            sizes.append(sum(entry.bits for entry in entries) // 8)
+        self._outputs = self._sync_manager("Outputs", sizes[0])
+        self._inputs = self._sync_manager("Inputs", sizes[1])
+        self.output = bytes(sizes[0])
+        self._input_buffer = bytearray(sizes[1])
+        self.input = bytes(sizes[1])
+        return sizes[0] + sizes[1]
+
+    def _exchange(self) -> int:
+        """Write the outputs (a completed SM2 buffer runs the drive's cycle), read the inputs;
+        this slave's share of the working counter."""
+        count = 0
+        if self._outputs is not None and self._outputs[1]:
+            if self._write(self._outputs[0], self.output):
+                count += 2
+        if self._inputs is not None and self._inputs[1]:
+            start, length = self._inputs
+            if self._esc._read(start, length, memoryview(self._input_buffer), 0):
+                self.input = bytes(self._input_buffer)
+                count += 1
+        return count
+
+
+class _Emergency:
+    __slots__ = ("error_code", "error_reg")
+
+    def __init__(self, code: int, register: int):
+        self.error_code, self.error_reg = code, register
+
+
+class LinkedMaster:
+    """`pysoem.Master`'s calls, served by `segment` in this process (`open` takes no
+    interface: the segment is the line)."""
+
+    def __init__(self, segment: Segment):
+        self._segment = segment
+        self.slaves: list[LinkedSlave] = []
+        self.state = 0
+        self.expected_wkc = 0
+        # s each process data exchange spent in the slaves (their firmware and physics), in
+        # order: what a benchmark of the master takes out of its figures
+        self.slave_seconds: list[float] = []
+
+    def open(self, interface: str) -> None:
+        """Nothing to open: the line is in this process."""
+
+    def close(self) -> None:
+        self.slaves = []
+
+    def config_init(self) -> int:
+        """INIT (errors acknowledged), station addresses, the mailbox sync managers as the
+        SII gives them, PRE-OP requested: SOEM's config_init. The number of slaves."""
+        segment = self._segment
+        with segment.lock:
+            self.slaves = [LinkedSlave(k, esc, firmware) for k, (esc, firmware)
+                           in enumerate(zip(segment.escs, segment.firmwares, strict=True))]
+            for slave in self.slaves:
+                slave.state = ec.AlState.INIT
+                slave.write_state()
+                slave._write(ec.REG_STATION_ADDRESS, _U16.pack(FIRST_STATION_ADDRESS
+                                                               + slave.position))
+                for kind in ("MBoxOut", "MBoxIn"):
+                    slave._sync_manager(kind, slave._firmware.esi.sync_manager(
+                        kind).default_size)
+                slave.state = ec.AlState.PRE_OP
+                slave.write_state()
+                slave._read_state()
+        return len(self.slaves)
+
+    def config_map(self) -> int:
+        """The process data sync managers from each slave's PDO assignment, then SAFE-OP
+        requested (as SOEM's config_map does). The image's size in bytes."""
+        with self._segment.lock:
+            size = sum(slave._map() for slave in self.slaves)
+            self.expected_wkc = WORKING_COUNTER_PER_SLAVE * len(self.slaves)
+            for slave in self.slaves:
+                slave.state = ec.AlState.SAFE_OP
+                slave.write_state()
+        return size
+
+    def write_state(self) -> None:
+        with self._segment.lock:
+            for slave in self.slaves:
+                slave.state = self.state
+                slave.write_state()
+
+    def read_state(self) -> int:
+        """Every slave's AL status and code; the lowest state."""
+        with self._segment.lock:
+            for slave in self.slaves:
+                slave._read_state()
+        return min((slave.state & ec.AL_STATE_MASK for slave in self.slaves), default=0)
+
+    def state_check(self, expected: int, timeout_us: int = 0) -> int:
+        """The slaves answer a request at once here: `expected` when every slave is in it,
+        else the lowest state."""
+        lowest = self.read_state()
+        return expected if all(slave.state == expected for slave in self.slaves) else lowest
+
+    def send_processdata(self) -> None:
+        """One cycle of the image: every slave's outputs in (its drive cycles), its inputs
+        out; the working counter is kept for `receive_processdata`."""
+        start = time.perf_counter()
+        with self._segment.lock:
+            self._wkc = sum(slave._exchange() for slave in self.slaves)
+            self._segment.frames += 1
+        self.slave_seconds.append(time.perf_counter() - start)
+
+    def receive_processdata(self, timeout_us: int = 0) -> int:
+        return self._wkc

@@ -1,0 +1,235 @@
+"""The vectorised batch (joints in SIMD lanes, controller.lanes) against the scalar kernel and the
+numpy reference: the same decisions to 1e-9 relative, joints in different modes in one tick,
+joints whose line search rejects steps; and the error bounds of its own exp, tanh, sin, cos."""
+
+from dataclasses import replace
+
+import numba
+import numpy as np
+import pytest
+
+from controller import ilqr_reference, lane_math, lanes
+from controller import workspace as ws
+from controller.ilqr import LINE_SEARCH_STEPS
+from controller.mpc import BatchMpc, JointProblem, Mpc
+from controller.problem import OcpSettings, pack_cost
+from controller.reference import Setpoint, Sinusoid, reference_at
+from model import dynamics
+from model.parameters import Payload, load_model
+
+MODEL = load_model()
+DT = 1e-3
+RELATIVE = 1e-9
+
+
+@numba.njit(error_model="numpy")
+def _lane_functions(x, out):
+    """exp, tanh, sin and cos of lane_math over an array, in a loop the compiler vectorises
+    (as in the kernel)."""
+    for j in range(x.shape[0]):
+        out[0, j] = lane_math.exp(x[j])
+        out[1, j] = lane_math.tanh(x[j])
+        out[2, j], out[3, j] = lane_math.sin_cos(x[j])
+
+
+def ulps(computed: np.ndarray, exact: np.ndarray) -> float:
+    """The largest error in units in the last place of the exact value."""
+    return float(np.max(np.abs(computed - exact) / np.spacing(np.abs(exact))))
+
+
+def lane_functions(x: np.ndarray) -> np.ndarray:
+    out = np.empty((4, len(x)))
+    _lane_functions(x, out)
+    return out
+
+
+def test_exp_is_within_two_ulp_over_the_double_range():
+    rng = np.random.default_rng(1)
+    x = np.concatenate([rng.uniform(-745.0, 709.7, 300_000), rng.uniform(-1.0, 1.0, 300_000),
+                        rng.normal(0.0, 1e-6, 10_000), [0.0, -0.0, 709.78, -745.13]])
+    assert ulps(lane_functions(x)[0], np.exp(x)) <= 2.0
+    special = lane_functions(np.array([np.inf, -np.inf, np.nan, 710.0, -746.0, 1e308]))[0]
+    assert special[0] == np.inf and special[1] == 0.0 and np.isnan(special[2])
+    assert special[3] == np.inf and special[4] == 0.0 and special[5] == np.inf
+
+
+def test_tanh_is_within_three_ulp_even_near_zero():
+    rng = np.random.default_rng(2)
+    x = np.concatenate([rng.uniform(-25.0, 25.0, 300_000), rng.uniform(-0.4, 0.4, 300_000),
+                        rng.normal(0.0, 1e-9, 10_000), [1e-300, -1e-300]])
+    assert ulps(lane_functions(x)[1], np.tanh(x)) <= 3.0
+    special = lane_functions(np.array([np.inf, -np.inf, np.nan, 0.0]))[1]
+    assert list(special[[0, 1, 3]]) == [1.0, -1.0, 0.0] and np.isnan(special[2])
+
+
+def test_sin_and_cos_are_within_two_ulp_where_joints_are():
+    rng = np.random.default_rng(3)
+    x = np.concatenate([rng.uniform(-10.0, 10.0, 300_000), rng.uniform(-1e5, 1e5, 300_000),
+                        np.arange(-8, 9) * np.pi / 4])
+    out = lane_functions(x)
+    sin, cos = np.sin(x), np.cos(x)
+    away = (np.abs(sin) > 1e-9) & (np.abs(cos) > 1e-9)  # ulps of a result near 0 are tiny
+    assert ulps(out[2][away], sin[away]) <= 2.0 and ulps(out[3][away], cos[away]) <= 2.0
+    assert np.max(np.abs(out[2] - sin)) < 2e-16 * np.max(np.abs(x))
+    assert np.all(np.isnan(lane_functions(np.array([np.inf, np.nan]))[2:]))
+
+
+def problems(count: int) -> list[JointProblem]:
+    """Joints that differ in payload, weights and reference."""
+    references = [Sinusoid(), Setpoint(-1.0), Sinusoid(center=-1.2, amplitude=0.5, frequency=0.5),
+                  Setpoint(-2.0), Sinusoid(frequency=0.3)]
+    return [JointProblem(MODEL, OcpSettings().with_weights(position=200.0 + 50.0 * (j % 3)),
+                         Payload(float(j % 4), 0.01 * (j % 3), 0.05),
+                         references[j % len(references)]) for j in range(count)]
+
+
+def assert_same_decisions(lanes_decisions, scalar_decisions):
+    """Equal status, iterations and rollouts; currents, references and costs to RELATIVE."""
+    for vectorised, scalar in zip(lanes_decisions, scalar_decisions, strict=True):
+        assert (vectorised.status, vectorised.iterations, vectorised.rollouts, vectorised.ok) == (
+            scalar.status, scalar.iterations, scalar.rollouts, scalar.ok)
+        for field in ("planned_current", "reference_position", "reference_velocity", "cost"):
+            a, b = getattr(vectorised, field), getattr(scalar, field)
+            assert a == pytest.approx(b, rel=RELATIVE, abs=1e-12), field
+
+
+class Twins:
+    """The same joints in a lanes batch and a scalar batch, each on its own exact models."""
+
+    def __init__(self, count: int, threads: int = 1):
+        self.lanes = BatchMpc(problems(count), kernel="lanes", threads=threads)
+        self.scalar = BatchMpc(problems(count), kernel="scalar")
+        self.parameters = [joint.packed_parameters for joint in self.lanes.joints]
+        self.states = np.array([[-0.4 - 0.2 * (j % 5), 0.0] for j in range(count)])
+        self.rollouts: list[list[int]] = []
+        self.modes: list[list[int]] = []
+
+    def tick(self, k: int, skip=(), disturb=()) -> list:
+        """Tick both at cycle k (skipping and kicking the given joints), check they agree,
+        then step the plants with the scalar decisions."""
+        for batch in (self.lanes, self.scalar):
+            for j in range(len(batch)):
+                batch.prepare(batch.joints[j], *self.states[j])
+            for j in skip:
+                batch.skip(batch.joints[j])
+        self.modes.append([joint.mode for joint in self.scalar.joints])
+        self.lanes.run(k * DT)
+        self.scalar.run(k * DT)
+        decisions = [[batch.decision(joint) for joint in batch.joints]
+                     for batch in (self.lanes, self.scalar)]
+        ticked = [j for j in range(len(self.states)) if j not in skip]
+        assert_same_decisions(*([d[j] for j in ticked] for d in decisions))
+        self.rollouts.append([decisions[1][j].rollouts for j in ticked])
+        for j in ticked:
+            current = float(np.clip(decisions[1][j].planned_current, -6.0, 6.0))
+            self.states[j] = dynamics.step(*self.states[j], current, self.parameters[j], DT,
+                                           20)[:2]
+            if j in disturb:
+                self.states[j, 1] += 3.0  # a kick the warm start did not predict
+        return decisions
+
+
+def test_lane_decisions_equal_the_scalar_kernel_with_joints_in_every_mode():
+    """Ten joints (two chunks of lanes, six empty lanes): cold, warm, resample (new reference
+    or weights), a missed cycle, skipped joints, kicked joints whose line search backtracks."""
+    twins = Twins(10)
+    for k in range(120):
+        skip = (3,) if 40 <= k < 43 else ((7, 8) if k == 60 else ())
+        disturb = (2, 9) if k in (30, 80) else ()
+        if k == 42:  # with joint 3 skipped: three modes in one tick
+            for batch in (twins.lanes, twins.scalar):
+                batch.joints[5].set_reference(Setpoint(-1.5))  # resample in the next tick
+                batch.set_settings(batch.joints[6], batch.joints[6].settings.with_weights(
+                    position=900.0))
+        cycle = k + 1 if k >= 70 else k  # from cycle 70 on, one cycle was missed
+        twins.tick(cycle, skip, disturb)
+    modes = {mode for tick_modes in twins.modes for mode in tick_modes}
+    assert {lanes.COLD, lanes.WARM, lanes.RESAMPLE, lanes.SKIP} <= modes
+    mixed = [tick_modes for tick_modes in twins.modes if len(set(tick_modes)) >= 3]
+    assert mixed, "no tick had joints in three modes at once"
+    backtracked = [r for r in twins.rollouts if max(r) > 1 and min(r) == 1]
+    assert backtracked, "no tick had one joint's line search reject a step while others took it"
+
+
+def test_a_line_search_that_fails_falls_back_alike():
+    """An impossible kick: the warm step's line search rejects all ten trials, the joint solves
+    again from its controls; its neighbours in the lanes carry on."""
+    twins = Twins(3)
+    for k in range(20):
+        twins.tick(k)
+    twins.states[1] = [-0.4, 40.0]  # far beyond the velocity limit
+    decisions = twins.tick(20)
+    # ten rejected trials, then a simulation of the controls and a new line search
+    assert decisions[1][1].rollouts > LINE_SEARCH_STEPS + 1
+    assert decisions[1][0].rollouts == 1 and decisions[1][2].rollouts == 1
+    for k in range(21, 40):
+        twins.tick(k)
+
+
+def test_two_lane_blocks_decide_as_one():
+    """Threads split the joints into blocks of whole chunks; the decisions do not change."""
+    one, two = BatchMpc(problems(20), kernel="lanes", threads=1), BatchMpc(
+        problems(20), kernel="lanes", threads=2)
+    assert len(two.lane_blocks()) == 2 and len(one.lane_blocks()) == 1
+    positions, velocities = np.linspace(-0.4, -1.8, 20), np.zeros(20)
+    for k in range(30):
+        first, second = (batch.tick(k * DT, positions, velocities) for batch in (one, two))
+        assert first == second
+        positions = positions - 1e-3 * np.array([d.planned_current for d in first])
+
+
+@pytest.mark.parametrize("reference", [Sinusoid(), Setpoint(-1.0)])
+def test_lane_cold_solve_matches_the_numpy_reference(reference):
+    settings = OcpSettings()
+    c = pack_cost(settings, MODEL.limits, MODEL.parameters.drive_gain)
+    t = np.arange(settings.horizon + 1) * settings.dt
+    ref = np.stack(reference_at(reference.packed(), t), axis=1)
+    mpc = Mpc(MODEL, settings, reference=reference, kernel="lanes")
+    result = mpc.solve(-0.4, 0.0, 0.0, initial_current=0.0, max_iterations=100)
+    plan = mpc.plan(0.0)
+    X, U, cost, iterations, converged = ilqr_reference.solve(
+        (-0.4, 0.0), np.zeros(100), ref, MODEL.parameters.packed(), c, 100)
+    assert result.status == "converged" and converged
+    assert result.iterations == iterations
+    assert result.cost == pytest.approx(cost, rel=RELATIVE)
+    np.testing.assert_allclose(plan.current, U, rtol=RELATIVE, atol=1e-9)
+    np.testing.assert_allclose(np.stack((plan.position, plan.velocity), axis=1), X, atol=1e-12)
+
+
+def test_the_plan_of_a_lane_joint_is_its_solution_in_order():
+    """After many ticks (the ring has wrapped) the plan equals the scalar kernel's plan."""
+    twins = Twins(9)
+    for k in range(250):
+        twins.tick(k)
+    for j in (0, 8):
+        vectorised, scalar = (batch.plan(batch.joints[j], 0.0) for batch in (twins.lanes,
+                                                                              twins.scalar))
+        for field in ("position", "velocity", "current", "reference_position"):
+            np.testing.assert_allclose(getattr(vectorised, field), getattr(scalar, field),
+                                       rtol=1e-7, atol=1e-9)
+
+
+def test_a_skipped_lane_joint_keeps_its_row():
+    """Only its mode is written (cold next); its stored solution is not its plan any more."""
+    batch = BatchMpc(problems(2), kernel="lanes")
+    first, second = batch.joints
+    batch.tick(0.0, [-0.4, -0.4], [0.0, 0.0])
+    kept_row = second.row.copy()
+    batch.prepare(first, -0.4, 0.0)
+    batch.skip(second)
+    batch.run(DT)
+    untouched = np.arange(len(kept_row)) != ws.MODE
+    assert np.array_equal(second.row[untouched], kept_row[untouched])
+    assert second.mode == lanes.COLD
+    assert batch.decision(first).ok
+
+
+def test_a_joint_with_an_extra_effect_runs_the_scalar_kernel():
+    model = load_model()
+    stribeck = replace(model, parameters=model.parameters.with_effect(
+        "stribeck", {"breakaway_friction": 0.3, "velocity": 0.05}))
+    mixed = [JointProblem(MODEL), JointProblem(stribeck)]
+    assert BatchMpc([JointProblem(MODEL)]).kernel == "lanes"
+    assert BatchMpc(mixed).kernel == "scalar"
+    with pytest.raises(ValueError, match="extra effect"):
+        BatchMpc(mixed, kernel="lanes")

@@ -1,0 +1,79 @@
+"""A run says why it missed cycles: each miss is put down to the phase that took the cycle's
+time (a late wake-up, a late sample, a decision over budget, the telemetry), so a user can tell
+their machine from the service. Real time with a virtual drive in this process; the slow
+phase is made twenty periods long so that it, not the host, is what the run measures."""
+
+import time
+
+from controller.loop import DECISION, LATE_SAMPLE, ControlLoop, LoopOptions
+from controller.policy import Decision
+from model.parameters import load_model
+from sim_bus.plant import SensorNoise
+from tests.conftest import virtual_pair
+
+MODEL = load_model()
+STALL = 0.02  # s: twenty periods
+EVERY = 50  # cycles between stalls
+
+
+class _Holding:
+    """Holds the joint with a fixed current; every EVERY-th decision (or sample) stalls."""
+
+    parameters, limits = MODEL.parameters, MODEL.limits
+
+    def __init__(self):
+        self.ticks = 0
+
+    def tick(self, sample) -> Decision:
+        self.ticks += 1
+        if self.ticks % EVERY == 0:
+            time.sleep(STALL)
+        return Decision(0.0, sample.position, 0.0, "held", True)
+
+    def reference_at(self, t: float) -> tuple[float, float]:
+        return 0.0, 0.0
+
+    def reset(self) -> None:
+        pass
+
+    def plan(self, t: float) -> None:
+        return None
+
+
+def test_a_slow_decision_is_named_as_the_cause_of_its_missed_cycles():
+    with virtual_pair(lockstep=False, noise=SensorNoise()) as (_, drive):
+        drive.start()
+        report = ControlLoop(drive, _Holding(), LoopOptions(duration=0.4)).run()
+    causes = report.missed_by_cause
+    stalled = (report.cycles // EVERY) * STALL / 1e-3  # cycles the stalls took
+    # the host adds misses of its own (late wake-ups on a busy machine), never fewer
+    assert causes[DECISION] >= 0.5 * stalled and max(causes, key=causes.get) == DECISION, (
+        causes)
+    assert sum(causes.values()) == report.missed_cycles
+
+
+class _SlowDrive:
+    """A drive whose sample is late every EVERY-th cycle (the exchange stalls)."""
+
+    def __init__(self, drive):
+        self._drive, self._cycles = drive, 0
+
+    def sync(self):
+        self._cycles += 1
+        if self._cycles % EVERY == 0:
+            time.sleep(STALL)
+        return self._drive.sync()
+
+    def __getattr__(self, name):
+        return getattr(self._drive, name)
+
+
+def test_a_late_sample_is_named_as_the_cause_of_its_missed_cycles():
+    with virtual_pair(lockstep=False) as (_, drive):
+        drive.start()
+        report = ControlLoop(_SlowDrive(drive), _Holding(), LoopOptions(duration=0.4)).run()
+    causes = report.missed_by_cause
+    stalled = (report.cycles // EVERY) * STALL / 1e-3
+    assert causes[LATE_SAMPLE] >= 0.5 * stalled and max(causes, key=causes.get) == LATE_SAMPLE, (
+        causes)
+    assert sum(causes.values()) == report.missed_cycles
