@@ -18,11 +18,6 @@ from sim_bus.ethercat.netns import LinkUnavailable, VirtualLink
 from sim_bus.plant import SensorNoise
 
 
-def pytest_configure(config: pytest.Config) -> None:
-    config.addinivalue_line("markers", "slow: takes more than about 20 s (deselect with "
-                                       "-m 'not slow')")
-
-
 @contextmanager
 def virtual_pair(payload: Payload = Payload(), noise: SensorNoise = SensorNoise(), model=None,
                  lockstep: bool = True, **drive_kwargs):

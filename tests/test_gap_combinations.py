@@ -98,7 +98,7 @@ def heavy_model(folder: Path) -> Path:
     return path
 
 
-# the first test pays for every case's recordings (61 cases, two at a time: 545 s measured
+# the first test pays for every case's recordings (61 cases, two at a time: 294-545 s measured
 # beside other test runs): longer than the suite's 300 s per-test default
 pytestmark = [pytest.mark.timeout(1800), pytest.mark.slow, pytest.mark.subprocess]
 

@@ -97,8 +97,12 @@ def summary(result: GapResult) -> str:
     lines.append(f"largest disagreement before: |qd| in [{worst['from']}, {worst['to']}) "
                  f"rad/s, {worst['rmsd']:.3f} N.m")
     for contest in result.discrimination:
-        lines.append(f"{contest['says']}; to tell them apart record "
-                     f"{contest['recording_that_would_tell_them_apart']}")
+        if contest["verdict"] == "supported":
+            lines.append(f"{contest['says']}; their fits part most "
+                         f"{contest['they_differ_most']['region']}")
+        else:
+            lines.append(f"{contest['says']}; to tell them apart record "
+                         f"{contest['recording_that_would_tell_them_apart']}")
     for place in result.unexplained["where"]:
         bins = ", ".join(f"[{b['from']}, {b['to']}) mean {b['mean']:+.3f} N.m"
                          for b in place["bins"])
