@@ -123,7 +123,10 @@ def robot_path(name_or_path: str | Path) -> Path:
     (a folder or a suffix in it), else the shipped robot of that name (`talos_arm` ->
     robots/talos_arm.toml in the installed package)."""
     path = Path(name_or_path)
-    if path.exists() or path.suffix or len(path.parts) > 1:
+    try:
+        if path.exists() or path.suffix or len(path.parts) > 1:
+            return path
+    except OSError:  # a name too long for a path: the loader refuses it in one line
         return path
     shipped = Path(str(files("robots") / f"{path.name}.toml"))
     return shipped if shipped.is_file() else path

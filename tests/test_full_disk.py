@@ -120,8 +120,13 @@ def test_model_gap_on_a_full_disk_is_one_line(capsys, disk, tmp_path, monkeypatc
     import commands.model_gap
 
     nan = math.nan
-    result = GapResult([], 1.0, 1.0, 0.1, 0.1, nan, nan, 0.5, {}, [], 1.0, {}, None,
-                       load_model().parameters, {}, {}, {}, [], [])
+    result = GapResult(effects=[], rmsd_before=1.0, rmsd_after=1.0, sim_rmsd_before=0.1,
+                       sim_rmsd_after=0.1, rmsd_sensor_before=nan, rmsd_sensor_after=nan,
+                       horizon=0.5, candidates={}, steps=[], discrimination=[],
+                       instruments={}, held_out_rmsd=1.0, unexplained={}, correction=None,
+                       parameters=load_model().parameters, localisation_before={},
+                       localisation_after={}, residuals={}, traces_before=[],
+                       traces_after=[])
     monkeypatch.setattr(commands.model_gap, "find_gap", lambda *args: result)
     recording = tmp_path / "rec.csv"
     recording.write_text(CSV)
