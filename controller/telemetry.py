@@ -21,6 +21,7 @@ EXPRESS_TOPICS = ("state", "command", "fault")  # latency matters more than batc
 # thread; the loop only appends to the queue) where the others are dropped by Zenoh
 NEVER_DROPPED = ("fault",)
 QUEUE_DEPTH = 4096
+_FAULT = schema.message_class("Fault")
 # s between the publisher thread's passes over the queue. The loop only appends to a deque:
 # no lock, no wake-up of another thread per message (in lock-step each wake-up handed the
 # interpreter lock back and forth three times a cycle); telemetry waits at most this long.
@@ -69,7 +70,11 @@ class TelemetryPublisher:
         self._thread.start()
 
     def publish(self, message) -> None:
-        if len(self._queue) < QUEUE_DEPTH:
+        """Queue a message for the publisher thread. A full queue (a lock-step loop makes
+        messages far faster than Zenoh takes them) drops it and counts it, except a fault:
+        faults are rare and are what a user must see, so they always join the queue (a
+        refused request's fault went missing this way in lock-step runs)."""
+        if len(self._queue) < QUEUE_DEPTH or type(message) is _FAULT:
             self._queue.append(message)
         else:
             self.dropped += 1

@@ -33,7 +33,7 @@ def start_actuatord(port: int, *extra: str) -> subprocess.Popen:
 
 def test_dashboard_session_decodes_state_and_talks_to_the_queryables():
     port = free_port()
-    proc = start_actuatord(port, "--duration", "30")
+    proc = start_actuatord(port, "--duration", "600")  # stopped by the test (SIGTERM)
     received: dict[str, list] = {topic: [] for topic in telemetry.TOPICS}
     session = dashboard_session(port)
     try:
@@ -77,7 +77,7 @@ def test_dashboard_session_decodes_state_and_talks_to_the_queryables():
     assert all(abs(c.current) <= c.current_limit == 6.0 for c in commands)
     assert commands[-1].reference_position == -1.0  # the accepted reference took effect
     faults = [telemetry.decode("Fault", data) for data in received["fault"]]
-    assert any("reference refused" in f.cause for f in faults)
+    assert any("reference refused" in f.cause for f in faults), [f.cause for f in faults]
     plan = telemetry.decode("Plan", received["plan"][-1])
     assert len(plan.position) == 101 and len(plan.current) == 100
     solver = telemetry.decode("SolverStats", received["solver"][-1])

@@ -638,7 +638,7 @@ def test_terminal_dashboard_keeps_up_with_a_real_time_actuatord_and_quits_cleanl
 
 def test_refused_change_leaves_the_controller_unchanged_and_says_why():
     port = free_port()
-    actuatord = start_actuatord(port, "--duration", "60")
+    actuatord = start_actuatord(port, "--duration", "600")  # stopped by the test
     session = dashboard_session(port)
     audit: list[dict] = []
     try:
