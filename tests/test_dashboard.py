@@ -643,6 +643,13 @@ def test_refused_change_leaves_the_controller_unchanged_and_says_why():
     audit: list[dict] = []
     try:
         assert "enabled" in actuatord.stdout.readline()
+        # the session reaches actuatord only once its listener is up (Zenoh retries a refused
+        # connect after a back-off): a query answered proves the link before anything is
+        # watched, or the first audit lines can be sent before the subscription arrives
+        deadline = time.monotonic() + 30
+        while not list(session.get(telemetry.key_expr(PREFIX, "parameters"))):
+            assert time.monotonic() < deadline, "the session never reached actuatord"
+            time.sleep(0.1)
         session.declare_subscriber(telemetry.key_expr(PREFIX, telemetry.AUDIT),
                                    lambda s: audit.append(json.loads(s.payload.to_bytes())))
         time.sleep(0.5)
