@@ -237,10 +237,13 @@ def _run_joint(args: argparse.Namespace, stop: threading.Event, threads: ThreadF
         publisher.serve_json(telemetry.PARAMETERS, requests.parameters)
         publisher.serve_json(telemetry.REFERENCE, requests.set_reference)
         publisher.serve_json(telemetry.WEIGHTS, requests.set_weights)
-        drive.start()
-        print(f"actuatord: {connection.address} on {connection.where} enabled; "
-              f"telemetry under {args.prefix}/", flush=True)
+        # the start-up heap collected and frozen before the drive is enabled: a collection
+        # holds the interpreter for tens of ms, long enough to starve a watchdog once the
+        # drive runs (see driver.clock.collector_off_the_cycle)
         with collector_off_the_cycle():
+            drive.start()
+            print(f"actuatord: {connection.address} on {connection.where} enabled; "
+                  f"telemetry under {args.prefix}/", flush=True)
             report = loop.run()
         if threads.first is not None and report.exit_code == 0:
             report.exit_code, report.reason = 1, threads.first
@@ -411,11 +414,13 @@ def _run_robot(args: argparse.Namespace, stop: threading.Event,
     try:  # from here on the drives are open: whatever happens, they are stopped and closed
         parameters = _robot_parameters(robot, problems)
         publisher.serve_json(telemetry.PARAMETERS, lambda _: parameters)
-        group.start()
-        print(f"actuatord: {len(group)} joints of {robot.name} on "
-              f"{', '.join(robot.buses())}{' (--sim)' if args.sim else ''} enabled; "
-              f"telemetry under {args.prefix}/", flush=True)
+        # collected and frozen before the line goes to OP: a full collection of this heap
+        # held the interpreter past the slaves' 100 ms watchdog, the line's keeper waiting
         with collector_off_the_cycle():
+            group.start()
+            print(f"actuatord: {len(group)} joints of {robot.name} on "
+                  f"{', '.join(robot.buses())}{' (--sim)' if args.sim else ''} enabled; "
+                  f"telemetry under {args.prefix}/", flush=True)
             report = loop.run()
         if report.exit_code != 0:
             failure = report.reason

@@ -15,6 +15,7 @@ import random
 import subprocess
 import sys
 import tempfile
+import threading
 import tomllib
 from pathlib import Path
 
@@ -66,14 +67,19 @@ def _one_start(pair: NamespacePair | None, path: Path, duration: float, report: 
     def inside(side: str, argv: list[str]) -> list[str]:
         return pair.command(side, argv) if pair is not None else argv
 
-    drives = subprocess.Popen(
-        inside("line", [sys.executable, "-m", "commands.sim_bus", "--robot", str(path)]),
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    errors = report.with_suffix(".sim-bus.err")
+    with errors.open("w") as stderr:
+        # stderr to a file and stdout drained after its first line: a pipe nobody reads
+        # fills up with the drives' warnings and then stops the process that answers frames
+        drives = subprocess.Popen(
+            inside("line", [sys.executable, "-m", "commands.sim_bus", "--robot", str(path)]),
+            stdout=subprocess.PIPE, stderr=stderr, text=True)
     try:
         ready = drives.stdout.readline()
         if "ready" not in ready:
             return {"started": False, "error": f"sim-bus did not start: {ready.strip()} "
-                                               f"{drives.stderr.read().strip()[-300:]}"}
+                                               f"{errors.read_text().strip()[-300:]}"}
+        threading.Thread(target=drives.stdout.read, daemon=True).start()
         master = subprocess.run(
             inside("master", [sys.executable, "-m", "commands.actuatord", "--robot", str(path),
                               "--duration", f"{duration:g}", "--no-multicast-scouting",
