@@ -204,6 +204,11 @@ def _run_joint(args: argparse.Namespace, stop: threading.Event, threads: ThreadF
     from driver.clock import collector_off_the_cycle
 
     period = args.period_us * 1e-6
+    # real-time priority from here on, once the solver is compiled (above), not before: a
+    # start-up's compiling at that priority starved the drives and the running master on a
+    # 2-core host. Zenoh's and the publisher's threads inherit it: at normal priority beside
+    # CPU-bound work the telemetry fell seconds behind the loop
+    apply_real_time(args, PROG)
     try:
         session = open_session(args)
     except ValueError as exc:
@@ -213,10 +218,6 @@ def _run_joint(args: argparse.Namespace, stop: threading.Event, threads: ThreadF
     publisher = TelemetryPublisher(session, args.prefix, ros2_domain=args.ros2)
     with CompileNotice(PROG):  # a first run compiles the solver here
         mpc = Mpc(model, settings, payload, reference)  # compiled code loaded before the drive
-    # real-time priority from here on (the drive's threads inherit it), not before: Zenoh's
-    # and the publisher's threads stay off the cycle, and a start-up's heavy work at that
-    # priority starved the drives and the other master on a 2-core host
-    apply_real_time(args, PROG)
     try:
         # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host
         connection = open_drive(args, model, sim_model, payload, schedule, period=period,
@@ -385,6 +386,7 @@ def _run_robot(args: argparse.Namespace, stop: threading.Event,
     from driver.clock import collector_off_the_cycle
 
     period = robot.period_us * 1e-6
+    apply_real_time(args, PROG)  # once compiled, for the reason given in the one-joint run
     try:
         session = open_session(args)
     except ValueError as exc:
@@ -393,7 +395,6 @@ def _run_robot(args: argparse.Namespace, stop: threading.Event,
                                    ros2_domain=args.ros2)
     with CompileNotice(PROG):
         batch = BatchMpc(problems)  # compiled before any drive is opened
-    apply_real_time(args, PROG)  # from here on, for the reason given in the one-joint run
     try:
         # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host
         connection: RobotConnection = open_robot(
