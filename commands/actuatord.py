@@ -192,7 +192,8 @@ def _run_joint(args: argparse.Namespace, stop: threading.Event, threads: ThreadF
         # built (and compiled) before the drive is opened: a reference the model's limits
         # refuse (a velocity_max below the default sinusoid's peak) is bad input, not a crash
         try:
-            mpc = Mpc(model, settings, payload, reference)
+            with CompileNotice(PROG):  # a first run compiles the solver here
+                mpc = Mpc(model, settings, payload, reference)
         except ReferenceError as exc:
             shown = args.reference or "(default: the paper's sinusoid)"
             raise ValueError(f"--reference {shown[:60]} with the limits of the model "
@@ -216,8 +217,6 @@ def _run_joint(args: argparse.Namespace, stop: threading.Event, threads: ThreadF
     from controller.telemetry import TelemetryPublisher
 
     publisher = TelemetryPublisher(session, args.prefix, ros2_domain=args.ros2)
-    with CompileNotice(PROG):  # a first run compiles the solver here
-        mpc = Mpc(model, settings, payload, reference)  # compiled code loaded before the drive
     try:
         # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host
         connection = open_drive(args, model, sim_model, payload, schedule, period=period,
@@ -376,7 +375,8 @@ def _run_robot(args: argparse.Namespace, stop: threading.Event,
         if args.report is not None:
             check_output_file("--report", args.report, [("--robot", args.robot)])
         problems = _robot_problems(args, robot)
-        batch = BatchMpc(problems)  # compiled before any drive is opened
+        with CompileNotice(PROG):
+            batch = BatchMpc(problems)  # compiled before any drive is opened
     except (RobotFileError, BusSpecError, ValueError) as exc:
         return usage_error(PROG, str(exc))
 
@@ -393,8 +393,6 @@ def _run_robot(args: argparse.Namespace, stop: threading.Event,
         return usage_error(PROG, str(exc))
     publisher = TelemetryPublisher(session, args.prefix, telemetry.ROBOT_TOPICS,
                                    ros2_domain=args.ros2)
-    with CompileNotice(PROG):
-        batch = BatchMpc(problems)  # compiled before any drive is opened
     try:
         # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host
         connection: RobotConnection = open_robot(
