@@ -420,6 +420,8 @@ def _run_robot(args: argparse.Namespace, stop: threading.Event,
             print(f"actuatord: {len(group)} joints of {robot.name} on "
                   f"{', '.join(robot.buses())}{' (--sim)' if args.sim else ''} enabled; "
                   f"telemetry under {args.prefix}/", flush=True)
+            for clock in group.clocks:
+                print(f"actuatord: {clock.describe()}", flush=True)
             report = loop.run()
         if report.exit_code != 0:
             failure = report.reason
@@ -449,6 +451,8 @@ def _run_robot(args: argparse.Namespace, stop: threading.Event,
     if failure is not None:
         (usage_error if report.exit_code == 2 else job_error)(PROG, failure)
     print(f"actuatord: {report.summary()}", flush=True)
+    for clock in group.clocks:
+        print(f"actuatord: {clock.summary()}", flush=True)
     _write_report(args, report)
     rms = loop.tracking_rms()
     print(f"actuatord: RMS tracking error after {TRACKING_SETTLE:g} s (mrad): " + ", ".join(

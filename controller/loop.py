@@ -149,6 +149,10 @@ class CycleLoop:
     def fault(self, t: float, source: str, cause: str, action: str) -> None:
         self.publish(messages.fault(t, source, cause, action))
 
+    def _clock_trim(self) -> float:
+        """s to move the next deadline by (a loop whose drives keep a clock of their own)."""
+        return 0.0
+
     def run(self) -> LoopReport:
         """Run until stopped, the duration is reached, the policy is done or a drive fails.
         The caller owns the drives' life cycle (start before, close after: close always
@@ -159,7 +163,7 @@ class CycleLoop:
         missed = 0
         behind: dict[str, float] = dict.fromkeys(MISSED_CAUSES, 0.0)  # the last cycle's phases
         while not self._stop.is_set():
-            report.count_missed(behind, clock.wait())
+            report.count_missed(behind, clock.wait(self._clock_trim()))
             if clock.missed_cycles - missed >= STALL_CYCLES and self._t is not None:
                 self.fault(self._t, "controller",
                            f"loop stalled: {clock.missed_cycles - missed} cycles missed",

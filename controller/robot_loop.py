@@ -46,6 +46,9 @@ class Joints(Protocol):
 
     def warnings(self) -> list[str]: ...
 
+    def clock_trim(self) -> float:
+        """s to move the next deadline by (0 unless a line keeps a clock of its own)."""
+
 
 class _JointPolicy:
     """One joint of the batch as its safety net sees it: the net asks for the reference and
@@ -104,6 +107,10 @@ class RobotLoop(CycleLoop):
         self._header = np.zeros((count, ws.HEADER))
         self._status: list[str] = []
         self._fallbacks: dict[int, str] = {}  # joint -> why the net overrode it this cycle
+
+    def _clock_trim(self) -> float:
+        """An EtherCAT line on distributed clocks leads the cycle's clock."""
+        return self._joints.clock_trim()
 
     def tracking_rms(self) -> list[float]:
         """rad, each joint's RMS of position minus reference over the run (after `settle`)."""

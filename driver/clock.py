@@ -111,14 +111,15 @@ class CycleClock:
         self._last_wake: float | None = None
         self.wake_lateness = 0.0
 
-    def wait(self) -> int:
+    def wait(self, trim: float = 0.0) -> int:
         """Return at the next deadline; a deadline already more than a period past is skipped
         and counted as missed. Returns the deadlines this call skipped (what came before it,
         the previous cycle or the host, overran); `wake_lateness` is how late this wake-up
-        came after its deadline (s, 0 in lock-step)."""
+        came after its deadline (s, 0 in lock-step). `trim` (s) moves this deadline: an
+        EtherCAT line on distributed clocks keeps the cycle on its reference clock."""
         late = 0
         if not self.lockstep:
-            self._deadline += self.period
+            self._deadline += self.period + trim
             now = time.perf_counter()
             if now > self._deadline + self.period:
                 late = int((now - self._deadline) / self.period)

@@ -17,6 +17,7 @@ import canopen
 import numpy as np
 
 from driver.cia402_drive import Cia402Drive
+from driver.ethercat_dc import DcLine
 from driver.interface import (
     SAMPLE_JOINT_TORQUE,
     SAMPLE_MOTOR_CURRENT,
@@ -86,6 +87,11 @@ class Segment:
         """What the segment's drives reported since the last call, each naming its joint."""
         return [f"joint {joint}: {warning}" for joint, drive in self.joints
                 for warning in drive.warnings()]
+
+    def clock(self) -> DcLine | None:
+        """The segment's distributed clocks, when it runs on them (an EtherCAT line in DC
+        mode): what the cycle's clock follows."""
+        return None
 
     def close(self) -> None:
         """Release what the segment owns beyond its drives (nothing here)."""
@@ -174,6 +180,9 @@ class EthercatLine(Segment):
         self._previous: np.ndarray | None = None
         self._outputs = np.zeros(len(drives), self._out_dtype)
         self._warnings: list[str] = []
+
+    def clock(self) -> DcLine | None:
+        return self.joints[0][1].transport.line.dc
 
     def warnings(self) -> list[str]:
         """The line's own (saturated sensors, found on the arrays), then any a drive kept
@@ -280,6 +289,7 @@ class DriveGroup:
         self._rows = [np.array([self.names.index(joint) for joint, _ in segment.joints],
                                dtype=np.intp) for segment in segments]
         self.period = self.drives[0].period
+        self.clocks: list[DcLine] = []
         self._closed = False
 
     def __len__(self) -> int:
@@ -297,6 +307,9 @@ class DriveGroup:
                     raise JointFailure(name, exc) from exc
         for segment in self.segments:
             segment.started()
+        # the distributed clocks of the lines that run on them (made as the lines went to OP)
+        self.clocks = [clock for segment in self.segments
+                       if (clock := segment.clock()) is not None]
 
     def sync(self) -> np.ndarray:
         """One cycle: trigger every segment, then every joint's sample, a row per joint in
@@ -315,6 +328,11 @@ class DriveGroup:
 
     def warnings(self) -> list[str]:
         return [warning for segment in self.segments for warning in segment.warnings()]
+
+    def clock_trim(self) -> float:
+        """s to add to the next period of the cycle's clock: the first DC line's reference
+        clock leads (two lines' clocks cannot both), 0 without one."""
+        return self.clocks[0].take_trim() if self.clocks else 0.0
 
     def quick_stop_all(self) -> list[tuple[str, str]]:
         """Quick-stop every drive (best effort each: a dead one does not spare the others),

@@ -21,6 +21,7 @@ from typing import Any
 
 import pysoem
 
+from driver.ethercat_dc import DcLine
 from driver.interface import DriveError, DriveLost, ProfileError
 from protocol import ethercat as ec
 from protocol.esi import EsiDevice
@@ -34,6 +35,10 @@ REALTIME_RESPONSE_TIMEOUT = 0.1  # s: the slaves' default process data watchdog
 DEFAULT_WATCHDOG = 0.1  # s: the ESC's reset value (ETG.1000.4: 1000 x 100 us)
 KEEP_ALIVE = 0.02  # s: a fifth of the ESC's default watchdog
 SCAN_RETRY = 0.1  # s between two scans of a line that did not answer right
+SYNC_MODES = ("free_run", "dc")
+DEFAULT_DC_PERIOD = 1e-3  # s: SYNC0 period when no transport said (start sets it)
+DC_OP_TIMEOUT = 1.0  # s for the slaves to take OP at a SYNC0 (the first comes 100 ms after set-up)
+DC_KEEP_ALIVE_PERIODS = 3  # DC: a keeper frame once the cycle has sent none for this many periods
 
 
 class EthercatMaster:
@@ -47,12 +52,22 @@ class EthercatMaster:
 
     `open_master` makes the pysoem master (by default SOEM on the interface; a line of
     virtual slaves in this process for `--sim`: `sim_bus.ethercat.linked.LinkedMaster`).
+
+    `sync`: "free_run" (SM-synchronous: each slave runs its cycle as the frame's outputs
+    arrive) or "dc" (distributed clocks: delays and offsets set up, SYNC0 every period, the
+    drift compensated by every frame and this master's wake-up following the reference clock;
+    `driver.ethercat_dc`). The period comes from the transports' `start`.
     """
 
     def __init__(self, interface: str, esi: EsiDevice, *, lockstep: bool = False,
                  response_timeout: float | None = None, watchdog: float | None = None,
-                 open_master: Callable[[], Any] = pysoem.Master):
+                 open_master: Callable[[], Any] = pysoem.Master, sync: str = "free_run"):
+        if sync not in SYNC_MODES:
+            raise ValueError(f"EtherCAT sync {sync!r}: expected one of {', '.join(SYNC_MODES)}")
         self.interface = interface
+        self.sync = sync
+        self.period: float | None = None  # s, set by the transports' start
+        self.dc: DcLine | None = None
         self._open_master = open_master
         self.esi = esi
         self.lockstep = lockstep
@@ -75,6 +90,7 @@ class EthercatMaster:
         # one user of SOEM at a time: the cycle, CoE accesses and the keeper
         self.lock = threading.RLock()
         self._keeper_stop: threading.Event | None = None
+        self._keep_alive = KEEP_ALIVE
 
     # --- bring-up ----------------------------------------------------------------------------
 
@@ -178,8 +194,15 @@ class EthercatMaster:
             stage()
         self._require_state(pysoem.SAFEOP_STATE, "SAFE_OP")
         self._expected_wkc = master.expected_wkc
+        if self.sync == "dc":
+            self.dc = DcLine(self.interface, self.period or DEFAULT_DC_PERIOD)
+            self.dc.configure(master, self.slaves)
+            log.info("%s", self.dc.describe())
         master.state = pysoem.OP_STATE
         master.write_state()
+        if self.dc is not None:
+            self._dc_to_operational()
+            return
         for _ in range(OP_FRAMES):
             master.send_processdata()
             master.receive_processdata(self.response_timeout_us)
@@ -189,6 +212,34 @@ class EthercatMaster:
                 self._start_keeper()
                 return
         self._require_state(pysoem.OP_STATE, "OP")
+
+    def _dc_to_operational(self) -> None:
+        """DC: a frame every period until every slave took OP at a SYNC0 with outputs in its
+        window (the first SYNC0 comes 100 ms after the set-up), the frames already placed in
+        the reference clock's cycle. In lock-step a frame is a period of drive time."""
+        master = self.master
+        period = self.dc.period_ns * 1e-9
+        deadline = time.monotonic() + DC_OP_TIMEOUT
+        wake = time.perf_counter()
+        for _ in range(int(DC_OP_TIMEOUT / period)):
+            master.send_processdata()
+            master.receive_processdata(self.response_timeout_us)
+            self.dc.observe(master.dc_time)
+            if master.state_check(pysoem.OP_STATE, 1000) == pysoem.OP_STATE:
+                self.operational = True
+                self._last_frame = time.monotonic()
+                self._start_keeper()
+                return
+            if not self.lockstep:
+                if time.monotonic() > deadline:
+                    break
+                wake += period + self.dc.take_trim()
+                time.sleep(max(0.0, wake - time.perf_counter()))
+        self._require_state(pysoem.OP_STATE, "OP")
+
+    def clock_trim(self) -> float:
+        """s to add to the next period of the cycle's clock (DC: follow the reference)."""
+        return self.dc.take_trim() if self.dc is not None else 0.0
 
     def request_state(self, state: int) -> None:
         """Ask every slave for `state` and wait for it (DriveError naming the refusals)."""
@@ -217,10 +268,13 @@ class EthercatMaster:
     # --- the cycle ---------------------------------------------------------------------------
 
     def cycle(self) -> None:
-        """Send the one frame of this cycle and check its working counter."""
+        """Send the one frame of this cycle and check its working counter (DC: and the
+        master's offset from the reference clock)."""
         with self.lock:
             self.frames += 1
             self._frame()
+            if self.dc is not None:
+                self.dc.observe(self.master.dc_time)
 
     def _start_keeper(self) -> None:
         """Real time: from OP on, a thread of the line's own sends a frame whenever the
@@ -231,12 +285,14 @@ class EthercatMaster:
         for the same reason. Lock-step has none: there a frame is a cycle of drive time."""
         if self.lockstep or self._keeper_stop is not None:
             return
+        self._keep_alive = KEEP_ALIVE if self.dc is None else (
+            DC_KEEP_ALIVE_PERIODS * self.dc.period_ns * 1e-9)
         stop = self._keeper_stop = threading.Event()
         threading.Thread(target=self._keep, args=(stop,), daemon=True,
                          name=f"ethercat-keeper-{self.interface}").start()
 
     def _keep(self, stop: threading.Event) -> None:
-        while not stop.wait(KEEP_ALIVE / 2):
+        while not stop.wait(self._keep_alive / 2):
             with self.lock:
                 if stop.is_set():
                     return
@@ -253,7 +309,7 @@ class EthercatMaster:
         watchdog. Lock-step needs none (the watchdog is off) and gets none (a frame is a
         cycle of the drive's time there)."""
         if (self.lockstep or not self.operational or self.failure is not None
-                or time.monotonic() - self._last_frame < KEEP_ALIVE):
+                or time.monotonic() - self._last_frame < self._keep_alive):
             return
         self._frame()
 
@@ -326,6 +382,7 @@ class EthercatMaster:
             self.master = None
             self.slaves = []
             self.operational = self.mapped = False
+            self.dc = None
 
 
 def _why_not_open(interface: str, exc: Exception) -> str:

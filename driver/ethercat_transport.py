@@ -194,6 +194,7 @@ class EthercatTransport(Transport):
         transport to start takes the line there; the first exchange at the latest)."""
         if has(self.dictionary, objects.CYCLE_PERIOD_US):
             self.write(objects.CYCLE_PERIOD_US, 0, int(round(period * 1e6)))
+        self.line.period = period  # DC: the SYNC0 cycle
         if self.line.all_ready():
             self.line.go_operational()
 
@@ -266,17 +267,17 @@ def open_ethercat_transports(interface: str, positions: Sequence[int], *,
                              eds: str | Path | Sequence[str | Path | None] | None = None,
                              response_timeout: float | None = None,
                              watchdog: float | None = None,
-                             open_master: Callable[[], Any] = pysoem.Master
-                             ) -> list[EthercatTransport]:
+                             open_master: Callable[[], Any] = pysoem.Master,
+                             sync: str = "free_run") -> list[EthercatTransport]:
     """One transport per slave position on the line at `interface`, sharing its master (one
     frame per cycle for all of them). `esi` defaults to the shipped elbow drive ESI; `eds` is
     every slave's EDS, or a list with one per position (drives of different joints differ).
-    `open_master`: see `driver.ethercat_master.EthercatMaster`."""
+    `open_master`, `sync`: see `driver.ethercat_master.EthercatMaster`."""
     if not isinstance(esi, EsiDevice):
         esi = load_esi(esi if esi is not None else shipped_esi_path())
     if eds is None or isinstance(eds, str | Path):
         eds = [eds] * len(positions)
     line = EthercatMaster(interface, esi, lockstep=lockstep, response_timeout=response_timeout,
-                          watchdog=watchdog, open_master=open_master)
+                          watchdog=watchdog, open_master=open_master, sync=sync)
     return [EthercatTransport(line, position, eds=path)
             for position, path in zip(positions, eds, strict=True)]

@@ -159,7 +159,7 @@ def run(sock: socket.socket, segment: Segment, stop: threading.Event) -> None:
         sock.settimeout(POLL if sync0 is None else min(POLL, max(0.0, sync0 - now)))
         try:
             length, ancillary, _, _ = sock.recvmsg_into([buffer], _TIMESPEC.size + 32)
-        except TimeoutError:
+        except (TimeoutError, BlockingIOError):  # a timeout of 0 makes a non-blocking call
             now = clock()
             segment.run_sync0(now)
             segment.check_watchdogs(now)
