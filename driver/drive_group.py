@@ -158,6 +158,7 @@ class EthercatLine(Segment):
         transports = [drive.transport for drive in drives]
         self._drives, self._transports = drives, transports
         self._line = transports[0].line
+        self._line.settle()
         self._slaves = [transport.slave for transport in transports]
         inputs = {transport._in_codec.dtype for transport in transports}
         outputs = {transport._out_codec.dtype for transport in transports}

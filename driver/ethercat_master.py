@@ -38,6 +38,7 @@ SCAN_RETRY = 0.1  # s between two scans of a line that did not answer right
 SYNC_MODES = ("free_run", "dc")
 DEFAULT_DC_PERIOD = 1e-3  # s: SYNC0 period when no transport said (start sets it)
 DC_OP_TIMEOUT = 1.0  # s for the slaves to take OP at a SYNC0 (the first comes 100 ms after set-up)
+DC_SETTLE_FRAMES = 2  # DC: frames before the first cycle (see `settle`)
 DC_KEEP_ALIVE_PERIODS = 3  # DC: a keeper frame once the cycle has sent none for this many periods
 
 
@@ -236,6 +237,19 @@ class EthercatMaster:
                 wake += period + self.dc.take_trim()
                 time.sleep(max(0.0, wake - time.perf_counter()))
         self._require_state(pysoem.OP_STATE, "OP")
+
+    def settle(self) -> None:
+        """Before the first cycle, once the drives are enabled. DC: the slaves take outputs
+        and sample inputs at SYNC0, so the enable sequence (acyclic) reaches them with the
+        next frame and shows in the inputs of the one after: those frames go first (not
+        counted as cycles), so the first cycle's sample shows the enabled drives."""
+        if self.dc is None:
+            return
+        with self.lock:
+            for _ in range(DC_SETTLE_FRAMES):
+                self._frame()
+                if not self.lockstep:
+                    time.sleep(self.dc.period_ns * 1e-9)
 
     def clock_trim(self) -> float:
         """s to add to the next period of the cycle's clock (DC: follow the reference)."""

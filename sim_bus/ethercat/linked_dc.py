@@ -102,7 +102,8 @@ class LinkedClock:
         return system_time
 
     def after_frame(self) -> None:
-        """Lock-step: a SYNC0 cycle of drive time passes, with every SYNC0 in it."""
+        """Lock-step: a SYNC0 cycle of drive time passes, with the SYNC0 that takes this
+        frame's outputs and samples the inputs the next frame reads."""
         if not self.lockstep or not self.configured:
             return
         cycle = next((esc.dc.cycle_time for esc in self.escs if esc.dc.sync0_active), 0)
