@@ -238,6 +238,12 @@ class EthercatTransport(Transport):
 
     def _on_emergency(self, emergency) -> None:
         self._emergency_polls = EMERGENCY_POLLS  # found it
+        if emergency.error_code == ec.EMCY_ESM_TRANSITION:
+            # the slave left OP on its own (sync error, watchdog): the line's next frame
+            # misses its working counter and names the slave with its AL status code, which
+            # says why; the emergency alone would only say that it left
+            log.warning("%s: left OP (EMCY 0x%04X)", self.name, emergency.error_code)
+            return
         self.on_emergency(emergency.error_code, emergency.error_reg)
 
     @property

@@ -75,7 +75,6 @@ class SlaveFirmware:
         self.cycles = 0
         self._dc = False  # the device cycle runs on SYNC0 (decided at the OP request)
         self._fresh = False  # outputs completed in the window before the next SYNC0
-        self._late = False  # outputs completed inside the margin: they count for the one after
         self._sync_errors = 0
         self._last_sync0: float | None = None
         self.missed_sync0 = 0  # SYNC0 events in OP without fresh outputs
@@ -152,6 +151,7 @@ class SlaveFirmware:
         # OP
         if current != ec.AlState.SAFE_OP:
             return ec.AL_INVALID_STATE_CHANGE
+        self.esc.set_sync_manager_active(self.outputs_sm, True)  # off after a sync error
         return self._choose_synchronization()
 
     def _choose_synchronization(self) -> int:
@@ -170,7 +170,7 @@ class SlaveFirmware:
             log.warning("SYNC0 activated with a start time already past")
             self._dc = False
             return ec.AL_INVALID_DC_SYNC_CONFIGURATION
-        self._fresh = self._late = False
+        self._fresh = False
         self._sync_errors = 0
         self._last_sync0 = None
         return 0
@@ -296,8 +296,9 @@ class SlaveFirmware:
             self._pack_inputs(memory, self._in_start, *self._input_values(device.values))
 
     def _outputs_for_sync0(self, esc: Esc) -> None:
-        """DC mode: the buffer waits for SYNC0; one inside OUTPUT_MARGIN of it is late (it
-        counts for the SYNC0 after). In OP, SYNC0 must keep coming."""
+        """DC mode: the buffer waits for SYNC0; one completed inside OUTPUT_MARGIN of it is
+        late and misses that SYNC0 (the one after takes the next frame's). In OP, SYNC0 must
+        keep coming."""
         clock = esc.dc
         now = esc.now
         if esc.al_status & ec.AL_STATE_MASK == ec.AlState.OP:
@@ -308,9 +309,7 @@ class SlaveFirmware:
                                 f"{(now - (last or now)) * 1e3:.1f} ms")
                 return
         upcoming = clock.next_sync0_host_time(now)
-        if upcoming is not None and upcoming - now < OUTPUT_MARGIN:
-            self._late = True
-        else:
+        if upcoming is None or upcoming - now >= OUTPUT_MARGIN:
             self._fresh = True
 
     def sync0(self, esc: Esc) -> None:
@@ -318,7 +317,7 @@ class SlaveFirmware:
         if not self._dc:
             return  # SYNC0 pulses a free-running slave does not use
         self._last_sync0 = esc.now
-        fresh, self._fresh, self._late = self._fresh, self._late, False
+        fresh, self._fresh = self._fresh, False
         memory = esc.memory
         state = memory[ec.REG_AL_STATUS] & ec.AL_STATE_MASK
         if self._op_requested and fresh:
@@ -348,10 +347,12 @@ class SlaveFirmware:
         self._write_inputs()
 
     def _sync_lost(self, esc: Esc, code: int, reason: str) -> None:
-        """OP -> SAFE-OP with the error indicator and `code`; the drive stops as it does for
-        a lost master."""
+        """OP -> SAFE-OP with the error indicator and `code`, the output sync manager off (the
+        master's writes are refused, so its working counter shows the slave gone); the drive
+        stops as it does for a lost master."""
         self._op_requested = False
         esc.set_al_status(ec.AlState.SAFE_OP | ec.AL_ERROR, code)
+        esc.set_sync_manager_active(self.outputs_sm, False)
         log.warning("slave 0x%04X: %s (%s)", esc.station_address, reason,
                     ec.al_status_name(code))
         self.device.master_lost(f"EtherCAT DC: {reason}", ec.EMCY_ESM_TRANSITION)
