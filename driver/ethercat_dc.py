@@ -11,7 +11,8 @@ Every cycle: the frame carries the reference clock's system time (SOEM adds an F
 to the process data frame, which also feeds every other slave's time control loop: the drift
 compensation), `dc_time` after the exchange. `observe` takes the master's offset from the
 reference clock's cycle, the phase at which its frame passed the reference clock, and a PI on
-it moves the master's next wake-up (`take_trim`), as SOEM's ec_sync does in its examples: the
+it moves the master's next wake-up (`take_trim`), as SOEM's ec_sync does in its examples (the
+first frame's offset is taken whole, so the master starts in phase): the
 master's cycle follows the reference clock instead of its own crystal, so the frames keep
 their place before SYNC0 however the two clocks drift.
 """
@@ -26,6 +27,7 @@ MASTER_PHASE = 0.0  # the master's frame at this share of the reference clock's 
 # the PI of SOEM's ec_sync example: a hundredth of the offset, plus an integral of its sign
 PROPORTIONAL = 0.01
 INTEGRAL_STEP = 0.05  # ns of trim per cycle the offset kept its sign
+KEEPER_PHASE = 0.2  # share of the cycle at which the keeper looks for a frame in the window
 SETTLE_CYCLES = 2000  # offsets count for the figures after this many cycles (2 s at 1 kHz)
 REG_SYSTEM_TIME_DELAY = 0x0928
 _U32 = struct.Struct("<I")
@@ -44,6 +46,7 @@ class DcLine:
         self.last_offset_ns = 0
         self._integral = 0
         self._trim = 0.0
+        self._anchor: tuple[float, int] | None = None  # (host time, reference time) of a frame
 
     def configure(self, master, slaves) -> None:
         """Delays and offsets measured and written, SYNC0 activated on every slave."""
@@ -66,19 +69,34 @@ class DcLine:
                 f"shifted {self.shift_ns / 1e3:g} us, reference clock slave 0, propagation "
                 f"delays (ns) " + " ".join(str(d) for d in self.delays_ns))
 
-    def observe(self, dc_time: int) -> None:
-        """The reference clock's time as the cycle's frame read it: the master's offset
-        from its place in the cycle, and the trim of the next wake-up."""
+    def observe(self, dc_time: int, sent_at: float) -> None:
+        """The reference clock's time as the cycle's frame read it (`sent_at`: the host's
+        monotonic time it went out): the master's offset from its place in the cycle, and the
+        trim of the next wake-up."""
+        self._anchor = (sent_at, dc_time)
         period = self.period_ns
         offset = (dc_time - int(MASTER_PHASE * period)) % period
         if offset > period // 2:
             offset -= period
         self.last_offset_ns = offset
+        self.cycles += 1
+        if self.cycles == 1:  # the first frame: straight to the phase, then follow it
+            self._trim = -offset * 1e-9
+            return
         self._integral += (offset > 0) - (offset < 0)
         self._trim = -(offset * PROPORTIONAL + self._integral * INTEGRAL_STEP) * 1e-9
-        self.cycles += 1
         if self.cycles > SETTLE_CYCLES:
             self.offsets_ns.add(abs(offset))
+
+    def window(self, now: float) -> tuple[float, float]:
+        """Host times (monotonic) of the last SYNC0 before `now` (the start of the window the
+        next SYNC0 takes its outputs from) and of the next KEEPER_PHASE instant after `now`."""
+        sent_at, dc_time = self._anchor
+        period = self.period_ns
+        reference = dc_time + int((now - sent_at) * 1e9)  # drift: ppm over a few periods
+        since_sync0 = (reference - self.shift_ns) % period
+        to_keeper = (int(KEEPER_PHASE * period) - reference) % period or period
+        return now - since_sync0 * 1e-9, now + to_keeper * 1e-9
 
     def take_trim(self) -> float:
         """s to add to the next period of the master's clock (then 0 until the next frame)."""

@@ -39,7 +39,6 @@ SYNC_MODES = ("free_run", "dc")
 DEFAULT_DC_PERIOD = 1e-3  # s: SYNC0 period when no transport said (start sets it)
 DC_OP_TIMEOUT = 1.0  # s for the slaves to take OP at a SYNC0 (the first comes 100 ms after set-up)
 DC_SETTLE_FRAMES = 2  # DC: frames before the first cycle (see `settle`)
-DC_KEEP_ALIVE_PERIODS = 3  # DC: a keeper frame once the cycle has sent none for this many periods
 
 
 class EthercatMaster:
@@ -90,8 +89,11 @@ class EthercatMaster:
         self._claimed: dict[int, tuple[Callable[[], bool], Callable[[], None]]] = {}
         # one user of SOEM at a time: the cycle, CoE accesses and the keeper
         self.lock = threading.RLock()
+        # the process data frame's own (inside `lock`): on distributed clocks the keeper sends
+        # with this one only, beside a mailbox exchange that holds `lock` for its round trip
+        self._frame_lock = threading.RLock()
         self._keeper_stop: threading.Event | None = None
-        self._keep_alive = KEEP_ALIVE
+        self._sent_at = 0.0  # time.monotonic() the last process data frame went out
 
     # --- bring-up ----------------------------------------------------------------------------
 
@@ -198,6 +200,7 @@ class EthercatMaster:
         if self.sync == "dc":
             self.dc = DcLine(self.interface, self.period or DEFAULT_DC_PERIOD)
             self.dc.configure(master, self.slaves)
+            master.always_release_gil = True  # the keeper sends beside CoE (see `_keep`)
             log.info("%s", self.dc.describe())
         master.state = pysoem.OP_STATE
         master.write_state()
@@ -223,10 +226,13 @@ class EthercatMaster:
         deadline = time.monotonic() + DC_OP_TIMEOUT
         wake = time.perf_counter()
         for _ in range(int(DC_OP_TIMEOUT / period)):
+            self._sent_at = time.monotonic()
             master.send_processdata()
             master.receive_processdata(self.response_timeout_us)
-            self.dc.observe(master.dc_time)
-            if master.state_check(pysoem.OP_STATE, 1000) == pysoem.OP_STATE:
+            self.dc.observe(master.dc_time, self._sent_at)
+            # one read (state_check would sleep a millisecond when not there yet: a frame a
+            # period is what SYNC0 needs)
+            if master.read_state() == pysoem.OP_STATE:
                 self.operational = True
                 self._last_frame = time.monotonic()
                 self._start_keeper()
@@ -288,7 +294,7 @@ class EthercatMaster:
             self.frames += 1
             self._frame()
             if self.dc is not None:
-                self.dc.observe(self.master.dc_time)
+                self.dc.observe(self.master.dc_time, self._sent_at)
 
     def _start_keeper(self) -> None:
         """Real time: from OP on, a thread of the line's own sends a frame whenever the
@@ -299,14 +305,13 @@ class EthercatMaster:
         for the same reason. Lock-step has none: there a frame is a cycle of drive time."""
         if self.lockstep or self._keeper_stop is not None:
             return
-        self._keep_alive = KEEP_ALIVE if self.dc is None else (
-            DC_KEEP_ALIVE_PERIODS * self.dc.period_ns * 1e-9)
         stop = self._keeper_stop = threading.Event()
-        threading.Thread(target=self._keep, args=(stop,), daemon=True,
+        threading.Thread(target=self._keep if self.dc is None else self._keep_windows,
+                         args=(stop,), daemon=True,
                          name=f"ethercat-keeper-{self.interface}").start()
 
     def _keep(self, stop: threading.Event) -> None:
-        while not stop.wait(self._keep_alive / 2):
+        while not stop.wait(KEEP_ALIVE / 2):
             with self.lock:
                 if stop.is_set():
                     return
@@ -317,13 +322,37 @@ class EthercatMaster:
                 except pysoem.NetworkInterfaceNotOpenError:
                     return  # the interface went away under it: the next cycle says so
 
+    def _keep_windows(self, stop: threading.Event) -> None:
+        """DC: SYNC0 wants outputs in every window, also while the cycle is busy or a CoE
+        access (the enable sequence) waits for its answer. Once a period, at KEEPER_PHASE of
+        the reference clock's cycle (the cycle's own frame goes at its start), a frame goes
+        when none went since the last SYNC0. It takes the frame's lock only: pysoem releases
+        the GIL in both, and SOEM sends process data beside a mailbox exchange (as the cyclic
+        thread of its examples does)."""
+        while True:
+            _, wake = self.dc.window(time.monotonic())
+            if stop.wait(max(0.0, wake - time.monotonic())):
+                return
+            with self._frame_lock:
+                if stop.is_set() or not self.operational or self.failure is not None:
+                    return
+                window_start, _ = self.dc.window(time.monotonic())
+                if self._sent_at >= window_start:
+                    continue
+                try:
+                    self._frame()
+                except DriveError:
+                    return  # kept in self.failure: the next cycle raises it, naming the slave
+                except pysoem.NetworkInterfaceNotOpenError:
+                    return
+
     def keep_alive(self) -> None:
         """Real time, while OP: a frame when none went out for KEEP_ALIVE s, so an acyclic
         sequence between cycles (enabling the drive by CoE) does not starve the slaves'
         watchdog. Lock-step needs none (the watchdog is off) and gets none (a frame is a
         cycle of the drive's time there)."""
         if (self.lockstep or not self.operational or self.failure is not None
-                or time.monotonic() - self._last_frame < self._keep_alive):
+                or time.monotonic() - self._last_frame < KEEP_ALIVE):
             return
         self._frame()
 
@@ -331,9 +360,11 @@ class EthercatMaster:
         if self.failure is not None:
             raise self.failure
         master = self.master
-        master.send_processdata()
-        wkc = master.receive_processdata(self.response_timeout_us)
-        self._last_frame = time.monotonic()
+        with self._frame_lock:
+            self._sent_at = time.monotonic()
+            master.send_processdata()
+            wkc = master.receive_processdata(self.response_timeout_us)
+            self._last_frame = time.monotonic()
         if wkc != self._expected_wkc:
             self.failure = DriveLost(self._diagnose(wkc))
             log.error("%s", self.failure)
@@ -382,7 +413,7 @@ class EthercatMaster:
             self._keeper_stop = None
         if self.master is None:
             return
-        with self.lock:
+        with self.lock, self._frame_lock:
             self._close_master()
 
     def _close_master(self) -> None:

@@ -104,11 +104,8 @@ class EthercatTransport(Transport):
 
     def write(self, index: int, subindex: int, value: int) -> None:
         var = self._variable(index, subindex)
-        try:
-            self._mailbox(self.slave.sdo_write, index, subindex, var.encode_raw(value))
-        except pysoem.SdoError as exc:
-            raise DriveError(f"{self.name}: CoE write 0x{index:04X}:{subindex:02X} = {value} "
-                             f"aborted: 0x{exc.abort_code:08X} {exc.desc}") from None
+        # an object the outputs carry is staged first: a frame that goes while the CoE write
+        # waits for its answer (the line's keeper) must not take the old value back to it
         for k, obj in enumerate(self._outputs):
             if (obj.index, obj.subindex) == (index, subindex):
                 if self.line.mapped and self._mapped:
@@ -118,6 +115,11 @@ class EthercatTransport(Transport):
                         self._staged[:] = self._out_codec.struct.unpack(self.slave.output)
                 self._staged[k] = value  # the next frame carries it too
                 self._stage()
+        try:
+            self._mailbox(self.slave.sdo_write, index, subindex, var.encode_raw(value))
+        except pysoem.SdoError as exc:
+            raise DriveError(f"{self.name}: CoE write 0x{index:04X}:{subindex:02X} = {value} "
+                             f"aborted: 0x{exc.abort_code:08X} {exc.desc}") from None
 
     def _mailbox(self, access, index: int, subindex: int, *data: bytes):
         """One CoE SDO access, tried again when the mailbox exchange itself got no answer (a

@@ -253,9 +253,10 @@ def test_pysoem_config_dc_against_the_virtual_slaves_over_a_veth(link):
             master.write_state()
             wake = time.perf_counter()
             for _ in range(400):  # the first SYNC0 comes 100 ms after dc_sync
+                sent_at = time.monotonic()
                 master.send_processdata()
                 assert master.receive_processdata(10_000) == 9
-                clock.observe(master.dc_time)
+                clock.observe(master.dc_time, sent_at)
                 wake += 1e-3 + clock.take_trim()
                 time.sleep(max(0.0, wake - time.perf_counter()))
             assert master.state_check(pysoem.OP_STATE, 100_000) == pysoem.OP_STATE

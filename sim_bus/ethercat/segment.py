@@ -93,7 +93,8 @@ class Segment:
 
     def report(self) -> list[dict]:
         """Each slave's end state, in line order: EtherCAT state and AL status code, the
-        drive's CiA 402 state, brake, master loss, device cycles run and joint position."""
+        drive's CiA 402 state, brake, master loss, device cycles run, SYNC0 windows its
+        outputs missed (DC) and joint position."""
         with self.lock:
             return [{
                 "al_status": esc.al_status,
@@ -103,6 +104,7 @@ class Segment:
                 "brake_engaged": firmware.device.brake_engaged,
                 "master_loss": firmware.device.master_loss,
                 "cycles": firmware.cycles,
+                "missed_sync0": firmware.missed_sync0,
                 "position": firmware.device.plant.position,
             } for esc, firmware in zip(self.escs, self.firmwares, strict=True)]
 
