@@ -38,6 +38,7 @@ SCAN_RETRY = 0.1  # s between two scans of a line that did not answer right
 SYNC_MODES = ("free_run", "dc")
 DEFAULT_DC_PERIOD = 1e-3  # s: SYNC0 period when no transport said (start sets it)
 DC_OP_TIMEOUT = 1.0  # s for the slaves to take OP at a SYNC0 (the first comes 100 ms after set-up)
+DC_OP_CHECK_FRAMES = 8  # DC: frames between two reads of the slaves' states on the way to OP
 DC_SETTLE_FRAMES = 2  # DC: frames before the first cycle (see `settle`)
 
 
@@ -224,15 +225,17 @@ class EthercatMaster:
         master = self.master
         period = self.dc.period_ns * 1e-9
         deadline = time.monotonic() + DC_OP_TIMEOUT
-        wake = time.perf_counter()
+        wake, frames = time.perf_counter(), 0
         for _ in range(int(DC_OP_TIMEOUT / period)):
             self._sent_at = time.monotonic()
             master.send_processdata()
             master.receive_processdata(self.response_timeout_us)
             self.dc.observe(master.dc_time, self._sent_at)
-            # one read (state_check would sleep a millisecond when not there yet: a frame a
-            # period is what SYNC0 needs)
-            if master.read_state() == pysoem.OP_STATE:
+            # one read every few frames (state_check would sleep a millisecond when not there
+            # yet, and a long line's states take a few round trips: a frame a period is what
+            # SYNC0 needs)
+            frames += 1
+            if frames % DC_OP_CHECK_FRAMES == 0 and master.read_state() == pysoem.OP_STATE:
                 self.operational = True
                 self._last_frame = time.monotonic()
                 self._start_keeper()

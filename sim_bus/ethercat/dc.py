@@ -108,6 +108,7 @@ class DistributedClock:
         self._slew = 0.0
         self._integral = 0.0
         self.next_sync0: int | None = None  # system time of the next SYNC0 (ns)
+        self._next_host: float | None = None  # its host time, once worked out (a cache)
         self.sync0_count = 0
         _U16.pack_into(self.memory, REG_SPEED_COUNTER_START, SPEED_COUNTER_START_DEFAULT)
 
@@ -144,6 +145,7 @@ class DistributedClock:
     def written(self, address: int, end: int, data: bytes, t: float) -> None:
         """The master wrote `data` at `address` (already in memory where writable)."""
         memory = self.memory
+        self._next_host = None  # the clock's rate or offset may change
         if address <= REG_RECEIVE_TIME_PORT0 < end:
             self._latch(t)
         if address <= REG_SYSTEM_TIME < end:
@@ -213,7 +215,9 @@ class DistributedClock:
         """When (host time) the next SYNC0 fires, seen from `t`; None: none coming."""
         if self.next_sync0 is None:
             return None
-        return self.host_time_of(self.next_sync0, t)
+        if self._next_host is None:
+            self._next_host = self.host_time_of(self.next_sync0, t)
+        return self._next_host
 
     def take_sync0(self, t: float) -> bool:
         """True (once) when a SYNC0 is due at `t`; the next one is then a cycle later."""
@@ -221,6 +225,7 @@ class DistributedClock:
         if self.next_sync0 is None or _signed64(self.system_time(t) - self.next_sync0) < -4:
             return False
         self.next_sync0 = (self.next_sync0 + self.cycle_time) & _MASK64
+        self._next_host = None
         self.sync0_count += 1
         self.memory[REG_SYNC0_STATUS] = 0x01
         return True
