@@ -28,7 +28,7 @@ MASTER_PHASE = 0.0  # the master's frame at this share of the reference clock's 
 PROPORTIONAL = 0.01
 INTEGRAL_STEP = 0.05  # ns of trim per cycle the offset kept its sign
 KEEPER_PHASE = 0.2  # share of the cycle at which the keeper looks for a frame in the window
-SETTLE_CYCLES = 2000  # offsets count for the figures after this many cycles (2 s at 1 kHz)
+SETTLE_TIME = 2.0  # s: offsets count for the figures from then on
 REG_SYSTEM_TIME_DELAY = 0x0928
 _U32 = struct.Struct("<I")
 
@@ -85,7 +85,7 @@ class DcLine:
             return
         self._integral += (offset > 0) - (offset < 0)
         self._trim = -(offset * PROPORTIONAL + self._integral * INTEGRAL_STEP) * 1e-9
-        if self.cycles > SETTLE_CYCLES:
+        if self.cycles * period > SETTLE_TIME * 1e9:
             self.offsets_ns.add(abs(offset))
 
     def window(self, now: float) -> tuple[float, float]:

@@ -90,9 +90,6 @@ class EthercatMaster:
         self._claimed: dict[int, tuple[Callable[[], bool], Callable[[], None]]] = {}
         # one user of SOEM at a time: the cycle, CoE accesses and the keeper
         self.lock = threading.RLock()
-        # the process data frame's own (inside `lock`): on distributed clocks the keeper sends
-        # with this one only, beside a mailbox exchange that holds `lock` for its round trip
-        self._frame_lock = threading.RLock()
         self._keeper_stop: threading.Event | None = None
         self._sent_at = 0.0  # time.monotonic() the last process data frame went out
 
@@ -201,7 +198,6 @@ class EthercatMaster:
         if self.sync == "dc":
             self.dc = DcLine(self.interface, self.period or DEFAULT_DC_PERIOD)
             self.dc.configure(master, self.slaves)
-            master.always_release_gil = True  # the keeper sends beside CoE (see `_keep`)
             log.info("%s", self.dc.describe())
         master.state = pysoem.OP_STATE
         master.write_state()
@@ -326,36 +322,37 @@ class EthercatMaster:
                     return  # the interface went away under it: the next cycle says so
 
     def _keep_windows(self, stop: threading.Event) -> None:
-        """DC: SYNC0 wants outputs in every window, also while the cycle is busy or a CoE
-        access (the enable sequence) waits for its answer. Once a period, at KEEPER_PHASE of
-        the reference clock's cycle (the cycle's own frame goes at its start), a frame goes
-        when none went since the last SYNC0. It takes the frame's lock only: pysoem releases
-        the GIL in both, and SOEM sends process data beside a mailbox exchange (as the cyclic
-        thread of its examples does)."""
+        """DC: SYNC0 wants outputs in every window, also while the cycle is busy elsewhere
+        (the cold solve, an enable sequence). Once a period, at KEEPER_PHASE of the reference
+        clock's cycle (the cycle's own frame goes at its start), a frame goes when none went
+        since the last SYNC0 (`keep_alive`); a CoE access sends one the same way before it
+        goes, as it holds the line for its round trip."""
         while True:
             _, wake = self.dc.window(time.monotonic())
             if stop.wait(max(0.0, wake - time.monotonic())):
                 return
-            with self._frame_lock:
-                if stop.is_set() or not self.operational or self.failure is not None:
+            with self.lock:
+                if stop.is_set():
                     return
-                window_start, _ = self.dc.window(time.monotonic())
-                if self._sent_at >= window_start:
-                    continue
                 try:
-                    self._frame()
+                    self.keep_alive()
                 except DriveError:
                     return  # kept in self.failure: the next cycle raises it, naming the slave
                 except pysoem.NetworkInterfaceNotOpenError:
                     return
 
     def keep_alive(self) -> None:
-        """Real time, while OP: a frame when none went out for KEEP_ALIVE s, so an acyclic
-        sequence between cycles (enabling the drive by CoE) does not starve the slaves'
-        watchdog. Lock-step needs none (the watchdog is off) and gets none (a frame is a
-        cycle of the drive's time there)."""
-        if (self.lockstep or not self.operational or self.failure is not None
-                or time.monotonic() - self._last_frame < KEEP_ALIVE):
+        """Real time, while OP: a frame when none went out for KEEP_ALIVE s (DC: since the
+        last SYNC0), so an acyclic sequence between cycles (enabling the drive by CoE) does
+        not starve the slaves' watchdog (DC: their SYNC0 windows). Lock-step needs none (the
+        watchdog is off) and gets none (a frame is a cycle of the drive's time there)."""
+        if self.lockstep or not self.operational or self.failure is not None:
+            return
+        now = time.monotonic()
+        if self.dc is not None:
+            if self._sent_at >= self.dc.window(now)[0]:
+                return
+        elif now - self._last_frame < KEEP_ALIVE:
             return
         self._frame()
 
@@ -363,11 +360,10 @@ class EthercatMaster:
         if self.failure is not None:
             raise self.failure
         master = self.master
-        with self._frame_lock:
-            self._sent_at = time.monotonic()
-            master.send_processdata()
-            wkc = master.receive_processdata(self.response_timeout_us)
-            self._last_frame = time.monotonic()
+        self._sent_at = time.monotonic()
+        master.send_processdata()
+        wkc = master.receive_processdata(self.response_timeout_us)
+        self._last_frame = time.monotonic()
         if wkc != self._expected_wkc:
             self.failure = DriveLost(self._diagnose(wkc))
             log.error("%s", self.failure)
@@ -416,7 +412,7 @@ class EthercatMaster:
             self._keeper_stop = None
         if self.master is None:
             return
-        with self.lock, self._frame_lock:
+        with self.lock:
             self._close_master()
 
     def _close_master(self) -> None:
