@@ -85,7 +85,8 @@ def _one_start(pair: NamespacePair | None, path: Path, duration: float, report: 
         master = subprocess.run(
             inside("master", [sys.executable, "-m", "commands.actuatord", "--robot", str(path),
                               "--duration", f"{duration:g}", "--no-multicast-scouting",
-                              "--period-us", str(period_us),
+                              # the MPC steps as the robot cycles (the default dt is 1 ms)
+                              "--period-us", str(period_us), "--dt", f"{period_us * 1e-6:g}",
                               "--report", str(report)]),
             capture_output=True, text=True, timeout=duration * 20 + START_TIMEOUT)
     finally:
