@@ -38,10 +38,13 @@ def _cycle(transports: list[EthercatTransport], outputs: tuple[int, ...]) -> Non
 
 
 def measure_line(interface: str, slaves: int, cycles: int = 5000,
-                 period: float = 1e-3) -> dict:
+                 period: float = 1e-3, sync: str = "free_run") -> dict:
     """{'slaves', 'lockstep_cycles_per_s', 'round_trip_median_us', 'round_trip_p99_us',
-    'missed_cycles'} for the first `slaves` slaves on `interface` (the line must be there)."""
-    transports = open_ethercat_transports(interface, range(slaves), lockstep=True)
+    'missed_cycles'} for the first `slaves` slaves on `interface` (the line must be there).
+    `sync` "dc": the line on distributed clocks, the real-time cycles following the reference
+    clock, with the propagation delays measured and the master-to-reference-clock offset
+    ('dc_delays_ns', 'dc_offset' median/p99/max in us after settling)."""
+    transports = open_ethercat_transports(interface, range(slaves), lockstep=True, sync=sync)
     try:
         _bring_up(transports, period)
         outputs = (0, 0)  # controlword 0: the drives stay disabled, the frames are real
@@ -55,12 +58,19 @@ def measure_line(interface: str, slaves: int, cycles: int = 5000,
         clock = CycleClock(period, lockstep=False)
         round_trips = np.empty(cycles)
         for k in range(cycles):
-            clock.wait()
+            clock.wait(line.clock_trim())
             t0 = time.perf_counter()
             _cycle(transports, outputs)
             round_trips[k] = time.perf_counter() - t0
             clock.check_overrun()
+        dc = {} if line.dc is None else {
+            "dc_delays_ns": line.dc.delays_ns,
+            "dc_offset": {"median_us": round(line.dc.offsets_ns.percentile(50) / 1e3, 1),
+                          "p99_us": round(line.dc.offsets_ns.percentile(99) / 1e3, 1),
+                          "max_us": round(line.dc.offsets_ns.max / 1e3, 1),
+                          "cycles": line.dc.offsets_ns.count}}
         return {
+            **dc,
             "slaves": slaves,
             "frames": line.frames,
             "lockstep_cycles_per_s": round(rate),
