@@ -3,11 +3,12 @@ sent as soon as the last came back) and the frame round trip at a real-time peri
 receive of the one frame per cycle, median and p99). Measured against whatever line is on the
 interface (`sim_bus.ethercat.netns` makes a virtual one); `bus-bench` prints the figures."""
 
+import os
 import time
 
 import numpy as np
 
-from driver.clock import CycleClock
+from driver.clock import CycleClock, prefer_real_time
 from driver.ethercat_transport import EthercatTransport, open_ethercat_transports
 from protocol import objects
 from protocol.dictionary import mapped_object, variable
@@ -43,17 +44,25 @@ def measure_line(interface: str, slaves: int, cycles: int = 5000,
     'missed_cycles'} for the first `slaves` slaves on `interface` (the line must be there).
     `sync` "dc": the line on distributed clocks, the real-time cycles following the reference
     clock, with the propagation delays measured and the master-to-reference-clock offset
-    ('dc_delays_ns', 'dc_offset' median/p99/max in us after settling)."""
-    transports = open_ethercat_transports(interface, range(slaves), lockstep=True, sync=sync)
+    ('dc_delays_ns', 'dc_offset' median/p99/max in us after settling); no lock-step figure
+    then: slaves on SYNC0 want a frame every period of wall time, which lock-step does not
+    promise; and the measurement runs at real-time priority, as the control loop does
+    (`driver.clock.prefer_real_time`; given back after)."""
+    dc = sync == "dc"
+    refused = prefer_real_time() if dc else "free run"
+    transports = open_ethercat_transports(interface, range(slaves), lockstep=not dc,
+                                          sync=sync)
     try:
         _bring_up(transports, period)
         outputs = (0, 0)  # controlword 0: the drives stay disabled, the frames are real
         for _ in range(100):
             _cycle(transports, outputs)
-        start = time.perf_counter()
-        for _ in range(cycles):
-            _cycle(transports, outputs)
-        rate = cycles / (time.perf_counter() - start)
+        rate = None
+        if not dc:
+            start = time.perf_counter()
+            for _ in range(cycles):
+                _cycle(transports, outputs)
+            rate = round(cycles / (time.perf_counter() - start))
         line = transports[0].line
         clock = CycleClock(period, lockstep=False)
         round_trips = np.empty(cycles)
@@ -63,23 +72,25 @@ def measure_line(interface: str, slaves: int, cycles: int = 5000,
             _cycle(transports, outputs)
             round_trips[k] = time.perf_counter() - t0
             clock.check_overrun()
-        dc = {} if line.dc is None else {
+        figures = {} if line.dc is None else {
             "dc_delays_ns": line.dc.delays_ns,
             "dc_offset": {"median_us": round(line.dc.offsets_ns.percentile(50) / 1e3, 1),
                           "p99_us": round(line.dc.offsets_ns.percentile(99) / 1e3, 1),
                           "max_us": round(line.dc.offsets_ns.max / 1e3, 1),
                           "cycles": line.dc.offsets_ns.count}}
         return {
-            **dc,
+            **figures,
             "slaves": slaves,
             "frames": line.frames,
-            "lockstep_cycles_per_s": round(rate),
+            "lockstep_cycles_per_s": rate,
             "round_trip_median_us": round(float(np.median(round_trips)) * 1e6, 1),
             "round_trip_p99_us": round(float(np.percentile(round_trips, 99)) * 1e6, 1),
             "period_us": round(period * 1e6),
             "missed_cycles": clock.missed_cycles,
         }
     finally:
+        if refused is None:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         for transport in transports:
             transport.stop()
             transport.close()
