@@ -58,6 +58,8 @@ class DcLine:
         if not found:
             raise DriveError(f"EtherCAT {self.name}: no slave has distributed clocks, the "
                              "line cannot run in DC mode (use sync = \"free_run\")")
+        # what config_dc wrote, read back (pysoem's register read; it keeps SOEM's pdelay
+        # to itself)
         self.delays_ns = [_U32.unpack(slave._fprd(REG_SYSTEM_TIME_DELAY, 4))[0]
                           for slave in slaves]
         for slave in slaves:

@@ -12,6 +12,7 @@ import struct
 import time
 from collections.abc import Sequence
 
+from protocol import ethercat as ec
 from sim_bus.ethercat import dc
 from sim_bus.ethercat.esc import Esc
 
@@ -51,7 +52,7 @@ class LinkedClock:
         else:
             master_time = time.time_ns() - EPOCH_2000_NS
         slaves = [esc for esc in self.escs if esc.present
-                  and _u16(esc, 0x0008) & dc.FEATURE_DC]
+                  and _u16(esc, ec.REG_FEATURES) & dc.FEATURE_DC]
         for esc in slaves:
             esc._write(dc.REG_RECEIVE_TIME_PORT0, memoryview(bytes(4)))
         parent_span = delay = 0
