@@ -256,6 +256,14 @@ class EthercatMaster:
                 if not self.lockstep:
                     time.sleep(self.dc.period_ns * 1e-9)
 
+    def pass_image(self) -> None:
+        """DC: a frame now, then a period for the slaves' SYNC0 to take its outputs and sample
+        the inputs the next one reads (`driver.ethercat_transport` steers through the
+        process data this way)."""
+        with self.lock:
+            self._frame()
+        time.sleep(self.dc.period_ns * 1e-9)
+
     def clock_trim(self) -> float:
         """s to add to the next period of the cycle's clock (DC: follow the reference)."""
         return self.dc.take_trim() if self.dc is not None else 0.0

@@ -93,8 +93,23 @@ class EthercatTransport(Transport):
                     self.name, state.value)
         self.write(objects.CONTROLWORD, 0, cia402.Command.DISABLE_VOLTAGE.value)
 
+    def _through_image(self) -> bool:
+        """Real time on distributed clocks, from OP on: objects the process data carries are
+        read and written through it, not by CoE. A CoE access holds the line for its round
+        trip, and the enable sequence's dozens of them (32 drives) left SYNC0 windows without
+        outputs until the slaves dropped out with 0x001A; a cyclic master steers CiA 402
+        through the PDOs anyway."""
+        line = self.line
+        return line.dc is not None and line.operational and not line.lockstep and self._mapped
+
     def read(self, index: int, subindex: int = 0) -> int:
         var = self._variable(index, subindex)
+        if self._through_image():
+            for k, obj in enumerate(self._inputs):
+                if (obj.index, obj.subindex) == (index, subindex):
+                    self.line.pass_image()  # inputs sampled at a SYNC0 after the last write
+                    with self.line.lock:
+                        return self._in_codec.struct.unpack(self.slave.input)[k]
         try:
             data = self._mailbox(self.slave.sdo_read, index, subindex)
         except pysoem.SdoError as exc:
@@ -115,6 +130,10 @@ class EthercatTransport(Transport):
                         self._staged[:] = self._out_codec.struct.unpack(self.slave.output)
                 self._staged[k] = value  # the next frame carries it too
                 self._stage()
+        if self._through_image() and any((o.index, o.subindex) == (index, subindex)
+                                         for o in self._outputs):
+            self.line.pass_image()  # staged above: a frame takes it, SYNC0 applies it
+            return
         try:
             self._mailbox(self.slave.sdo_write, index, subindex, var.encode_raw(value))
         except pysoem.SdoError as exc:
