@@ -228,13 +228,15 @@ class EthercatLine(Segment):
             table[:, SAMPLE_JOINT_TORQUE] = np.nan
         previous, self._previous = self._previous, table[:, SAMPLE_POSITION]
         if previous is not None:
-            jumped = np.abs(table[:, SAMPLE_POSITION] - previous) > self._max_step
+            # on distributed clocks the drives move on at SYNC0 while the master is late
+            cycles = 1 if self._line.dc is None else self._line.dc.elapsed_periods
+            jumped = np.abs(table[:, SAMPLE_POSITION] - previous) > self._max_step * cycles
             if jumped.any():
                 j = int(np.argmax(jumped))
                 drive = self._drives[j]
                 try:
                     drive.guard.check_step(float(previous[j]), float(table[j, SAMPLE_POSITION]),
-                                           drive.name)
+                                           drive.name, cycles)
                 except EncoderGlitch as error:
                     drive._fault = error
                     raise JointFailure(self.joints[j][0], error) from error

@@ -47,6 +47,7 @@ class DcLine:
         self._integral = 0
         self._trim = 0.0
         self._anchor: tuple[float, int] | None = None  # (host time, reference time) of a frame
+        self.elapsed_periods = 1  # SYNC0 periods between the last two cycles' frames
 
     def configure(self, master, slaves) -> None:
         """Delays and offsets measured and written, SYNC0 activated on every slave."""
@@ -75,8 +76,10 @@ class DcLine:
         """The reference clock's time as the cycle's frame read it (`sent_at`: the host's
         monotonic time it went out): the master's offset from its place in the cycle, and the
         trim of the next wake-up."""
-        self._anchor = (sent_at, dc_time)
         period = self.period_ns
+        if self._anchor is not None:
+            self.elapsed_periods = max(1, -(-(dc_time - self._anchor[1]) // period))
+        self._anchor = (sent_at, dc_time)
         offset = (dc_time - int(MASTER_PHASE * period)) % period
         if offset > period // 2:
             offset -= period
