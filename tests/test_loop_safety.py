@@ -77,6 +77,22 @@ def test_commands_print_help():
         assert proc.returncode == 0 and "usage:" in proc.stdout, module
 
 
+def test_model_commands_answer_help_without_the_numerical_code():
+    """`identify --help` and `model-gap --help` took ~2 s importing scipy and numba before
+    parsing (issue 26); they import them once the arguments are parsed."""
+    script = ("import io, sys\n"
+              "from contextlib import redirect_stdout, suppress\n"
+              "from commands import identify, model_gap\n"
+              "for command in (identify, model_gap):\n"
+              "    with suppress(SystemExit), redirect_stdout(io.StringIO()):\n"
+              "        command.main(['--help'])\n"
+              "print(sorted(m for m in ('scipy', 'numba') if m in sys.modules))\n")
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "[]", proc.stdout
+
+
 def test_ring_stats_percentiles():
     from controller.loop import RingStats
 
