@@ -49,7 +49,7 @@ class EthercatTransport(Transport):
             raise ValueError(f"slave position {position}: positions count from 0")
         self.line = line
         self.position = position
-        self.name = f"slave {position}"
+        self.name = line.label(position)  # 'slave 3 (arm_left_4_joint)' in every report
         self.dictionary = ethercat_dictionary(
             load_dictionary(eds if eds is not None else shipped_eds_path()), line.esi)
         self._outputs: tuple[MappedObject, ...] = ()
@@ -266,11 +266,13 @@ def open_ethercat_transports(interface: str, positions: Sequence[int], *,
                              eds: str | Path | Sequence[str | Path | None] | None = None,
                              response_timeout: float | None = None,
                              watchdog: float | None = None,
-                             open_master: Callable[[], Any] = pysoem.Master
+                             open_master: Callable[[], Any] = pysoem.Master,
+                             names: Sequence[str | None] | None = None
                              ) -> list[EthercatTransport]:
     """One transport per slave position on the line at `interface`, sharing its master (one
     frame per cycle for all of them). `esi` defaults to the shipped elbow drive ESI; `eds` is
-    every slave's EDS, or a list with one per position (drives of different joints differ).
+    every slave's EDS, or a list with one per position (drives of different joints differ);
+    `names` the joint of each position, named with its slave in every report.
     `open_master`: see `driver.ethercat_master.EthercatMaster`."""
     if not isinstance(esi, EsiDevice):
         esi = load_esi(esi if esi is not None else shipped_esi_path())
@@ -278,5 +280,8 @@ def open_ethercat_transports(interface: str, positions: Sequence[int], *,
         eds = [eds] * len(positions)
     line = EthercatMaster(interface, esi, lockstep=lockstep, response_timeout=response_timeout,
                           watchdog=watchdog, open_master=open_master)
+    for position, name in zip(positions, names or (), strict=False):
+        if name:
+            line.names[position] = name
     return [EthercatTransport(line, position, eds=path)
             for position, path in zip(positions, eds, strict=True)]

@@ -238,7 +238,7 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
                 drives = _open_on_line(bus, parse_bus_spec(bus)["channel"], [
                     JointOnLine(j.address, j.model.limits.velocity_max,
                                 j.model.parameters.drive_gain, j.eds,
-                                j.model.limits.current_max) for j in on_line],
+                                j.model.limits.current_max, j.name) for j in on_line],
                     period=period, lockstep=lockstep, response_timeout=response_timeout,
                     **options)
                 segments[-1].joints = [(j.name, drive)
@@ -332,7 +332,7 @@ def open_joint(robot: RobotSpec, joint: JointSpec, sim_model: ActuatorModel,
 
         on_line = JointOnLine(joint.address, timing.pop("velocity_limit"),
                               timing.pop("drive_gain"), timing.pop("eds"),
-                              timing.pop("current_max"))
+                              timing.pop("current_max"), joint.name)
         drive = _open_on_line(joint.bus, parse_bus_spec(joint.bus)["channel"], [on_line],
                               **timing)[0]
         return Connection(drive, None, None, joint.bus, f"slave {joint.address}")

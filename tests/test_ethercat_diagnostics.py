@@ -1,0 +1,189 @@
+"""What the EtherCAT master says when a slave misbehaves, and the drives' dictionary over
+EtherCAT: a refused state change and a slave that leaves OP mid-run are named with the joint
+and the AL status code in words, the robot quick-stopped; a frame short of its working
+counter names the slaves that did not answer.
+
+In lock-step the line is linked in this process (`sim_bus.ethercat.linked`); over a veth
+(root) the slaves run in their own process and SOEM (pysoem) is the master."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from driver.drive_group import DriveGroup, EthercatLine, JointFailure
+from driver.ethercat_drive import JointOnLine, open_ethercat_drives
+from driver.ethercat_master import STATE_CHECK_FRAMES, LineLost
+from driver.interface import DriveError
+from model.parameters import Payload, load_model
+from protocol import ethercat as ec
+from protocol import objects
+from protocol.cia402 import State
+from sim_bus.embedded import make_device
+from sim_bus.ethercat.linked import LinkedMaster
+from sim_bus.ethercat.netns import SlaveProcess
+from sim_bus.ethercat.segment import Segment
+from sim_bus.faults import Fault
+from sim_bus.plant import SensorNoise
+
+MODEL = load_model()
+NAMES = ("hip_joint", "knee_joint", "ankle_joint")
+
+
+class LinkedRobot:
+    """Three joints on one linked EtherCAT line in lock-step, as `--sim` builds them."""
+
+    def __init__(self, names=NAMES):
+        self.devices = [make_device(MODEL, Payload(), SensorNoise(seed=k), commissioned=True)
+                        for k in range(len(names))]
+        self.segment = Segment(self.devices)
+        joints = [JointOnLine(k, MODEL.limits.velocity_max, MODEL.parameters.drive_gain,
+                              current_max=MODEL.limits.current_max, name=name)
+                  for k, name in enumerate(names)]
+        drives = open_ethercat_drives("sim", joints, lockstep=True, response_timeout=1.0,
+                                      open_master=lambda: LinkedMaster(self.segment))
+        for drive in drives:
+            drive.transport.boot(5.0)
+        self.group = DriveGroup(list(names), [EthercatLine("ethercat:sim",
+                                                           list(zip(names, drives, strict=True)))])
+
+    def run(self, cycles: int) -> tuple[int, JointFailure | None]:
+        """Cycles with zero current until one fails: (cycles completed, the failure)."""
+        for k in range(cycles):
+            try:
+                self.group.sync()
+                self.group.command_currents(np.zeros(len(self.group)))
+            except JointFailure as failure:
+                return k, failure
+        return cycles, None
+
+    def close(self) -> None:
+        self.group.close()
+
+
+@pytest.fixture
+def robot():
+    made = LinkedRobot()
+    yield made
+    made.close()
+
+
+def test_a_refused_state_change_names_the_joint_and_the_al_status_code(robot):
+    """The knee's slave refuses SAFE-OP (its firmware finds its sync managers wrong): the
+    start fails naming that joint and slave, with the AL status code in words, and no drive
+    was enabled."""
+    firmware = robot.segment.firmwares[1]
+    firmware._start_process_data = lambda: ec.AL_INVALID_SM_CONFIGURATION
+    with pytest.raises(JointFailure) as refused:
+        robot.group.start()
+    assert refused.value.joint == "knee_joint"
+    assert ("SAFE_OP refused: slave 1 (knee_joint) in PRE_OP + ERROR, AL status code invalid "
+            "sync manager configuration (0x0017)") in str(refused.value)
+    assert "slave 0" not in str(refused.value) and "slave 2" not in str(refused.value)
+    assert all(device.state is not State.OPERATION_ENABLED for device in robot.devices)
+
+
+def test_a_slave_leaving_op_mid_run_is_named_and_every_drive_quick_stops(robot):
+    """The ankle's slave drops to SAFE-OP + ERROR in its 30th cycle (its drive reacts as to
+    a lost master, EMCY 0xA000): the cycle that meets it names the ankle with AL status code
+    0x001A rather than the emergency, and the group quick-stops every drive."""
+    robot.devices[2].schedule(Fault.LEAVES_OP, 0.030)
+    robot.group.start()
+    completed, failure = robot.run(100)
+    assert failure is not None and failure.joint == "ankle_joint"
+    assert isinstance(failure.cause, LineLost)
+    text = str(failure)
+    assert ("slave 2 (ankle_joint) in SAFE_OP + ERROR, AL status code synchronization error "
+            "(0x001A)") in text
+    assert "slave 0" not in text and "slave 1" not in text
+    # found in the very cycle whose frame the slave left OP in: no cycle ran after it
+    [(fired, _)] = robot.devices[2].injected
+    assert robot.devices[2].cycle_count == fired
+    assert completed == robot.group.segments[0]._line.frames - 1
+    robot.group.quick_stop_all()
+    assert all(device.state in (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)
+               for device in robot.devices)
+
+
+def test_a_slave_out_of_op_with_a_quiet_drive_is_found_by_the_state_check(robot):
+    """A slave that leaves OP while its drive is disabled raises no emergency and keeps the
+    working counter whole (the ESC still moves its process data): the master's read of
+    every AL status, every STATE_CHECK_FRAMES cycles, names it."""
+    for drive in robot.group.drives:
+        drive.configure()  # process data running, drives left disabled
+    robot.group.segments[0].started()
+    completed, failure = robot.run(5)
+    assert failure is None
+    robot.segment.firmwares[0].leave_op_on_error(ec.AL_SYNCHRONIZATION_ERROR)
+    completed, failure = robot.run(3 * STATE_CHECK_FRAMES)
+    assert failure is not None and failure.joint == "hip_joint"
+    assert "left OP by cycle 10" in str(failure)
+    assert "AL status code synchronization error (0x001A)" in str(failure)
+    assert completed == STATE_CHECK_FRAMES - 5 - 1
+
+
+def _robot_file(tmp_path, names=NAMES) -> str:
+    text = '[robot]\nname = "leg"\nperiod_us = 1000\n'
+    for position, name in enumerate(names):
+        text += f'\n[[joints]]\nname = "{name}"\nbus = "ethercat:eth9"\nslave = {position}\n'
+    path = tmp_path / "leg.toml"
+    path.write_text(text)
+    return str(path)
+
+
+@pytest.mark.subprocess
+def test_actuatord_quick_stops_the_robot_and_names_the_joint_that_left_op(tmp_path):
+    result = subprocess.run(
+        [sys.executable, "-m", "commands.actuatord", "--sim", "--lockstep",
+         "--no-multicast-scouting", "--robot", _robot_file(tmp_path), "--duration", "1",
+         "--inject-fault", "knee_joint:leaves_op@0.5"],
+        capture_output=True, text=True, timeout=300)
+    assert result.returncode == 1, result.stderr
+    # one error line says it all (the drive's own reaction, EMCY 0xA000, is logged before it)
+    [error] = [line for line in result.stderr.splitlines() if "0x001A" in line
+               and line.startswith("actuatord: error:")]
+    assert "slave 1 (knee_joint) in SAFE_OP + ERROR, AL status code synchronization error "\
+           "(0x001A)" in error
+    assert "drive failed: joint knee_joint:" in result.stdout
+    stop_line = next(line for line in result.stdout.splitlines() if "quick stop:" in line)
+    assert all(name in stop_line for name in NAMES)
+    assert "operation enabled" not in stop_line
+
+
+@pytest.mark.root
+@pytest.mark.subprocess
+def test_soem_names_the_slave_that_vanished_and_the_one_that_left_op(link):
+    """Over a veth with SOEM: a slave made silent mid-run (fault 2 written to 0x2010) is named
+    as not answering by the frame that misses it; on a fresh line a slave that leaves OP is
+    named with its AL status code by the state check, its working counter whole."""
+    joints = [JointOnLine(k, MODEL.limits.velocity_max, MODEL.parameters.drive_gain,
+                          name=name) for k, name in enumerate(NAMES[:2])]
+    for fault, expected in (
+            (Fault.SILENT, "slave 1 (knee_joint) did not answer"),
+            (Fault.LEAVES_OP, "slave 1 (knee_joint) in SAFE_OP + ERROR, AL status code "
+                              "synchronization error (0x001A)")):
+        with SlaveProcess(link, 2, MODEL), link.entered():
+            drives = open_ethercat_drives(link.master_port, joints, lockstep=True,
+                                          response_timeout=0.2)
+            on_line = list(zip(NAMES[:2], drives, strict=True))
+            group = DriveGroup(list(NAMES[:2]), [EthercatLine("ethercat:veth", on_line)])
+            try:
+                group.start()
+                for _ in range(3):
+                    group.sync()
+                    group.command_currents(np.zeros(2))
+                if fault is Fault.SILENT:  # gone before it could answer the write
+                    with pytest.raises(DriveError, match="0x2010"):
+                        drives[1].transport.write(objects.FAULT_INJECTION, 0, fault.value)
+                else:
+                    drives[1].transport.write(objects.FAULT_INJECTION, 0, fault.value)
+                with pytest.raises(JointFailure) as failed:
+                    for _ in range(2 * STATE_CHECK_FRAMES):
+                        group.sync()
+                        group.command_currents(np.zeros(2))
+                assert failed.value.joint == "knee_joint"
+                assert expected in str(failed.value)
+                assert "slave 0" not in str(failed.value)
+            finally:
+                group.close()
