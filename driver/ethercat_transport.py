@@ -18,9 +18,9 @@ from typing import Any
 import pysoem
 
 from driver.ethercat_master import EthercatMaster
-from driver.interface import DriveError, DriveLost, ProfileError
+from driver.interface import DriveError, DriveLost, ProfileError, SdoRefused
 from driver.transport import Transport
-from protocol import cia402, objects
+from protocol import cia301, cia402, objects
 from protocol import eds_path as shipped_eds_path
 from protocol import esi_path as shipped_esi_path
 from protocol import ethercat as ec
@@ -98,8 +98,9 @@ class EthercatTransport(Transport):
         try:
             data = self._mailbox(self.slave.sdo_read, index, subindex)
         except pysoem.SdoError as exc:
-            raise DriveError(f"{self.name}: CoE read 0x{index:04X}:{subindex:02X} aborted: "
-                             f"0x{exc.abort_code:08X} {exc.desc}") from None
+            raise SdoRefused(f"{self.name}: CoE read 0x{index:04X}:{subindex:02X} aborted: "
+                             f"{cia301.sdo_abort_name(exc.abort_code)}",
+                             exc.abort_code) from None
         return var.decode_raw(data)
 
     def write(self, index: int, subindex: int, value: int) -> None:
@@ -107,8 +108,9 @@ class EthercatTransport(Transport):
         try:
             self._mailbox(self.slave.sdo_write, index, subindex, var.encode_raw(value))
         except pysoem.SdoError as exc:
-            raise DriveError(f"{self.name}: CoE write 0x{index:04X}:{subindex:02X} = {value} "
-                             f"aborted: 0x{exc.abort_code:08X} {exc.desc}") from None
+            raise SdoRefused(f"{self.name}: CoE write 0x{index:04X}:{subindex:02X} = {value} "
+                             f"aborted: {cia301.sdo_abort_name(exc.abort_code)}",
+                             exc.abort_code) from None
         for k, obj in enumerate(self._outputs):
             if (obj.index, obj.subindex) == (index, subindex):
                 if self.line.mapped and self._mapped:
@@ -186,7 +188,7 @@ class EthercatTransport(Transport):
             self._mailbox(self.slave.sdo_write, index, subindex, data)
         except pysoem.SdoError as exc:
             raise ProfileError(f"{self.name}: PDO configuration 0x{index:04X}:{subindex:02X} "
-                               f"refused: 0x{exc.abort_code:08X} {exc.desc}") from None
+                               f"refused: {cia301.sdo_abort_name(exc.abort_code)}") from None
 
     def start(self, period: float) -> None:
         """The drive's cycle period (0x1006, the physics step of an SM-synchronous drive),

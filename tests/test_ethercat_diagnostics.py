@@ -20,6 +20,8 @@ from model.parameters import Payload, load_model
 from protocol import ethercat as ec
 from protocol import objects
 from protocol.cia402 import State
+from robot.description import RobotFileError, load_robot
+from robot.wiring import open_robot
 from sim_bus.embedded import make_device
 from sim_bus.ethercat.linked import LinkedMaster
 from sim_bus.ethercat.netns import SlaveProcess
@@ -187,3 +189,134 @@ def test_soem_names_the_slave_that_vanished_and_the_one_that_left_op(link):
                 assert "slave 0" not in str(failed.value)
             finally:
                 group.close()
+
+
+# --- start-up parameters ------------------------------------------------------------------------
+
+STARTUP_ROBOT = """
+[robot]
+name = "leg"
+
+[drive_types.knee]
+sdo = [{ index = 0x6073, value = 1200 }, { index = 0x6072, value = 700 }]
+
+[[joints]]
+name = "hip_joint"
+bus = "ethercat:eth9"
+slave = 0
+sdo = [{ index = 0x6072, subindex = 0, value = 800 }]
+
+[[joints]]
+name = "knee_joint"
+bus = "ethercat:eth9"
+slave = 1
+drive_type = "knee"
+sdo = [{ index = 0x6072, value = 600 }]
+
+[[joints]]
+name = "ankle_joint"
+bus = "vcan9"
+node_id = 3
+drive_type = "knee"
+"""
+
+
+def _startup_robot(tmp_path, text: str = STARTUP_ROBOT):
+    path = tmp_path / "leg.toml"
+    path.write_text(text)
+    return path
+
+
+def test_start_up_parameters_per_drive_type_and_joint_are_parsed_in_order(tmp_path):
+    robot = load_robot(_startup_robot(tmp_path))
+    startup = {joint.name: [tuple(p) for p in joint.startup] for joint in robot.joints}
+    assert startup == {
+        "hip_joint": [(objects.MAX_TORQUE, 0, 800)],
+        # the type's first, the joint's own replacing the type's for the same object
+        "knee_joint": [(objects.MAX_CURRENT, 0, 1200), (objects.MAX_TORQUE, 0, 600)],
+        "ankle_joint": [(objects.MAX_CURRENT, 0, 1200), (objects.MAX_TORQUE, 0, 700)]}
+
+
+@pytest.mark.parametrize("entry, message", [
+    ("{ index = 0x9999, value = 1 }", "0x9999:00 is not in the drive's dictionary"),
+    ("{ index = 0x6041, value = 1 }", "0x6041:00 (Statusword) is ro, not writable"),
+    ("{ index = 0x6072, value = 70000 }", "70000 is outside its data type's 0..65535"),
+    ("{ index = 0x6072, value = 1.5 }", "expected an integer, got 1.5"),
+    ("{ index = 0x6060, value = 10 }", "the master sets the mode itself"),
+    ("{ index = 0x1A00, subindex = 1, value = 0 }", "the master sets the PDO communication"),
+    ("{ index = 0x6072, subindex = 256, value = 1 }", "subindex: expected an integer 0..255"),
+    ("{ index = 0x6072 }", "sdo[0].value: missing"),
+    ("{ index = 0x6072, value = 1, sub = 0 }", "sdo[0].sub: unknown key"),
+])
+def test_a_malformed_start_up_parameter_is_refused_naming_joint_and_object(tmp_path, entry,
+                                                                         message):
+    text = STARTUP_ROBOT.replace("{ index = 0x6072, subindex = 0, value = 800 }", entry)
+    with pytest.raises(RobotFileError) as refused:
+        load_robot(_startup_robot(tmp_path, text))
+    assert "joint 'hip_joint'.sdo[0]" in str(refused.value)
+    assert message in str(refused.value)
+
+
+def test_an_unknown_or_unused_drive_type_is_refused(tmp_path):
+    with pytest.raises(RobotFileError, match=r"drive_type: 'wrist' is not in \[drive_types\]"):
+        load_robot(_startup_robot(tmp_path, STARTUP_ROBOT.replace('"knee"\nsdo', '"wrist"\nsdo')))
+    with pytest.raises(RobotFileError, match=r"\[drive_types.knee\]: no joint is of this type"):
+        load_robot(_startup_robot(tmp_path, STARTUP_ROBOT.replace('drive_type = "knee"', "")))
+
+
+def test_start_up_parameters_reach_ethercat_and_canopen_drives_before_the_scaling(tmp_path):
+    """Written in PRE-OP (PRE-OPERATIONAL on the CAN joint), read back, and in force when
+    the master reads the drive's limits: the knee type's 120 % max current is the current
+    limit the master plans with."""
+    robot = load_robot(_startup_robot(tmp_path))
+    connection = open_robot(robot, sim=True, lockstep=True, seed=0, period=1e-3,
+                            response_timeout=1.0)
+    try:
+        connection.group.start()
+        devices = connection.devices
+        assert devices["hip_joint"].read(objects.MAX_TORQUE, 0) == 800
+        assert devices["knee_joint"].read(objects.MAX_TORQUE, 0) == 600
+        for name in ("knee_joint", "ankle_joint"):
+            assert devices[name].read(objects.MAX_CURRENT, 0) == 1200
+        hip, knee, ankle = connection.group.drives
+        assert knee.current_limit == pytest.approx(1.2 * hip.current_limit)
+        assert ankle.current_limit == pytest.approx(1.2 * hip.current_limit)
+    finally:
+        connection.close()
+
+
+@pytest.mark.parametrize("joint", ["hip_joint", "ankle_joint"])
+def test_a_start_up_parameter_the_drive_refuses_stops_the_start_in_one_line(tmp_path, joint):
+    """Fault code 99 fits 0x2010's UNSIGNED8 (the file is well-formed) but the drive knows no
+    such fault: its SDO abort ends the start, naming joint, object and abort code in words,
+    before any drive is enabled; over EtherCAT (hip) and CANopen (ankle) alike."""
+    text = STARTUP_ROBOT.replace(f'name = "{joint}"\n', f'name = "{joint}"\n'
+                                 'sdo = [{ index = 0x2010, value = 99 }]\n')
+    text = text.replace('sdo = [{ index = 0x6072, subindex = 0, value = 800 }]\n', "")
+    connection = open_robot(load_robot(_startup_robot(tmp_path, text)), sim=True,
+                            lockstep=True, seed=0, period=1e-3, response_timeout=1.0)
+    try:
+        with pytest.raises(JointFailure) as refused:
+            connection.group.start()
+        assert refused.value.joint == joint
+        assert ("start-up parameter 0x2010:00 (Fault injection) = 99 refused by the drive: "
+                "Value range of parameter exceeded (0x06090030)") in str(refused.value)
+        assert all(device.state is not State.OPERATION_ENABLED
+                   for device in connection.devices.values())
+    finally:
+        connection.close()
+
+
+@pytest.mark.subprocess
+def test_actuatord_exits_2_for_a_bad_start_up_parameter_and_1_for_a_refused_one(tmp_path):
+    bad = STARTUP_ROBOT.replace("value = 800", "value = 70000")
+    refused = STARTUP_ROBOT.replace("value = 800", "value = 99").replace(
+        "index = 0x6072, subindex = 0", "index = 0x2010, subindex = 0")
+    for text, code, words in ((bad, 2, "70000 is outside its data type's 0..65535"),
+                              (refused, 1, "Value range of parameter exceeded (0x06090030)")):
+        result = subprocess.run(
+            [sys.executable, "-m", "commands.actuatord", "--sim", "--lockstep",
+             "--no-multicast-scouting", "--robot", str(_startup_robot(tmp_path, text)),
+             "--duration", "0.1"], capture_output=True, text=True, timeout=300)
+        assert result.returncode == code, result.stderr
+        assert "hip_joint" in result.stderr and words in result.stderr
