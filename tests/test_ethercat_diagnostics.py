@@ -1,15 +1,19 @@
-"""What the EtherCAT master says when a slave misbehaves, and the drives' dictionary over
-EtherCAT: a refused state change and a slave that leaves OP mid-run are named with the joint
-and the AL status code in words, the robot quick-stopped; a frame short of its working
-counter names the slaves that did not answer.
+"""What the EtherCAT master says when a slave misbehaves, start-up parameters, and the drives'
+dictionary over EtherCAT: a refused state change and a slave that leaves OP mid-run are named
+with the joint and the AL status code in words, the robot quick-stopped; a frame short of its
+working counter names the slaves that did not answer; the robot file's start-up parameters are
+checked, written in PRE-OP, read back, and refused in one line; SOEM browses the dictionary by
+SDO Information.
 
 In lock-step the line is linked in this process (`sim_bus.ethercat.linked`); over a veth
 (root) the slaves run in their own process and SOEM (pysoem) is the master."""
 
+import struct
 import subprocess
 import sys
 
 import numpy as np
+import pysoem
 import pytest
 
 from driver.drive_group import DriveGroup, EthercatLine, JointFailure
@@ -17,9 +21,11 @@ from driver.ethercat_drive import JointOnLine, open_ethercat_drives
 from driver.ethercat_master import STATE_CHECK_FRAMES, LineLost
 from driver.interface import DriveError
 from model.parameters import Payload, load_model
+from protocol import eds_path, esi_path, objects
 from protocol import ethercat as ec
-from protocol import objects
 from protocol.cia402 import State
+from protocol.dictionary import load_dictionary
+from protocol.esi import ethercat_dictionary, load_esi
 from robot.description import RobotFileError, load_robot
 from robot.wiring import open_robot
 from sim_bus.embedded import make_device
@@ -30,6 +36,7 @@ from sim_bus.faults import Fault
 from sim_bus.plant import SensorNoise
 
 MODEL = load_model()
+ESI = load_esi(esi_path())
 NAMES = ("hip_joint", "knee_joint", "ankle_joint")
 
 
@@ -320,3 +327,49 @@ def test_actuatord_exits_2_for_a_bad_start_up_parameter_and_1_for_a_refused_one(
              "--duration", "0.1"], capture_output=True, text=True, timeout=300)
         assert result.returncode == code, result.stderr
         assert "hip_joint" in result.stderr and words in result.stderr
+
+
+# --- the dictionary over EtherCAT (SDO Information) --------------------------------------------
+
+@pytest.mark.root
+@pytest.mark.subprocess
+def test_soem_browses_the_drives_dictionary_by_sdo_information(link):
+    """pysoem's `od` (SOEM's ecx_readODlist, ecx_readODdescription, ecx_readOE: an
+    implementation nobody here wrote) lists every object the slave reaches by SDO, with the
+    EDS's names and types, PDO-mappable where the ESI's PDOs carry them; the slave's SII says
+    it offers the service."""
+    assert ESI.coe_details & ec.COE_DETAILS_SDO_INFO  # what the SII's general category says
+    dictionary = ethercat_dictionary(load_dictionary(eds_path()), ESI)
+    with SlaveProcess(link, 1, MODEL), link.entered():
+        master = pysoem.Master()
+        master.open(link.master_port)
+        try:
+            assert master.config_init() == 1
+            slave = master.slaves[0]
+            browsed = {obj.index: obj for obj in slave.od}
+            expected = {index for index in dictionary
+                        if not 0x1400 <= index < 0x1600 and not 0x1800 <= index < 0x1A00}
+            assert set(browsed) == expected | {ec.SM_COMMUNICATION_TYPE, ec.RXPDO_ASSIGN,
+                                               ec.TXPDO_ASSIGN}
+            for index in expected:
+                obj, described = dictionary[index], browsed[index]
+                assert described.name.decode() == obj.name, hex(index)
+                if not hasattr(obj, "subindices"):  # a VAR: pysoem keeps its one entry on it
+                    assert (described.object_code, described.data_type) == (
+                        ec.OBJECT_CODE_VAR, obj.data_type), hex(index)
+                    continue
+                entries = [obj.subindices[k] for k in sorted(obj.subindices)]
+                assert [e.name.decode() for e in described.entries] == [e.name for e in entries]
+                assert [e.data_type for e in described.entries] == [
+                    e.data_type for e in entries]
+            statusword = browsed[objects.STATUSWORD]
+            assert statusword.bit_length == 16
+            assert statusword.obj_access == ec.ENTRY_ACCESS_READ | ec.ENTRY_ACCESS_TXPDO
+            torque = browsed[objects.TARGET_TORQUE]
+            assert torque.obj_access & ec.ENTRY_ACCESS_RXPDO
+            assign = browsed[ec.TXPDO_ASSIGN]
+            assert (assign.name, assign.object_code) == (b"TxPDO assign", ec.OBJECT_CODE_ARRAY)
+            # the same values by plain SDO: the browse left the mailbox in step
+            assert struct.unpack("<H", slave.sdo_read(ec.TXPDO_ASSIGN, 1)) == (0x1A00,)
+        finally:
+            master.close()
