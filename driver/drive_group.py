@@ -214,11 +214,9 @@ class EthercatLine(Segment):
             try:
                 return super().collect()
             except JointFailure as failure:
-                if failure.cause is self._line.failure:
-                    raise self.failed(failure.joint, failure.cause) from failure.cause
                 if isinstance(failure.cause, DriveFault):
                     self._check_line(failure.joint)
-                raise
+                raise self.failed(failure.joint, failure.cause) from failure.cause
         for joint, drive in self.joints:
             if drive.fault is not None:
                 self._check_line(joint)

@@ -2,6 +2,8 @@
 communication parameters, emergency codes. Declared once here for the master, the virtual
 drive and the EtherCAT transport (CoE reuses the SDO abort and emergency codes)."""
 
+from canopen.sdo.exceptions import SdoAbortedError
+
 # Predefined connection set: COB-ID = base (+ node id where the service is per node)
 NMT_COB_ID = 0x000
 SYNC_COB_ID = 0x080  # the SYNC frame (not to be confused with object 0x1005, which holds it)
@@ -62,8 +64,6 @@ def sdo_abort_name(code: int) -> str:
     """'Value range of parameter exceeded (0x06090030)': the CiA 301 words for an SDO abort
     code (canopen's table, which a CANopen master shows too), the number where none is
     known."""
-    from canopen.sdo.exceptions import SdoAbortedError
-
     words = SdoAbortedError.CODES.get(code) or _SDO_ABORT_EXTRA.get(code, "unknown abort code")
     return f"{words} (0x{code:08X})"
 
