@@ -269,7 +269,10 @@ class SlaveFirmware:
             return  # the mailbox runs from PRE-OP on
         self._deferred = []  # an emergency the request itself causes follows its answer
         try:
-            self._outbox.extend(self.mailbox.handle(message))
+            # the answer goes before emergencies still queued: a master waiting for it may
+            # not survive another message first (SOEM 2.0's ecx_mbxreceive reads on into the
+            # buffer it released for the emergency, and crashes)
+            self._outbox.extendleft(reversed(self.mailbox.handle(message)))
         finally:
             deferred, self._deferred = self._deferred, None
             self._outbox.extend(deferred)
