@@ -226,7 +226,9 @@ _MASTER_OWNED = (
     (range(objects.CONSUMER_HEARTBEAT, objects.SYNC_COUNTER_OVERFLOW + 1),
      "heartbeats and the SYNC counter"),
     (range(objects.RPDO_COMM, 0x1C00), "the PDO communication and mapping"),
-    (range(0x1C00, 0x1C50), "the sync manager assignment"),
+    # sync manager types and PDO assignment; 0x1C30.. (sync mode, cycle) stay the user's,
+    # as in an ENI's InitCmds
+    (range(0x1C00, 0x1C30), "the sync manager types and PDO assignment"),
 )
 
 
