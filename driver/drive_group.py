@@ -26,6 +26,7 @@ from driver.interface import (
     SAMPLE_VELOCITY,
     CommandRangeError,
     DriveError,
+    DriveFault,
     EncoderGlitch,
     Sample,
 )
@@ -57,6 +58,10 @@ class Segment:
     def __init__(self, name: str, joints: Sequence[tuple[str, Cia402Drive]]):
         self.name = name
         self.joints = list(joints)
+
+    def failed(self, joint: str, exc: DriveError) -> JointFailure:
+        """`exc`, met while working on `joint`, as the failure of the joint it concerns."""
+        return JointFailure(joint, exc)
 
     def started(self) -> None:
         """Every drive of the group is up; cycles begin."""
@@ -147,6 +152,16 @@ class EthercatLine(Segment):
     emergencies and naming the joint that failed; a line whose slaves do not share one PDO
     layout (different drives on one line) runs each drive's own path instead."""
 
+    def failed(self, joint: str, exc: DriveError) -> JointFailure:
+        """The line's own failure (`driver.ethercat_master.LineFailure`) names the joint of
+        the first slave it blames (a slave that refused a state or left OP, one that did not
+        answer), not whichever joint's call met it."""
+        positions = getattr(exc, "positions", ())
+        if positions:
+            joint = next((name for name, drive in self.joints
+                          if drive.transport.position == positions[0]), joint)
+        return JointFailure(joint, exc)
+
     def started(self) -> None:
         drives = [drive for _, drive in self.joints]
         transports = [drive.transport for drive in drives]
@@ -186,16 +201,30 @@ class EthercatLine(Segment):
                 out += [f"joint {joint}: {warning}" for warning in drive.warnings()]
         return out
 
+    def _check_line(self, joint: str) -> None:
+        """A drive reported a fault: a slave that left OP is the cause to name first (its
+        drive's fault is the reaction to it, EMCY 0xA000)."""
+        try:
+            self._line.check_states()
+        except DriveError as exc:
+            raise self.failed(joint, exc) from exc
+
     def collect(self) -> np.ndarray:
         if not self._image:
-            return super().collect()
+            try:
+                return super().collect()
+            except JointFailure as failure:
+                if isinstance(failure.cause, DriveFault):
+                    self._check_line(failure.joint)
+                raise self.failed(failure.joint, failure.cause) from failure.cause
         for joint, drive in self.joints:
             if drive.fault is not None:
+                self._check_line(joint)
                 raise JointFailure(joint, drive.fault)
         try:
             self._transports[0].exchange()  # this cycle's frame, for every slave on the line
         except DriveError as exc:
-            raise JointFailure(self.joints[0][0], exc) from exc
+            raise self.failed(self.joints[0][0], exc) from exc
         with self._line.lock:  # the line's keeper may be sending a frame
             data = b"".join([slave.input for slave in self._slaves])
         raw = np.frombuffer(data, self._in_dtype)
@@ -232,6 +261,7 @@ class EthercatLine(Segment):
         if faulted.any():  # the drive's own path names the emergency behind it
             j = int(np.argmax(faulted))
             joint, drive = self.joints[j]
+            self._check_line(joint)
             try:
                 drive.take(lambda: tuple(int(v) for v in raw[j]))
             except DriveError as exc:
@@ -241,7 +271,12 @@ class EthercatLine(Segment):
     def command(self, currents: np.ndarray) -> None:
         """This cycle's motor currents (A), one per joint of the line, out in the next frame."""
         if not self._image:
-            return super().command(currents)
+            try:
+                return super().command(currents)
+            except JointFailure as failure:
+                if isinstance(failure.cause, DriveFault):
+                    self._check_line(failure.joint)
+                raise
         bad = ~(np.abs(currents) <= self._current_limit)  # NaN is bad too
         if bad.any():
             j = int(np.argmax(bad))
@@ -252,6 +287,7 @@ class EthercatLine(Segment):
                 raise JointFailure(joint, exc) from exc
         for joint, drive in self.joints:
             if drive.fault is not None:
+                self._check_line(joint)
                 raise JointFailure(joint, drive.fault)
         outputs = self._outputs
         outputs["f0"] = cia402.Command.ENABLE_OPERATION.value
@@ -289,12 +325,13 @@ class DriveGroup:
         """Configure every drive, then enable every one, in joint order: a drive that does not
         fit its joint is refused before any is enabled. A failure names the joint (the caller
         closes the group, which disables those already enabled)."""
+        segment_of = {joint: segment for segment in self.segments for joint, _ in segment.joints}
         for step in ("configure", "enable"):
             for name, drive in zip(self.names, self.drives, strict=True):
                 try:
                     getattr(drive, step)()
                 except DriveError as exc:
-                    raise JointFailure(name, exc) from exc
+                    raise segment_of[name].failed(name, exc) from exc
         for segment in self.segments:
             segment.started()
 

@@ -1,13 +1,16 @@
 """How fast an EtherCAT line runs from this master: lock-step cycles per second (the next frame
-sent as soon as the last came back) and the frame round trip at a real-time period (send to
-receive of the one frame per cycle, median and p99). Measured against whatever line is on the
-interface (`sim_bus.ethercat.netns` makes a virtual one); `bus-bench` prints the figures."""
+sent as soon as the last came back), the frame round trip at a real-time period (send to
+receive of the one frame per cycle, median and p99), and the read of every slave's AL status
+the line makes every STATE_CHECK_FRAMES cycles (median and p99). Measured against whatever
+line is on the interface (`sim_bus.ethercat.netns` makes a virtual one); `bus-bench` prints
+the figures."""
 
 import time
 
 import numpy as np
 
 from driver.clock import CycleClock
+from driver.ethercat_master import STATE_CHECK_FRAMES
 from driver.ethercat_transport import EthercatTransport, open_ethercat_transports
 from protocol import objects
 from protocol.dictionary import mapped_object, variable
@@ -40,7 +43,8 @@ def _cycle(transports: list[EthercatTransport], outputs: tuple[int, ...]) -> Non
 def measure_line(interface: str, slaves: int, cycles: int = 5000,
                  period: float = 1e-3) -> dict:
     """{'slaves', 'lockstep_cycles_per_s', 'round_trip_median_us', 'round_trip_p99_us',
-    'missed_cycles'} for the first `slaves` slaves on `interface` (the line must be there)."""
+    'missed_cycles', 'state_check_median_us', 'state_check_p99_us'} for the first `slaves`
+    slaves on `interface` (the line must be there)."""
     transports = open_ethercat_transports(interface, range(slaves), lockstep=True)
     try:
         _bring_up(transports, period)
@@ -60,6 +64,11 @@ def measure_line(interface: str, slaves: int, cycles: int = 5000,
             _cycle(transports, outputs)
             round_trips[k] = time.perf_counter() - t0
             clock.check_overrun()
+        checks = np.empty(cycles // STATE_CHECK_FRAMES)
+        for k in range(len(checks)):
+            t0 = time.perf_counter()
+            line.check_states()
+            checks[k] = time.perf_counter() - t0
         return {
             "slaves": slaves,
             "frames": line.frames,
@@ -68,6 +77,8 @@ def measure_line(interface: str, slaves: int, cycles: int = 5000,
             "round_trip_p99_us": round(float(np.percentile(round_trips, 99)) * 1e6, 1),
             "period_us": round(period * 1e6),
             "missed_cycles": clock.missed_cycles,
+            "state_check_median_us": round(float(np.median(checks)) * 1e6, 1),
+            "state_check_p99_us": round(float(np.percentile(checks, 99)) * 1e6, 1),
         }
     finally:
         for transport in transports:

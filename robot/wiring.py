@@ -238,7 +238,8 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
                 drives = _open_on_line(bus, parse_bus_spec(bus)["channel"], [
                     JointOnLine(j.address, j.model.limits.velocity_max,
                                 j.model.parameters.drive_gain, j.eds,
-                                j.model.limits.current_max) for j in on_line],
+                                j.model.limits.current_max, j.name, j.startup)
+                    for j in on_line],
                     period=period, lockstep=lockstep, response_timeout=response_timeout,
                     **options)
                 segments[-1].joints = [(j.name, drive)
@@ -271,7 +272,7 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
                 segments[-1].joints.append((joint.name, Cia402Drive(
                     transport, velocity_limit=joint.model.limits.velocity_max, period=period,
                     drive_gain=joint.model.parameters.drive_gain,
-                    current_max=joint.model.limits.current_max)))
+                    current_max=joint.model.limits.current_max, startup=joint.startup)))
         return RobotConnection(DriveGroup([j.name for j in robot.joints], segments), embedded,
                                devices)
     except Exception as exc:
@@ -325,14 +326,15 @@ def open_joint(robot: RobotSpec, joint: JointSpec, sim_model: ActuatorModel,
 
     timing = {"lockstep": lockstep, "velocity_limit": joint.model.limits.velocity_max,
               "drive_gain": joint.model.parameters.drive_gain, "eds": joint.eds,
-              "current_max": joint.model.limits.current_max, **timing}
+              "current_max": joint.model.limits.current_max, "startup": joint.startup,
+              **timing}
     kind = "slave" if joint.on_ethercat else "node"
     if not sim and joint.on_ethercat:
         from driver.ethercat_drive import JointOnLine
 
         on_line = JointOnLine(joint.address, timing.pop("velocity_limit"),
                               timing.pop("drive_gain"), timing.pop("eds"),
-                              timing.pop("current_max"))
+                              timing.pop("current_max"), joint.name, timing.pop("startup"))
         drive = _open_on_line(joint.bus, parse_bus_spec(joint.bus)["channel"], [on_line],
                               **timing)[0]
         return Connection(drive, None, None, joint.bus, f"slave {joint.address}")
