@@ -123,7 +123,8 @@ def test_a_stall_in_real_time_is_reported_on_the_fault_topic():
         sim.close()
     assert report.exit_code == 0
     stalls = [f for topic, f in messages if topic == "fault" and "stalled" in f.cause]
-    assert stalls and int(stalls[0].cause.split()[2]) >= 150
+    # the injected 200 ms stall; a loaded host may add short stalls of its own before it
+    assert stalls and max(int(f.cause.split()[2]) for f in stalls) >= 150, stalls
     assert report.missed_cycles >= 150
 
 
