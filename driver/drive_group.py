@@ -342,3 +342,9 @@ class DriveGroup:
         for segment in self.segments:
             segment.close()
 
+
+
+def single_joint(drive: Cia402Drive, name: str = "joint") -> DriveGroup:
+    """One drive as a robot of one joint named `name`: alone on its segment, its own `sync`
+    each cycle (the drive's transport sends its SYNC or its line's frame)."""
+    return DriveGroup([name], [Segment(name, [(name, drive)])])
