@@ -429,8 +429,9 @@ class ControlLoop:
         start = time.perf_counter()
         positions, velocities = table[:, SAMPLE_POSITION], table[:, SAMPLE_VELOCITY]
         believed = safety.believed(positions, velocities)
+        everyone = believed.all()
         fallbacks = self._fallbacks = {}
-        if not believed.all():  # rare: the per-joint nets say why, and hold those joints
+        if not everyone:  # rare: the per-joint nets say why, and hold those joints
             for j in np.flatnonzero(~believed):
                 sample = Sample(*table[j, :SAMPLE_STATUSWORD], int(table[j, SAMPLE_STATUSWORD]))
                 fallbacks[int(j)] = self._nets[j].screen(sample).fault
@@ -439,24 +440,26 @@ class ControlLoop:
         self._mpc_time = time.perf_counter() - mpc_start
         header, ok, status, _ = decided
         planned = header[:, ws.PLANNED_CURRENT]
-        currents = safety.checked_currents(positions, planned, ok)
-        if fallbacks:  # a joint screened out: the net's command for it
-            currents = np.where(believed, currents,
-                                safety.screened_currents(positions, velocities))
-        self._currents = currents
-        failed = believed & ~(ok & np.isfinite(planned))
-        if failed.any():
-            for j in np.flatnonzero(failed):
+        usable = ok & np.isfinite(planned)
+        if everyone and usable.all():  # every cycle but a rare one
+            currents = safety.clipped(planned)
+        else:
+            currents = safety.checked_currents(positions, planned, usable)
+            if fallbacks:  # a joint screened out: the net's command for it
+                currents = np.where(believed, currents,
+                                    safety.screened_currents(positions, velocities))
+            for j in np.flatnonzero(believed & ~usable):
                 fallbacks[int(j)] = f"solver {status[j]}: holding position"
-        for j in fallbacks:
-            if not believed[j]:  # decided by the net alone: no solver ran for it
-                status[j] = NOT_FINITE
-                h = header[j]
-                h[ws.PLANNED_CURRENT] = math.nan
-                h[ws.ITERATIONS] = h[ws.ROLLOUTS] = 0
-                h[ws.COST] = math.inf
-                h[ws.REFERENCE_POSITION], h[ws.REFERENCE_VELOCITY] = (
-                    self._nets[j].policy.reference_at(t))
+            for j in fallbacks:
+                if not believed[j]:  # decided by the net alone: no solver ran for it
+                    status[j] = NOT_FINITE
+                    h = header[j]
+                    h[ws.PLANNED_CURRENT] = math.nan
+                    h[ws.ITERATIONS] = h[ws.ROLLOUTS] = 0
+                    h[ws.COST] = math.inf
+                    h[ws.REFERENCE_POSITION], h[ws.REFERENCE_VELOCITY] = (
+                        self._nets[j].policy.reference_at(t))
+        self._currents = currents
         decide_time = time.perf_counter() - start
         try:
             joints.command_currents(currents)
