@@ -240,7 +240,7 @@ def _run(args: argparse.Namespace, setup: _Setup, stop: threading.Event,
     model (refused before any is enabled)."""
     from controller.telemetry import TelemetryPublisher
     from driver import DriveError, ProfileError
-    from driver.clock import collector_off_the_cycle
+    from driver.clock import clock_for, collector_off_the_cycle
 
     # real-time priority from here on, once the solver is compiled (by the setup), not
     # before: a start-up's compiling at that priority starved the drives and the running
@@ -261,7 +261,7 @@ def _run(args: argparse.Namespace, setup: _Setup, stop: threading.Event,
         return job_error(PROG, str(exc))
     group = connection.group
     loop = ControlLoop(group, setup.batch,
-                       LoopOptions(period=setup.period, lockstep=args.lockstep,
+                       LoopOptions(period=setup.period, clock=clock_for(args.lockstep),
                                    duration=args.duration, keep_history=bool(args.plot)),
                        [publisher.publish], lambda: publisher.dropped, stop,
                        settle=TRACKING_SETTLE)

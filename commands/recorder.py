@@ -231,7 +231,7 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         return usage_error(PROG, str(exc))
 
     from driver import DriveError, ProfileError
-    from driver.clock import collector_off_the_cycle
+    from driver.clock import clock_for, collector_off_the_cycle
     from recorder.experiment import run_trajectory
     from recorder.mcap_io import McapRecorder
     from recorder.tracking import TrackingLaw
@@ -282,7 +282,7 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         group.start()
         with collector_off_the_cycle():
             report = run_trajectory(group, trajectory, law, model.limits, [record],
-                                    args.lockstep, bar, stop)
+                                    clock_for(args.lockstep), bar, stop)
         if writer.failure is not None:
             code = 1  # reported below, once the file is closed
         elif stop.is_set():

@@ -35,7 +35,7 @@ from controller.policy import PlanSnapshot, Policy
 from controller.reference import reference_at
 from controller.safety import NOT_FINITE, BatchSafety, SafetyNet
 from driver import DriveError, Sample
-from driver.clock import CycleClock, RingStats
+from driver.clock import CycleClock, DriveClock, RingStats, WallClock
 from driver.interface import SAMPLE_POSITION, SAMPLE_STATUSWORD, SAMPLE_T, SAMPLE_VELOCITY
 from model.parameters import ActuatorParameters, Limits
 from protocol import cia402
@@ -58,7 +58,8 @@ _USABLE = np.array([code in (CONVERGED, MAX_ITERATIONS) for code in range(len(ST
 @dataclass
 class LoopOptions:
     period: float = 1e-3  # s
-    lockstep: bool = False
+    # the wall clock in real time, drive time in lock-step (`driver.clock.clock_for`)
+    clock: WallClock | DriveClock = field(default_factory=WallClock)
     duration: float | None = None  # s of drive time; None runs until stopped
     plan_every: int = 10  # cycles between Plan messages
     stats_every: float = 1.0  # s of drive time between LoopStats messages
@@ -360,7 +361,7 @@ class ControlLoop:
         The caller owns the drives' life cycle (start before, close after: close always
         disables them; quick-stop every one first when the run failed)."""
         options, report = self.options, self.report
-        clock = report.clock = CycleClock(options.period, options.lockstep)
+        clock = report.clock = CycleClock(options.period, options.clock)
         next_stats = options.stats_every
         missed = 0
         behind: dict[str, float] = dict.fromkeys(MISSED_CAUSES, 0.0)  # the last cycle's phases

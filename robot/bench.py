@@ -14,6 +14,7 @@ import numpy as np
 from controller.loop import ControlLoop, LoopOptions
 from controller.mpc import BatchMpc, JointProblem
 from controller.problem import OcpSettings
+from driver.clock import DriveClock
 from model.parameters import load_model
 from robot.description import JointSpec, RobotSpec, default_reference
 from robot.wiring import open_robot
@@ -40,7 +41,7 @@ def measure_master(joints: int, cycles: int) -> dict:
         group = connection.group
         batch = BatchMpc([JointProblem(joint.model, BENCH_SETTINGS, reference=joint.reference)
                           for joint in spec.joints])
-        loop = ControlLoop(group, batch, LoopOptions(period=1e-3, lockstep=True,
+        loop = ControlLoop(group, batch, LoopOptions(period=1e-3, clock=DriveClock(),
                                                    duration=cycles * 1e-3))
         group.start()
         report = loop.run()

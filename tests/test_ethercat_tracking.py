@@ -13,6 +13,7 @@ from controller.mpc import Mpc
 from controller.problem import OcpSettings
 from controller.reference import Sinusoid
 from driver.canopen_drive import CanOpenDrive
+from driver.clock import DriveClock
 from driver.drive_group import single_joint
 from driver.ethercat_drive import JointOnLine, open_ethercat_drive
 from model.parameters import Payload, load_model
@@ -33,7 +34,7 @@ def track(drive) -> tuple[int, float, int]:
     """(exit code, tracking RMS in rad, cycles) of the MPC on `drive` for DURATION."""
     mpc = Mpc(MODEL, OcpSettings(), Payload(), Sinusoid())
     loop = ControlLoop(single_joint(drive), mpc,
-                       LoopOptions(period=1e-3, lockstep=True, duration=DURATION,
+                       LoopOptions(period=1e-3, clock=DriveClock(), duration=DURATION,
                                    keep_history=True))
     try:
         drive.start()
@@ -87,7 +88,7 @@ def record(drive, payload: Payload, path) -> None:
     try:
         drive.start()
         report = run_trajectory(single_joint(drive), SHORT, law, MODEL.limits, [sink],
-                                lockstep=True)
+                                clock=DriveClock())
         assert report.exit_code == 0, report.reason
     finally:
         drive.close()

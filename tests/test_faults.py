@@ -9,6 +9,7 @@ from commands.sim_options import parse_fault
 from controller.loop import ControlLoop, LoopOptions
 from controller.messages import topic_of
 from controller.mpc import Mpc
+from driver.clock import DriveClock
 from driver.drive_group import single_joint
 from model.parameters import load_model
 from protocol import objects
@@ -28,7 +29,8 @@ def run_with(fault: Fault, duration: float = 1.5, via_sdo: bool = False):
         if via_sdo:
             drive.node.sdo[objects.FAULT_INJECTION].raw = int(Fault.NONE)  # SDO path exists
         sim.device.schedule(fault, AT)
-        loop = ControlLoop(single_joint(drive), mpc, LoopOptions(lockstep=True, duration=duration),
+        loop = ControlLoop(single_joint(drive), mpc,
+                           LoopOptions(clock=DriveClock(), duration=duration),
                            [lambda message: messages.append((topic_of(message), message))])
         report = loop.run()
         drive.close()

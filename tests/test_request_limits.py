@@ -19,6 +19,7 @@ from controller.mpc import Mpc
 from controller.requests import AUDIT_LINE_MAX, MAX_BODY, Body, RequestHandler
 from controller.telemetry import TelemetryPublisher
 from driver.canopen_drive import CanOpenDrive
+from driver.clock import DriveClock
 from driver.drive_group import single_joint
 from model.parameters import Payload, load_model
 from protocol import telemetry
@@ -47,7 +48,7 @@ def handler():
     mpc = Mpc(MODEL)
     with virtual_pair() as (_, drive):
         audit: list[str] = []
-        loop = ControlLoop(single_joint(drive), mpc, LoopOptions(lockstep=True))
+        loop = ControlLoop(single_joint(drive), mpc, LoopOptions(clock=DriveClock()))
         yield RequestHandler(loop, 0, MODEL, Payload(), audit.append), audit
 
 
@@ -148,7 +149,6 @@ class BlockedTime:
 # ("KEY SIZE": a body of SIZE bytes that is costly JSON), one JSON line per reply on stdout.
 CLIENT = """
 import json, sys, zenoh
-from driver.drive_group import single_joint
 config = zenoh.Config()
 config.insert_json5("connect/endpoints", json.dumps([sys.argv[1]]))
 config.insert_json5("scouting/multicast/enabled", "false")
@@ -196,7 +196,7 @@ def service():
                              lockstep=True, response_timeout=1.0)
         cleanup.callback(drive.close)
         drive.start()
-        loop = ControlLoop(single_joint(drive), mpc, LoopOptions(lockstep=True),
+        loop = ControlLoop(single_joint(drive), mpc, LoopOptions(clock=DriveClock()),
                            [publisher.publish])
         handler = RequestHandler(loop, 0, MODEL, Payload(), publisher.publish_audit)
         publisher.serve_json(telemetry.PARAMETERS, handler.parameters)

@@ -13,6 +13,7 @@ from controller.loop import ControlLoop, LoopOptions
 from controller.mpc import Mpc
 from controller.problem import OcpSettings, UnsafeWeights
 from controller.requests import Body, RequestHandler
+from driver.clock import DriveClock
 from driver.drive_group import single_joint
 from model.parameters import Payload, load_model
 from tests.conftest import virtual_pair
@@ -31,7 +32,7 @@ def handler():
     mpc = Mpc(MODEL)
     with virtual_pair() as (_, drive):
         audit: list[str] = []
-        loop = ControlLoop(single_joint(drive), mpc, LoopOptions(lockstep=True))
+        loop = ControlLoop(single_joint(drive), mpc, LoopOptions(clock=DriveClock()))
         yield RequestHandler(loop, 0, MODEL, Payload(), audit.append), audit, loop
 
 
