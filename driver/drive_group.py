@@ -315,6 +315,9 @@ class DriveGroup:
         # each segment's joints' places in joint order (for their commands)
         self._rows = [np.array([self.names.index(joint) for joint, _ in segment.joints],
                                dtype=np.intp) for segment in segments]
+        # one segment with its joints in order (a robot of one, a single line): the samples
+        # and commands need no reordering, a cycle no indexing
+        self._whole = len(self.segments) == 1 and self._in_order
         self.period = self.drives[0].period
         self._closed = False
 
@@ -338,6 +341,10 @@ class DriveGroup:
     def sync(self) -> np.ndarray:
         """One cycle: trigger every segment, then every joint's sample, a row per joint in
         joint order (`driver.interface.SAMPLE_*` columns)."""
+        if self._whole:
+            segment = self.segments[0]
+            segment.trigger()
+            return segment.collect()
         for segment in self.segments:
             segment.trigger()
         tables = [segment.collect() for segment in self.segments]
@@ -347,6 +354,9 @@ class DriveGroup:
     def command_currents(self, currents: Sequence[float]) -> None:
         """One motor current (A) per joint, in joint order, applied from the next cycle."""
         currents = np.asarray(currents, dtype=float)
+        if self._whole:
+            self.segments[0].command(currents)
+            return
         for segment, rows in zip(self.segments, self._rows, strict=True):
             segment.command(currents[rows])
 
@@ -379,3 +389,9 @@ class DriveGroup:
         for segment in self.segments:
             segment.close()
 
+
+
+def single_joint(drive: Cia402Drive, name: str = "joint") -> DriveGroup:
+    """One drive as a robot of one joint named `name`: alone on its segment, its own `sync`
+    each cycle (the drive's transport sends its SYNC or its line's frame)."""
+    return DriveGroup([name], [Segment(name, [(name, drive)])])
