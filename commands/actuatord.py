@@ -6,6 +6,7 @@ import json
 import signal
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 from commands.bus_options import (
@@ -44,15 +45,15 @@ from commands.zenoh_options import (
     open_session,
     zenoh_config,
 )
-from controller.loop import ControlLoop, LoopOptions
-from controller.mpc import Mpc
+from controller.loop import QUICK_STOPPED, ControlLoop, LoopOptions
+from controller.mpc import BatchMpc, JointProblem
 from controller.problem import MAX_HORIZON, OcpSettings, ResolutionError, Weights
 from controller.reference import ReferenceError, Sinusoid, reference_from_dict
 from controller.requests import RequestHandler
-from model.parameters import ActuatorModel, ModelFileError
+from model.parameters import ActuatorModel, ModelFileError, Payload
 from protocol import telemetry
 from protocol.bus_spec import BusSpecError
-from robot.wiring import DriveOpenError
+from robot.wiring import Connection, DriveOpenError
 
 PROG = "actuatord"
 
@@ -150,9 +151,10 @@ def main(argv: list[str] | None = None) -> int:
     # (or keeps it from starting), and the run then ends with every drive quick-stopped
     stop = threading.Event()
     with ThreadFailures(stop.set) as threads:
-        if args.robot is not None:
-            return _run_robot(args, stop, threads)
-        return _run_joint(args, stop, threads)
+        setup = _robot_setup(args) if args.robot is not None else _joint_setup(args)
+        if isinstance(setup, int):  # bad input: said, with its exit code
+            return setup
+        return _run(args, setup, stop, threads)
 
 
 def _write_report(args: argparse.Namespace, report) -> None:
@@ -166,9 +168,25 @@ def _write_report(args: argparse.Namespace, report) -> None:
         job_error(PROG, f"--report {args.report}: cannot write: {exc.strerror or exc}")
 
 
-def _run_joint(args: argparse.Namespace, stop: threading.Event, threads: ThreadFailures) -> int:
-    """`actuatord` on one drive: exit 0 when the run ends as asked, 1 when it failed (the drive
-    quick-stopped), 2 for bad input."""
+@dataclasses.dataclass
+class _Setup:
+    """A run checked and its controller compiled, from the command line (one joint, a robot of
+    one) or a robot file: what opens the drives, and what the one run needs."""
+
+    batch: BatchMpc
+    names: list[str]  # the joints, in the robot's order
+    models: list[ActuatorModel]  # what the controller knows of each joint
+    payloads: list[Payload]  # what each joint carries, as the controller knows it
+    period: float  # s
+    open: Callable[[], Connection]  # opens the drives (raises DriveOpenError)
+    started: Callable[[Connection], str]  # the line said once every drive is enabled
+    parameters: dict | None = None  # the parameters queryable's answer (None: the joint's)
+    plot_title: str = ""
+
+
+def _joint_setup(args: argparse.Namespace) -> "_Setup | int":
+    """`actuatord` on one drive, a robot of one joint named by the prefix's last segment;
+    the exit code 2 for bad input."""
     if args.prefix is None:
         args.prefix = telemetry.DEFAULT_PREFIX
     try:
@@ -193,100 +211,123 @@ def _run_joint(args: argparse.Namespace, stop: threading.Event, threads: ThreadF
         # refuse (a velocity_max below the default sinusoid's peak) is bad input, not a crash
         try:
             with CompileNotice(PROG):  # a first run compiles the solver here
-                mpc = Mpc(model, settings, payload, reference)
+                batch = BatchMpc([JointProblem(model, settings, payload, reference)])
         except ReferenceError as exc:
             shown = args.reference or "(default: the paper's sinusoid)"
             raise ValueError(f"--reference {shown[:60]} with the limits of the model "
                              f"{model.source}: {exc}") from None
     except (ModelFileError, BusSpecError, ReferenceError, ValueError) as exc:
         return usage_error(PROG, str(exc))
-
-    from driver import DriveError, ProfileError
-    from driver.clock import collector_off_the_cycle
-
+    name = args.prefix.rstrip("/").rsplit("/", 1)[-1]
     period = args.period_us * 1e-6
-    # real-time priority from here on, once the solver is compiled (above), not before: a
-    # start-up's compiling at that priority starved the drives and the running master on a
-    # 2-core host. Zenoh's and the publisher's threads inherit it: at normal priority beside
-    # CPU-bound work the telemetry fell seconds behind the loop
+    title = "with current barrier" if not args.no_current_barrier else "no current barrier"
+    if payload.mass:
+        title = f"{payload.mass:g} kg payload, {title}"
+    return _Setup(
+        batch, [name], [model], [payload], period,
+        # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host
+        lambda: open_drive(args, model, sim_model, payload, schedule, name, period=period,
+                           response_timeout=1.0 if args.lockstep else 0.1),
+        lambda connection: (f"{connection.address} on {connection.where} enabled; "
+                            f"telemetry under {args.prefix}/"),
+        plot_title=title)
+
+
+def _run(args: argparse.Namespace, setup: _Setup, stop: threading.Event,
+         threads: ThreadFailures) -> int:
+    """Every joint in one cycle: exit 0 when the run ends as asked, 1 when a joint failed
+    (every joint quick-stopped, the joint named), 2 for a drive that does not fit its joint's
+    model (refused before any is enabled)."""
+    from controller.telemetry import TelemetryPublisher
+    from driver import DriveError, ProfileError
+    from driver.clock import clock_for, collector_off_the_cycle
+
+    # real-time priority from here on, once the solver is compiled (by the setup), not
+    # before: a start-up's compiling at that priority starved the drives and the running
+    # master on a 2-core host. Zenoh's and the publisher's threads inherit it: at normal
+    # priority beside CPU-bound work the telemetry fell seconds behind the loop
     apply_real_time(args, PROG)
     try:
         session = open_session(args)
     except ValueError as exc:
         return usage_error(PROG, str(exc))
-    from controller.telemetry import TelemetryPublisher
-
-    publisher = TelemetryPublisher(session, args.prefix, ros2_domain=args.ros2)
+    publisher = TelemetryPublisher(session, args.prefix, telemetry.topics(len(setup.names)),
+                                   ros2_domain=args.ros2)
     try:
-        # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host
-        connection = open_drive(args, model, sim_model, payload, schedule, period=period,
-                                response_timeout=1.0 if args.lockstep else 0.1)
+        connection = setup.open()
     except DriveOpenError as exc:
         publisher.close()
         session.close()
         return job_error(PROG, str(exc))
-    drive = connection.drive
-    loop = ControlLoop(drive, mpc, LoopOptions(period=period, lockstep=args.lockstep,
-                                               duration=args.duration,
-                                               keep_history=bool(args.plot)),
-                       [publisher.publish], lambda: publisher.dropped, stop)
+    group = connection.group
+    loop = ControlLoop(group, setup.batch,
+                       LoopOptions(period=setup.period, clock=clock_for(args.lockstep),
+                                   duration=args.duration, keep_history=bool(args.plot)),
+                       [publisher.publish], lambda: publisher.dropped, stop,
+                       settle=TRACKING_SETTLE)
     signal.signal(signal.SIGINT, lambda *_: loop.stop())
     signal.signal(signal.SIGTERM, lambda *_: loop.stop())
-    try:  # from here on the drive is open: whatever happens, it is stopped and closed
-        requests = RequestHandler(loop, mpc, model, payload, publisher.publish_audit)
-        publisher.serve_json(telemetry.PARAMETERS, requests.parameters)
-        publisher.serve_json(telemetry.REFERENCE, requests.set_reference)
-        publisher.serve_json(telemetry.WEIGHTS, requests.set_weights)
-        # the start-up heap collected and frozen before the drive is enabled: a collection
-        # holds the interpreter for tens of ms, long enough to starve a watchdog once the
-        # drive runs (see driver.clock.collector_off_the_cycle)
+    failure = None
+    try:  # from here on the drives are open: whatever happens, they are stopped and closed
+        handlers = [RequestHandler(loop, j, model, payload, publisher.publish_audit)
+                    for j, (model, payload) in enumerate(zip(setup.models, setup.payloads,
+                                                             strict=True))]
+        parameters = setup.parameters
+        publisher.serve_json(telemetry.PARAMETERS, handlers[0].parameters if parameters is None
+                             else lambda _: parameters)
+        publisher.serve_requests(handlers)
+        # the start-up heap collected and frozen before the drives are enabled: a full
+        # collection of this heap held the interpreter past the slaves' 100 ms watchdog
+        # (see driver.clock.collector_off_the_cycle)
         with collector_off_the_cycle():
-            drive.start()
-            print(f"actuatord: {connection.address} on {connection.where} enabled; "
-                  f"telemetry under {args.prefix}/", flush=True)
+            group.start()
+            print(f"actuatord: {setup.started(connection)}", flush=True)
+            for clock in group.clocks:  # EtherCAT lines on distributed clocks
+                print(f"actuatord: {clock.describe()}", flush=True)
             report = loop.run()
-        if threads.first is not None and report.exit_code == 0:
-            report.exit_code, report.reason = 1, threads.first
-            _quick_stop(drive)
-        if report.exit_code == 1:  # the loop ended on a fault: one line on stderr too
-            job_error(PROG, report.reason)
-    except ProfileError as exc:  # the drive does not fit the model: refused before enabling
-        usage_error(PROG, str(exc))
-        report = loop.report
-        report.exit_code, report.reason = 2, str(exc)
+        if report.exit_code != 0:
+            failure = report.reason
     except DriveError as exc:
-        loop.fault(0.0, "drive", str(exc), "drive disabled")
-        job_error(PROG, str(exc))
         report = loop.report
-        report.exit_code, report.reason = 1, str(exc)
-    except Exception as exc:  # a bug or an input no check foresaw: the drive stops
+        # a drive that does not fit its joint's model is refused before any is enabled
+        unfit = isinstance(exc.__cause__, ProfileError)
+        report.exit_code, report.reason = 2 if unfit else 1, str(exc)
+        failure = str(exc)
+        loop.fault(0.0, "drive", failure, QUICK_STOPPED)
+    except Exception as exc:  # a bug or an input no check foresaw: the drives stop
         report = loop.report
         report.exit_code, report.reason = 1, internal_error(exc)
-        _quick_stop(drive)
-        job_error(PROG, report.reason)
+        failure = report.reason
+    if threads.first is not None and failure is None:
+        report.exit_code, report.reason = 1, threads.first
+        failure = threads.first
+    try:
+        if failure is not None and report.exit_code == 1:
+            states = group.quick_stop_all()
+            print("actuatord: quick stop: " + ", ".join(f"{name} {state}"
+                                                          for name, state in states),
+                  flush=True)
     finally:
         connection.close()
         publisher.close()
         session.close()
+    if failure is not None:
+        (usage_error if report.exit_code == 2 else job_error)(PROG, failure)
     print(f"actuatord: {report.summary()}", flush=True)
+    for clock in group.clocks:
+        print(f"actuatord: {clock.summary()}", flush=True)
     _write_report(args, report)
+    rms = loop.tracking_rms()
+    print(f"actuatord: RMS tracking error after {TRACKING_SETTLE:g} s (mrad): " + ", ".join(
+        f"{name} {1e3 * value:.2g}" for name, value in zip(loop.names, rms,
+                                                           strict=True)), flush=True)
     if args.plot and report.history.get("t"):
         from controller.plots import save_figures
 
-        title = "with current barrier" if not args.no_current_barrier else "no current barrier"
-        if payload.mass:
-            title = f"{payload.mass:g} kg payload, {title}"
-        for path in save_figures(report.history, model.limits, Path(args.plot), title):
+        for path in save_figures(report.history, setup.models[0].limits, Path(args.plot),
+                                 setup.plot_title):
             print(f"actuatord: wrote {path}", flush=True)
     return report.exit_code
-
-
-def _quick_stop(drive) -> None:
-    """After an unexpected failure: quick stop (best effort; closing then disables)."""
-    try:
-        drive.quick_stop()
-    except Exception as exc:  # the drive may be what failed; closing still disables it
-        job_error(PROG, f"quick stop failed: {exc}")
 
 
 # --- a robot file: every joint in one cycle ---------------------------------------------------
@@ -309,8 +350,6 @@ _SINGLE_JOINT_OPTIONS = (("--model", "model", None), ("--bus", "bus", None),
 def _robot_problems(args: argparse.Namespace, robot) -> list:
     """One optimal control problem per joint: the command line's horizon, step and weights,
     the robot file's weights and reference for the joint on top."""
-    from controller.mpc import JointProblem
-
     common = parse_assignments(args.weight, Weights.__dataclass_fields__, "--weight")
     if not 2 <= args.horizon <= MAX_HORIZON:
         raise ValueError(f"--horizon {args.horizon}: expected 2..{MAX_HORIZON} steps")
@@ -346,14 +385,12 @@ def _robot_parameters(robot, problems: list) -> dict:
         for joint, problem in zip(robot.joints, problems, strict=True)]}
 
 
-def _run_robot(args: argparse.Namespace, stop: threading.Event,
-               threads: ThreadFailures) -> int:
-    """`actuatord --robot FILE`: exit 0 when the run ends as asked, 1 when a joint failed
-    (every joint quick-stopped, the joint named), 2 for a bad file or option."""
+def _robot_setup(args: argparse.Namespace) -> "_Setup | int":
+    """`actuatord --robot FILE`: every joint of the file; the exit code 2 for a bad file or
+    option."""
     from commands.sim_options import parse_joint_fault
-    from controller.mpc import BatchMpc
     from robot.description import RobotFileError, load_robot
-    from robot.wiring import RobotConnection, open_robot
+    from robot.wiring import open_robot
 
     try:
         for option, key, default in _SINGLE_JOINT_OPTIONS:
@@ -379,86 +416,18 @@ def _run_robot(args: argparse.Namespace, stop: threading.Event,
             batch = BatchMpc(problems)  # compiled before any drive is opened
     except (RobotFileError, BusSpecError, ValueError) as exc:
         return usage_error(PROG, str(exc))
-
-    from controller.robot_loop import RobotLoop
-    from controller.telemetry import TelemetryPublisher
-    from driver import DriveError, ProfileError
-    from driver.clock import collector_off_the_cycle
-
     period = robot.period_us * 1e-6
-    apply_real_time(args, PROG)  # once compiled, for the reason given in the one-joint run
-    try:
-        session = open_session(args)
-    except ValueError as exc:
-        return usage_error(PROG, str(exc))
-    publisher = TelemetryPublisher(session, args.prefix, telemetry.ROBOT_TOPICS,
-                                   ros2_domain=args.ros2)
-    try:
+    return _Setup(
+        batch, [j.name for j in robot.joints], [j.model for j in robot.joints],
+        [problem.payload for problem in problems], period,
         # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host
-        connection: RobotConnection = open_robot(
-            robot, sim=args.sim, lockstep=args.lockstep, seed=args.seed, period=period,
-            response_timeout=1.0 if args.lockstep else 0.1, faults=faults)
-    except DriveOpenError as exc:
-        publisher.close()
-        session.close()
-        return job_error(PROG, str(exc))
-    group = connection.group
-    loop = RobotLoop(group, batch, LoopOptions(period=period, lockstep=args.lockstep,
-                                               duration=args.duration),
-                     [publisher.publish], lambda: publisher.dropped, stop,
-                     settle=TRACKING_SETTLE)
-    signal.signal(signal.SIGINT, lambda *_: loop.stop())
-    signal.signal(signal.SIGTERM, lambda *_: loop.stop())
-    failure = None
-    try:  # from here on the drives are open: whatever happens, they are stopped and closed
-        parameters = _robot_parameters(robot, problems)
-        publisher.serve_json(telemetry.PARAMETERS, lambda _: parameters)
-        # collected and frozen before the line goes to OP: a full collection of this heap
-        # held the interpreter past the slaves' 100 ms watchdog, the line's keeper waiting
-        with collector_off_the_cycle():
-            group.start()
-            print(f"actuatord: {len(group)} joints of {robot.name} on "
-                  f"{', '.join(robot.buses())}{' (--sim)' if args.sim else ''} enabled; "
-                  f"telemetry under {args.prefix}/", flush=True)
-            for clock in group.clocks:
-                print(f"actuatord: {clock.describe()}", flush=True)
-            report = loop.run()
-        if report.exit_code != 0:
-            failure = report.reason
-    except DriveError as exc:
-        report = loop.report
-        # a drive that does not fit its joint's model is refused before any is enabled
-        unfit = isinstance(exc.__cause__, ProfileError)
-        report.exit_code, report.reason = 2 if unfit else 1, str(exc)
-        failure = str(exc)
-    except Exception as exc:  # a bug or an input no check foresaw: the drives stop
-        report = loop.report
-        report.exit_code, report.reason = 1, internal_error(exc)
-        failure = report.reason
-    if threads.first is not None and failure is None:
-        report.exit_code, report.reason = 1, threads.first
-        failure = threads.first
-    try:
-        if failure is not None:
-            states = group.quick_stop_all()
-            print("actuatord: quick stop: " + ", ".join(f"{name} {state}"
-                                                          for name, state in states),
-                  flush=True)
-    finally:
-        connection.close()
-        publisher.close()
-        session.close()
-    if failure is not None:
-        (usage_error if report.exit_code == 2 else job_error)(PROG, failure)
-    print(f"actuatord: {report.summary()}", flush=True)
-    for clock in group.clocks:
-        print(f"actuatord: {clock.summary()}", flush=True)
-    _write_report(args, report)
-    rms = loop.tracking_rms()
-    print(f"actuatord: RMS tracking error after {TRACKING_SETTLE:g} s (mrad): " + ", ".join(
-        f"{name} {1e3 * value:.2g}" for name, value in zip(loop.names, rms,
-                                                           strict=True)), flush=True)
-    return report.exit_code
+        lambda: open_robot(robot, sim=args.sim, lockstep=args.lockstep, seed=args.seed,
+                           period=period, response_timeout=1.0 if args.lockstep else 0.1,
+                           faults=faults),
+        lambda connection: (f"{len(connection.group)} joints of {robot.name} on "
+                            f"{', '.join(robot.buses())}{' (--sim)' if args.sim else ''} "
+                            f"enabled; telemetry under {args.prefix}/"),
+        parameters=_robot_parameters(robot, problems))
 
 
 if __name__ == "__main__":

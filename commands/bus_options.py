@@ -283,9 +283,10 @@ def open_can_log(args: argparse.Namespace) -> CanLog:
 
 def open_drive(args: argparse.Namespace, model: ActuatorModel, sim_model: ActuatorModel,
                payload: Payload, schedule: Iterable[tuple[Fault, float]] = (),
-               **timing) -> Connection:
+               name: str = "joint", **timing) -> Connection:
     """The master drive for the bus or `--sim` the options name, with the embedded virtual
-    drive and the CAN log when asked for (`robot.wiring` opens them). Call after every option
+    drive and the CAN log when asked for (`robot.wiring` opens them), as a robot of one joint
+    named `name`. Call after every option
     is checked: this is where the drive is touched.
 
     `model` is what the master knows of the joint; `sim_model` and `payload` are the virtual
@@ -295,7 +296,7 @@ def open_drive(args: argparse.Namespace, model: ActuatorModel, sim_model: Actuat
     interface = None if args.sim else ethercat_interface(args)
     if interface is not None:
         return open_line_drive(args.bus, args.slave, model, esi=load_esi_option(args),
-                               eds=args.eds, lockstep=lockstep, **timing)
+                               eds=args.eds, name=name, lockstep=lockstep, **timing)
     config = None if args.sim else bus_config(args)
     can_log = None
     if args.can_log is not None:
@@ -306,7 +307,7 @@ def open_drive(args: argparse.Namespace, model: ActuatorModel, sim_model: Actuat
     if config is not None:
         try:
             return open_can_drive(config, args.node_id, model, eds=args.eds, can_log=can_log,
-                                  lockstep=lockstep, **timing)
+                                  name=name, lockstep=lockstep, **timing)
         except DriveOpenError as exc:
             if getattr(exc.__cause__, "errno", None) != errno.EAFNOSUPPORT:
                 raise
@@ -315,4 +316,4 @@ def open_drive(args: argparse.Namespace, model: ActuatorModel, sim_model: Actuat
                                  "sim-bus on the same bus)") from exc
     return open_embedded_drive(model, sim_model, payload, args.node_id, seed=args.seed,
                                eds=args.eds, schedule=schedule, can_log=can_log,
-                               lockstep=lockstep, **timing)
+                               name=name, lockstep=lockstep, **timing)

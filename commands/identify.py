@@ -2,9 +2,12 @@
 paper's total least squares, written as a model TOML that sim-bus, actuatord and model-gap
 accept."""
 
+from __future__ import annotations
+
 import datetime
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from commands.file_options import check_output_file, check_output_folder
 from commands.log_options import (
@@ -20,19 +23,12 @@ from commands.model_options import (
     parse_payload,
 )
 from commands.parsing import CommandParser, doc_description, positive_float, usage_error
-from model.identify import (
-    CUTOFF_HZ,
-    PARAMETERS,
-    Experiment,
-    IdentificationError,
-    Identified,
-    identify,
-)
-from model.model_file import write_model
-from model.parameters import ActuatorModel, ModelFileError
-from model.plots import identification_figures
-from recorder.reader import load_recording
-from recorder.recording import Recording, RecordingError
+from model.defaults import CUTOFF_HZ
+
+if TYPE_CHECKING:
+    from model.identify import Experiment, Identified
+    from model.parameters import ActuatorModel
+    from recorder.recording import Recording
 
 PROG = "identify"
 
@@ -57,6 +53,8 @@ def build_parser() -> CommandParser:
 
 
 def _experiment(recording: Recording, payload) -> Experiment:
+    from model.identify import Experiment
+
     recording.with_joint_torque()
     return Experiment(recording.t, recording.q, recording.current, recording.joint_torque,
                       payload, recording.source)
@@ -66,6 +64,13 @@ def _experiment(recording: Recording, payload) -> Experiment:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)
+    # the numerical code once the arguments parsed: `--help` and a usage error answer
+    # without importing scipy and numba
+    from model.identify import IdentificationError, identify
+    from model.parameters import ModelFileError
+    from recorder.reader import load_recording
+    from recorder.recording import RecordingError
+
     try:
         check_output_file("-o", args.output, [("NOLOAD", args.no_load), ("LOAD", args.load),
                                               ("--model", args.model)])
@@ -95,6 +100,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{result.rmsd_motor:.3f} N.m, joint {result.rmsd_joint:.3f} N.m (paper: 0.6 N.m); "
           f"{result.rows} rows -> {args.output}")
     if args.plots:
+        from model.plots import identification_figures
+
         try:
             for path in identification_figures(result, Path(args.plots)):
                 print(f"{PROG}: wrote {path}")
@@ -105,6 +112,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def table(result: Identified, nominal: ActuatorModel) -> str:
+    from model.identify import PARAMETERS
+
     lines = [f"{'parameter':26s} {'default':>9s} {'identified':>11s} {'rel. std':>9s}"]
     for name in PARAMETERS:
         lines.append(f"{name:26s} {getattr(nominal.parameters, name):9.4f} "
@@ -115,6 +124,9 @@ def table(result: Identified, nominal: ActuatorModel) -> str:
 
 def write_identified(path: Path, result: Identified, nominal: ActuatorModel, no_load: str,
                      load: str) -> None:
+    from model.identify import PARAMETERS
+    from model.model_file import write_model
+
     date = datetime.date.today().isoformat()
     origin = (f"identified from {no_load} and {load} on {date} (total least squares, "
               f"condition number {result.condition_number:.1f})")

@@ -15,20 +15,7 @@ from commands.log_options import (
 )
 from commands.model_options import load_model_option
 from commands.parsing import CommandParser, doc_description, positive_float, usage_error
-from model.gap import (
-    HORIZON,
-    GapError,
-    build_report,
-    find_gap,
-    improved_provenance,
-    summary,
-)
-from model.identify import Experiment
-from model.model_file import write_atomically, write_model
-from model.parameters import ModelFileError, Payload
-from model.plots import gap_figures
-from recorder.reader import load_recording
-from recorder.recording import RecordingError
+from model.defaults import HORIZON
 
 PROG = "model-gap"
 
@@ -53,6 +40,16 @@ def build_parser() -> CommandParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(PROG, args.log_level)
+    # the numerical code once the arguments parsed: `--help` and a usage error answer
+    # without importing scipy and numba
+    from model.gap import GapError, build_report, find_gap, improved_provenance, summary
+    from model.identify import Experiment
+    from model.model_file import write_atomically, write_model
+    from model.parameters import ModelFileError, Payload
+    from model.plots import gap_figures
+    from recorder.reader import load_recording
+    from recorder.recording import RecordingError
+
     try:
         inputs = [("--model", args.model), *(("RECORDING", path) for path in args.recordings)]
         for option, path in (("--report", args.report), ("-o", args.output)):

@@ -7,11 +7,16 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Iterable
+from typing import TYPE_CHECKING
 
 from commands.file_options import check_input_option
 from commands.parsing import non_negative_float
-from model.parameters import GRAVITY, ActuatorModel, Payload, load_model
 from protocol.input_files import present
+
+# model.parameters (and numba with it) is imported where a model is used, not here: every
+# command's parser is built from this module, and `--help` should answer at once
+if TYPE_CHECKING:
+    from model.parameters import ActuatorModel, Payload
 
 
 def add_model_argument(parser: argparse.ArgumentParser,
@@ -23,6 +28,8 @@ def load_model_option(path: str | None, option: str = "--model") -> ActuatorMode
     """The model a `--model FILE` names (None: the packaged defaults), stat'ed before it is
     read so a device, a FIFO or a huge file is refused at once. ModelFileError or ValueError
     names the file."""
+    from model.parameters import load_model
+
     if path is not None and present(path):  # a missing file: load_model says so
         check_input_option(option, path, "a model TOML")
     return load_model(path)
@@ -72,6 +79,7 @@ def check_payload(model: ActuatorModel, payload: Payload) -> None:
     """Refuse a payload the drive could not hold: with it, the arm's gravity torque at its
     worst angle, g |(MX, MY)|, would exceed the drive's peak torque, so no controller keeps the
     joint anywhere but hanging (and absurd values overflow the physics)."""
+    from model.parameters import GRAVITY
 
     loaded = model.parameters.with_payload(payload)
     gravity = GRAVITY * math.hypot(loaded.first_moment_x, loaded.first_moment_y)

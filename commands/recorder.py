@@ -231,7 +231,7 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
         return usage_error(PROG, str(exc))
 
     from driver import DriveError, ProfileError
-    from driver.clock import collector_off_the_cycle
+    from driver.clock import clock_for, collector_off_the_cycle
     from recorder.experiment import run_trajectory
     from recorder.mcap_io import McapRecorder
     from recorder.tracking import TrackingLaw
@@ -249,7 +249,7 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
             notice.done()
         return job_error(PROG, str(exc))
     notice = notice or CompileNotice(PROG)
-    drive = connection.drive
+    group = connection.group
     metadata = {
         "payload_mass": payload.mass, "payload_position": f"{payload.x},{payload.y}",
         "experiment": "sinusoid" if args.sinusoid else "exciting_trajectory",
@@ -279,10 +279,10 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     started = time.perf_counter()
     code = 0
     try:
-        drive.start()
+        group.start()
         with collector_off_the_cycle():
-            report = run_trajectory(drive, trajectory, law, model.limits, [record],
-                                    args.lockstep, bar, stop)
+            report = run_trajectory(group, trajectory, law, model.limits, [record],
+                                    clock_for(args.lockstep), bar, stop)
         if writer.failure is not None:
             code = 1  # reported below, once the file is closed
         elif stop.is_set():
@@ -291,10 +291,10 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
                   file=sys.stderr)
         elif report.exit_code != 0:
             code = job_error(PROG, report.reason)
-    except ProfileError as exc:  # the drive does not fit the model: refused before enabling
-        code = usage_error(PROG, str(exc))
     except DriveError as exc:
-        code = job_error(PROG, str(exc))
+        # a drive that does not fit the model is refused before enabling: bad input
+        unfit = isinstance(exc.__cause__, ProfileError)
+        code = (usage_error if unfit else job_error)(PROG, str(exc))
     finally:
         connection.close()
         # the samples that reached the writer, however the run ended

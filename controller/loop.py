@@ -1,12 +1,19 @@
-"""The control loop: read the sample, decide, command the current, publish. Clocked by SYNC.
+"""The control loop: every joint of a robot in one cycle, one joint being a robot of one.
 
-One loop for every policy (the MPC, an experiment's tracking law) with the same safety net
-around it (`controller.safety`). In real time the loop sleeps to each period's deadline before
-triggering the SYNC; in lock-step (the virtual drive) it runs as fast as the drive answers, and
-time is the drive's. Requests from outside (a new reference, new weights) are queued and applied
-at the start of a cycle, so the policy never sees a half-made change. Every sample and decision
-goes to the subscribers as typed telemetry messages (`controller.messages`), in this thread: a
-subscriber that does I/O hands the message to its own thread.
+Each period: one group sync (one SYNC per CAN bus, one frame per EtherCAT line, every joint
+sampled in the same cycle), the samples stacked into one table, the batch safety screen, one
+call of the policy for every joint that passed (the batched MPC: one compiled call), the
+batch check of each decision, one command per joint sent before the next sync, and the
+cycle's telemetry. In real time the loop sleeps to each period's deadline before the sync; in
+lock-step (virtual drives) it runs as fast as the drives answer, and time is the drives'.
+Requests from outside (a new reference, new weights) are queued and applied at the start of a
+cycle, so the policy never sees a half-made change. Every message goes to the subscribers as a
+typed telemetry message (`controller.messages`), in this thread: a subscriber that does I/O
+hands the message to its own thread.
+
+A failure of any joint's drive ends the run: the caller quick-stops every drive
+(`driver.drive_group.DriveGroup.quick_stop_all`), since the other joints' plans assumed that
+one would move as planned.
 """
 
 import collections
@@ -15,13 +22,22 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple, Protocol
+
+import numpy as np
 
 from controller import messages
+from controller import workspace as ws
+from controller.ilqr import CONVERGED, MAX_ITERATIONS, STATUS_NAMES
 from controller.messages import Subscriber
-from controller.policy import Policy
-from controller.safety import SafeCommand, SafetyNet
-from driver import CommandRangeError, Drive, DriveError, Sample
-from driver.clock import CycleClock, RingStats
+from controller.mpc import COLD, BatchMpc, Mpc
+from controller.policy import PlanSnapshot, Policy
+from controller.reference import reference_at
+from controller.safety import NOT_FINITE, BatchSafety, SafetyNet
+from driver import DriveError, Sample
+from driver.clock import CycleClock, DriveClock, RingStats, WallClock
+from driver.interface import SAMPLE_POSITION, SAMPLE_STATUSWORD, SAMPLE_T, SAMPLE_VELOCITY
+from model.parameters import ActuatorParameters, Limits
 from protocol import cia402
 
 STALL_CYCLES = 10  # missed in a row: worth a message on the fault topic
@@ -33,12 +49,17 @@ LATE_WAKE_UP, LATE_SAMPLE, DECISION, PUBLISH = ("late wake-up", "late sample",
 MISSED_CAUSES = (LATE_WAKE_UP, LATE_SAMPLE, DECISION, PUBLISH)
 HISTORY_KEYS = ("t", "position", "velocity", "reference", "current", "planned_current",
                 "motor_current", "joint_torque")
+QUICK_STOPPED = "every joint quick-stopped, then disabled"  # what the caller does on failure
+# by the solver's status code: its name, and whether its decision may go out
+_STATUS_NAMES = np.array(STATUS_NAMES, dtype=object)
+_USABLE = np.array([code in (CONVERGED, MAX_ITERATIONS) for code in range(len(STATUS_NAMES))])
 
 
 @dataclass
 class LoopOptions:
     period: float = 1e-3  # s
-    lockstep: bool = False
+    # the wall clock in real time, drive time in lock-step (`driver.clock.clock_for`)
+    clock: WallClock | DriveClock = field(default_factory=WallClock)
     duration: float | None = None  # s of drive time; None runs until stopped
     plan_every: int = 10  # cycles between Plan messages
     stats_every: float = 1.0  # s of drive time between LoopStats messages
@@ -103,21 +124,187 @@ class LoopReport:
             self.missed_by_cause[cause] += cycles
 
 
-class CycleLoop:
-    """The rhythm every control loop keeps, whatever it drives (one joint: `ControlLoop`; a
-    robot: `controller.robot_loop.RobotLoop`): wait for the period's deadline (real time) or
-    not (lock-step), report a stall, apply queued requests at the cycle start, run the cycle,
-    time the decision (the first, cold one apart, after which the deadlines start), publish
-    LoopStats every `stats_every` s of drive time, and end at the duration.
+class Joints(Protocol):
+    """What the loop needs of the drives (`driver.drive_group.DriveGroup`)."""
 
-    A subclass's `_cycle()` samples, decides and commands; it returns the decision's wall time
-    (s), or the report when the run ends there (`_finish`). `_published()` then sends the
-    cycle's messages, with `report.cycles` already counting this cycle."""
+    names: list[str]
+    period: float  # s
 
-    def __init__(self, options: LoopOptions, subscribers: Sequence[Subscriber] = (),
-                 dropped: Callable[[], int] = lambda: 0, stop: threading.Event | None = None):
+    def sync(self) -> np.ndarray:
+        """This cycle's samples, a row per joint (`driver.interface.SAMPLE_*` columns)."""
+
+    def command_currents(self, currents: np.ndarray) -> None: ...
+
+    def warnings(self) -> list[str]: ...
+
+    def clock_trim(self) -> float:
+        """s to move the next deadline by (0 unless a line keeps a clock of its own)."""
+
+
+class Decided(NamedTuple):
+    """What the policy decided for every joint this cycle."""
+
+    header: np.ndarray  # (joints, ws.HEADER): the MPC rows' headers (the same columns for
+    # another policy): planned current, reference, status code, iterations, cost
+    ok: np.ndarray  # per joint: the policy succeeded (its planned current may go out)
+    status: list[str]  # per joint: the solver's status name, or the policy's own word
+    finished: bool  # the policy's job is done (an experiment's trajectory is over)
+
+
+class JointPolicies(Protocol):
+    """What decides every joint's command: the batched MPC (`MpcJoints`) or one policy per
+    joint (`PolicyJoints`, e.g. an experiment's tracking law)."""
+
+    parameters: list[ActuatorParameters]  # per joint, payload included (for holding)
+    limits: list[Limits]  # per joint: what the safety net enforces
+
+    def decide(self, t: float, table: np.ndarray, believed: np.ndarray,
+               safety: BatchSafety) -> Decided:
+        """Decide for every `believed` joint of the samples `table`; the others were told
+        to start afresh (`joint(j).reset()`) and are not asked."""
+
+    def joint(self, index: int) -> Policy:
+        """One joint as its safety net sees it (reference, reset, limits)."""
+
+    def plan(self, index: int, t: float) -> PlanSnapshot | None: ...
+
+
+class _BatchJoint:
+    """One joint of the batched MPC as its safety net sees it: the net asks for the
+    reference and tells the joint to start afresh; the batch is ticked by the loop, once."""
+
+    def __init__(self, batch: BatchMpc, index: int):
+        self._batch, self._index = batch, index
+        joint = batch.joints[index]
+        self.parameters = joint.parameters
+        self.limits = joint.limits
+
+    def reference_at(self, t: float) -> tuple[float, float]:
+        q, qd = reference_at(self._batch.joints[self._index].reference_packed, t)
+        return float(q), float(qd)
+
+    def reset(self) -> None:
+        self._batch.skip(self._batch.joints[self._index])
+
+
+class MpcJoints:
+    """The batched MPC as the loop's policy: every believed joint's state written into its
+    row, one compiled call, the decisions read off the rows' headers as arrays."""
+
+    def __init__(self, batch: BatchMpc):
+        self.batch = batch
+        self._joints = [_BatchJoint(batch, j) for j in range(len(batch))]
+        self.parameters = [joint.parameters for joint in self._joints]
+        self.limits = [joint.limits for joint in self._joints]
+
+    def decide(self, t: float, table: np.ndarray, believed: np.ndarray,
+               safety: BatchSafety) -> Decided:
+        rows = self.batch.rows  # read each cycle: a new horizon rebuilds the batch
+        positions = table[:, SAMPLE_POSITION]
+        if believed.all():
+            rows[:, ws.POSITION] = positions
+            rows[:, ws.VELOCITY] = table[:, SAMPLE_VELOCITY]
+        else:  # the others were set to skip this tick by their nets
+            rows[believed, ws.POSITION] = positions[believed]
+            rows[believed, ws.VELOCITY] = table[believed, SAMPLE_VELOCITY]
+        cold = rows[:, ws.MODE] == COLD
+        if cold.any():  # a cold start begins from the current that holds the joint
+            rows[cold, ws.INITIAL_CURRENT] = safety.hold_currents(positions)[cold]
+        self.batch.run(t)
+        header = rows[:, :ws.HEADER].copy()
+        codes = header[:, ws.STATUS].astype(np.intp)
+        return Decided(header, _USABLE[codes], _STATUS_NAMES[codes].tolist(), False)
+
+    def joint(self, index: int) -> _BatchJoint:
+        return self._joints[index]
+
+    def plan(self, index: int, t: float) -> PlanSnapshot:
+        return self.batch.plan(self.batch.joints[index], t)
+
+
+class PolicyJoints:
+    """One `Policy` per joint (an experiment's tracking law, a test's holding law), each
+    ticked with its joint's sample; their decisions in the MPC's header columns."""
+
+    def __init__(self, policies: Sequence[Policy]):
+        self.policies = list(policies)
+        self.parameters = [policy.parameters for policy in self.policies]
+        self.limits = [policy.limits for policy in self.policies]
+
+    def decide(self, t: float, table: np.ndarray, believed: np.ndarray,
+               safety: BatchSafety) -> Decided:
+        count = len(self.policies)
+        header = np.zeros((count, ws.HEADER))
+        ok = np.zeros(count, dtype=bool)
+        status = [NOT_FINITE] * count
+        finished = False
+        for j in np.flatnonzero(believed):
+            row = table[j].tolist()
+            decision = self.policies[j].tick(Sample(*row[:SAMPLE_STATUSWORD],
+                                                    int(row[SAMPLE_STATUSWORD])))
+            h = header[j]
+            h[ws.PLANNED_CURRENT] = decision.planned_current
+            h[ws.REFERENCE_POSITION] = decision.reference_position
+            h[ws.REFERENCE_VELOCITY] = decision.reference_velocity
+            h[ws.ITERATIONS] = decision.iterations
+            h[ws.ROLLOUTS] = decision.rollouts
+            h[ws.COST] = decision.cost
+            ok[j], status[j] = decision.ok, decision.status
+            finished = finished or decision.finished
+        return Decided(header, ok, status, finished)
+
+    def joint(self, index: int) -> Policy:
+        return self.policies[index]
+
+    def plan(self, index: int, t: float) -> PlanSnapshot | None:
+        return self.policies[index].plan(t)
+
+
+def joint_policies(policy: "JointPolicies | BatchMpc | Mpc | Policy | Sequence[Policy]"
+                   ) -> JointPolicies:
+    """What the loop asks for, from what callers have: the batched MPC (a robot's, or a
+    single joint's `Mpc`, itself a batch of one), or one policy per joint."""
+    if isinstance(policy, BatchMpc):
+        return MpcJoints(policy)
+    if isinstance(policy, Mpc):
+        return MpcJoints(policy.batch)
+    if isinstance(policy, MpcJoints | PolicyJoints):
+        return policy
+    if isinstance(policy, Sequence):
+        return PolicyJoints(policy)
+    return PolicyJoints([policy])
+
+
+class ControlLoop:
+    """The cycle works on arrays over the joints (the samples stacked into one table, the
+    policy's decisions, the batch safety net): a handful of numpy operations a cycle whatever
+    the number of joints, where a Python call per joint per field cost a millisecond for the
+    whole TALOS. The per-joint nets remain for the rare joint the batch screens out, to name
+    why.
+
+    The rhythm: wait for the period's deadline (real time) or not (lock-step), report a
+    stall, apply queued requests at the cycle start, run the cycle, time the decision (the
+    first, cold one apart, after which the deadlines start), publish LoopStats every
+    `stats_every` s of drive time, and end at the duration, when the policy is done, or when
+    a drive fails.
+
+    A robot of several joints publishes one `JointStates` message a cycle; a robot of one
+    joint publishes that joint's own view (State, Command, SolverStats, a Plan every
+    `plan_every` cycles), the topics dashboards and recordings of one joint read."""
+
+    def __init__(self, joints: Joints, policy: "JointPolicies | BatchMpc | Mpc | Policy",
+                 options: LoopOptions, subscribers: Sequence[Subscriber] = (),
+                 dropped: Callable[[], int] = lambda: 0, stop: threading.Event | None = None,
+                 settle: float = 0.0):
         """`dropped` counts the messages subscribers could not pass on (for LoopStats); `stop`,
-        when given, is the caller's flag to end the run (a signal handler sets it)."""
+        when given, is the caller's flag to end the run (a signal handler sets it); `settle`
+        (s of drive time): tracking errors count from then on (the approach from where a
+        joint rests to its reference is not tracking)."""
+        self.policy = policies = joint_policies(policy)
+        self.names = list(joints.names)
+        count = len(self.names)
+        if len(policies.limits) != count:
+            raise ValueError(f"{count} joints, {len(policies.limits)} policies")
         self.options = options
         self._subscribers = tuple(subscribers)
         self._dropped = dropped
@@ -126,8 +313,25 @@ class CycleLoop:
         self._stop = stop if stop is not None else threading.Event()
         self.report = LoopReport()
         self._t: float | None = None  # drive time of the last sample (None before the first)
-        self._mpc_time = 0.0  # s the last cycle spent in the policy's own call (set by _cycle)
-        self._exchange_time = 0.0  # s the last cycle waited for its sample (set by _cycle)
+        self._mpc_time = 0.0  # s the last cycle spent in the policy's own call
+        self._exchange_time = 0.0  # s the last cycle waited for its samples
+        self._joints = joints
+        self._nets = [SafetyNet(policies.joint(j)) for j in range(count)]
+        self._safety = BatchSafety(policies.parameters, policies.limits)
+        self.failed_joint: str | None = None  # the joint whose failure ended the run
+        # per joint: sum of squared tracking errors and their count (for tracking_rms)
+        self._squared_error = np.zeros(count)
+        self._tracked = 0
+        self._settle = settle
+        self.latest: np.ndarray | None = None  # the last cycle's samples, a row per joint
+        self._enabled_names = [cia402.State.OPERATION_ENABLED.value] * count
+        self._currents = np.zeros(count)
+        self._decided: Decided | None = None
+        self._fallbacks: dict[int, str] = {}  # joint -> why the net overrode it this cycle
+        self._published = self._joint_view if count == 1 else self._robot_view
+        self._history = {key: [] for key in HISTORY_KEYS}
+        if options.keep_history:
+            self.report.history = self._history
 
     @property
     def time(self) -> float:
@@ -149,33 +353,38 @@ class CycleLoop:
     def fault(self, t: float, source: str, cause: str, action: str) -> None:
         self.publish(messages.fault(t, source, cause, action))
 
-    def _clock_trim(self) -> float:
-        """s to move the next deadline by (a loop whose drives keep a clock of their own)."""
-        return 0.0
+    def tracking_rms(self) -> list[float]:
+        """rad, each joint's RMS of position minus reference over the run (after `settle`)."""
+        if not self._tracked:
+            return [math.nan] * len(self.names)
+        return [float(v) for v in np.sqrt(self._squared_error / self._tracked)]
 
     def run(self) -> LoopReport:
         """Run until stopped, the duration is reached, the policy is done or a drive fails.
         The caller owns the drives' life cycle (start before, close after: close always
-        disables them)."""
+        disables them; quick-stop every one first when the run failed)."""
         options, report = self.options, self.report
-        clock = report.clock = CycleClock(options.period, options.lockstep)
+        clock = report.clock = CycleClock(options.period, options.clock)
         next_stats = options.stats_every
         missed = 0
         behind: dict[str, float] = dict.fromkeys(MISSED_CAUSES, 0.0)  # the last cycle's phases
+        perf_counter, requests = time.perf_counter, self._requests
+        # an EtherCAT line on distributed clocks leads the cycle's clock
+        joints_clock_trim = self._joints.clock_trim
         while not self._stop.is_set():
-            report.count_missed(behind, clock.wait(self._clock_trim()))
+            report.count_missed(behind, clock.wait(joints_clock_trim()))
             if clock.missed_cycles - missed >= STALL_CYCLES and self._t is not None:
                 self.fault(self._t, "controller",
                            f"loop stalled: {clock.missed_cycles - missed} cycles missed",
                            "continuing from the next sample")
             missed = clock.missed_cycles
-            while self._requests:
-                self._requests.popleft()()
-            started = time.perf_counter()
+            while requests:
+                requests.popleft()()
+            started = perf_counter()
             decide_time = self._cycle()
-            if isinstance(decide_time, LoopReport):
+            if decide_time.__class__ is LoopReport:
                 return decide_time
-            master_time = time.perf_counter() - started - self._mpc_time
+            master_time = perf_counter() - started - self._mpc_time
             if report.cycles == 0:
                 # the cold solve runs once before the rhythm starts: timed on its own, and the
                 # deadlines begin after it
@@ -188,28 +397,133 @@ class CycleLoop:
                 report.solve.add(decide_time * 1e6)
                 report.master.add(master_time * 1e6)
             report.cycles += 1
-            published = time.perf_counter()
+            published = perf_counter()
             self._published(decide_time)
             t = self._t
             if t >= next_stats:
                 next_stats += options.stats_every
                 self.publish(self._stats(t))
-            phases[PUBLISH] = time.perf_counter() - published
+            phases[PUBLISH] = perf_counter() - published
             behind = phases
             if options.duration is not None and t >= options.duration - 1e-9:
                 return self._finish(0, f"ran {options.duration} s", t=t)
-            if self._done():
+            if self._decided.finished:
                 return self._finish(0, "the policy finished", t=t)
         return self._finish(0, "stop requested", t=self.time)
 
     def _cycle(self) -> "float | LoopReport":
-        raise NotImplementedError
+        """Sample, decide and command: the decision's wall time (s), or the report when the
+        run ends here."""
+        joints, safety = self._joints, self._safety
+        exchange = time.perf_counter()
+        try:
+            table = self.latest = joints.sync()
+            self._exchange_time = time.perf_counter() - exchange
+        except DriveError as exc:
+            return self._fail(exc, self.time + self.options.period)
+        t = self._t = float(table[0, SAMPLE_T])
+        for warning in joints.warnings():
+            self.fault(t, "drive", warning, "continuing: the command does not use it")
+        statuswords = table[:, SAMPLE_STATUSWORD].astype(np.int64)
+        enabled = (statuswords & cia402.OPERATION_ENABLED_MASK) == cia402.OPERATION_ENABLED_BITS
+        if not enabled.all():
+            j = int(np.argmin(enabled))
+            name, self.failed_joint = self.names[j], self.names[j]
+            state = cia402.state_from_statusword(int(statuswords[j])).value
+            return self._finish(1, f"joint {name}: drive left operation enabled: {state}",
+                                "drive", QUICK_STOPPED, t)
+        start = time.perf_counter()
+        positions, velocities = table[:, SAMPLE_POSITION], table[:, SAMPLE_VELOCITY]
+        believed = safety.believed(positions, velocities)
+        everyone = believed.all()
+        fallbacks = self._fallbacks = {}
+        if not everyone:  # rare: the per-joint nets say why, and hold those joints
+            for j in np.flatnonzero(~believed):
+                sample = Sample(*table[j, :SAMPLE_STATUSWORD], int(table[j, SAMPLE_STATUSWORD]))
+                fallbacks[int(j)] = self._nets[j].screen(sample).fault
+        mpc_start = time.perf_counter()
+        decided = self._decided = self.policy.decide(t, table, believed, safety)
+        self._mpc_time = time.perf_counter() - mpc_start
+        header, ok, status, _ = decided
+        planned = header[:, ws.PLANNED_CURRENT]
+        usable = ok & np.isfinite(planned)
+        if everyone and usable.all():  # every cycle but a rare one
+            currents = safety.clipped(planned)
+        else:
+            currents = safety.checked_currents(positions, planned, usable)
+            if fallbacks:  # a joint screened out: the net's command for it
+                currents = np.where(believed, currents,
+                                    safety.screened_currents(positions, velocities))
+            for j in np.flatnonzero(believed & ~usable):
+                fallbacks[int(j)] = f"solver {status[j]}: holding position"
+            for j in fallbacks:
+                if not believed[j]:  # decided by the net alone: no solver ran for it
+                    status[j] = NOT_FINITE
+                    h = header[j]
+                    h[ws.PLANNED_CURRENT] = math.nan
+                    h[ws.ITERATIONS] = h[ws.ROLLOUTS] = 0
+                    h[ws.COST] = math.inf
+                    h[ws.REFERENCE_POSITION], h[ws.REFERENCE_VELOCITY] = (
+                        self._nets[j].policy.reference_at(t))
+        self._currents = currents
+        decide_time = time.perf_counter() - start
+        try:
+            joints.command_currents(currents)
+        except DriveError as exc:
+            return self._fail(exc, t)
+        return decide_time
 
-    def _published(self, decide_time: float) -> None:
-        raise NotImplementedError
+    def _robot_view(self, decide_time: float) -> None:
+        """A robot's cycle: one JointStates message with every joint."""
+        t, table, (header, _, status, _) = self._t, self.latest, self._decided
+        fallback = np.zeros(len(self.names), dtype=bool)
+        fallback[list(self._fallbacks)] = True
+        self.publish(messages.joint_states(t, self.names, table, self._enabled_names,
+                                           self._currents, header, status, fallback,
+                                           decide_time))
+        self._fallback_faults(t)
+        self._track(t, table, header)
 
-    def _done(self) -> bool:
-        return False
+    def _joint_view(self, decide_time: float) -> None:
+        """A robot of one joint: the joint's own State, Command and SolverStats (and a Plan
+        every `plan_every` cycles), the topics of a single-joint dashboard or recording."""
+        t, sample = self._t, self.latest[0].tolist()
+        header, _, status, _ = self._decided
+        h = header[0].tolist()
+        current = float(self._currents[0])
+        fallback = 0 in self._fallbacks
+        limits = self.policy.limits[0]
+        for message in messages.joint_view(t, sample, self._enabled_names[0], current, h,
+                                           status[0], fallback, limits, decide_time):
+            self.publish(message)
+        self._fallback_faults(t)
+        if self.report.cycles % self.options.plan_every == 0:
+            snapshot = self.policy.plan(0, t)
+            if snapshot is not None:
+                self.publish(messages.plan(snapshot))
+        self._track(t, self.latest, header)
+        if self.options.keep_history:
+            for key, value in zip(HISTORY_KEYS, (
+                    t, sample[SAMPLE_POSITION], sample[SAMPLE_VELOCITY],
+                    h[ws.REFERENCE_POSITION], current, h[ws.PLANNED_CURRENT],
+                    *sample[SAMPLE_VELOCITY + 1:SAMPLE_STATUSWORD]), strict=True):
+                self._history[key].append(value)
+
+    def _fallback_faults(self, t: float) -> None:
+        for j, why in self._fallbacks.items():
+            self.report.fallbacks += 1
+            self.fault(t, "controller", f"joint {self.names[j]}: {why}",
+                       f"commanded {self._currents[j]:.3f} A (safe command)")
+
+    def _track(self, t: float, table: np.ndarray, header: np.ndarray) -> None:
+        if t >= self._settle:
+            error = table[:, SAMPLE_POSITION] - header[:, ws.REFERENCE_POSITION]
+            self._squared_error += error * error
+            self._tracked += 1
+
+    def _fail(self, exc: DriveError, t: float) -> LoopReport:
+        self.failed_joint = getattr(exc, "joint", None)
+        return self._finish(1, f"drive failed: {exc}", "drive", QUICK_STOPPED, t)
 
     def _stats(self, t: float):
         report = self.report
@@ -226,77 +540,3 @@ class CycleLoop:
             self.fault(t, source, reason, action or "")
         self.publish(self._stats(t))
         return self.report
-
-
-class ControlLoop(CycleLoop):
-    """One joint: its sample, its policy behind the safety net, its command."""
-
-    def __init__(self, drive: Drive, policy: Policy, options: LoopOptions,
-                 subscribers: Sequence[Subscriber] = (),
-                 dropped: Callable[[], int] = lambda: 0, stop: threading.Event | None = None):
-        super().__init__(options, subscribers, dropped, stop)
-        self._drive = drive
-        self.policy = policy
-        self._net = SafetyNet(policy)
-        self.latest: Sample | None = None  # the last sample the loop took
-        self._statusword: int | None = None
-        self._state: cia402.State | None = None
-        self._safe: SafeCommand | None = None
-        self._history = {key: [] for key in HISTORY_KEYS}
-        if options.keep_history:
-            self.report.history = self._history
-
-    def _cycle(self) -> "float | LoopReport":
-        drive, period = self._drive, self.options.period
-        exchange = time.perf_counter()
-        try:
-            sample = drive.sync()
-            self._exchange_time = time.perf_counter() - exchange
-        except DriveError as exc:
-            return self._finish(1, f"drive failed: {exc}", "drive",
-                                "stopped commanding; drive disabled on exit",
-                                self.time + period if self.latest else 0.0)
-        self.latest, self._t = sample, sample.t
-        for warning in drive.warnings():
-            self.fault(sample.t, "drive", warning, "continuing: the command does not use it")
-        if sample.statusword != self._statusword:
-            self._statusword = sample.statusword
-            self._state = cia402.state_from_statusword(sample.statusword)
-        if self._state is not cia402.State.OPERATION_ENABLED:
-            return self._finish(1, f"drive left operation enabled: {self._state.value}",
-                                "drive", "stopped commanding; drive disabled on exit", sample.t)
-        start = time.perf_counter()
-        safe = self._safe = self._net.decide(sample)
-        decide_time = self._mpc_time = time.perf_counter() - start
-        try:
-            drive.command_current(safe.current)
-        except (CommandRangeError, DriveError) as exc:
-            source = "controller" if isinstance(exc, CommandRangeError) else "drive"
-            return self._finish(1, f"command refused: {exc}", source,
-                                "stopped commanding; drive disabled on exit", sample.t)
-        return decide_time
-
-    def _published(self, decide_time: float) -> None:
-        sample, safe = self.latest, self._safe
-        t = sample.t
-        publish = self.publish
-        publish(messages.state(sample, self._state.value))
-        publish(messages.command(t, safe, self._net.limits))
-        publish(messages.solver_stats(t, safe, decide_time))
-        if safe.fault is not None:
-            self.report.fallbacks += 1
-            self.fault(t, "controller", safe.fault,
-                       f"commanded {safe.current:.3f} A (safe command)")
-        if self.report.cycles % self.options.plan_every == 0:
-            snapshot = self.policy.plan(t)
-            if snapshot is not None:
-                publish(messages.plan(snapshot))
-        if self.options.keep_history:
-            for key, value in zip(HISTORY_KEYS, (
-                    t, sample.position, sample.velocity, safe.decision.reference_position,
-                    safe.current, safe.decision.planned_current, sample.motor_current,
-                    sample.joint_torque), strict=True):
-                self._history[key].append(value)
-
-    def _done(self) -> bool:
-        return self._safe.decision.finished

@@ -11,12 +11,11 @@ from google.protobuf.message import Message
 
 from controller import workspace as ws
 from controller.policy import PlanSnapshot
-from controller.safety import SafeCommand
-from driver import Sample
 from driver.interface import (
     SAMPLE_JOINT_TORQUE,
     SAMPLE_MOTOR_CURRENT,
     SAMPLE_POSITION,
+    SAMPLE_STATUSWORD,
     SAMPLE_VELOCITY,
 )
 from model.parameters import Limits
@@ -31,8 +30,7 @@ LoopStats = telemetry.message_class("LoopStats")
 
 JointStates = telemetry.message_class("JointStates")
 
-_TOPICS = {telemetry.message_class(name): topic
-           for topic, name in (*telemetry.TOPICS.items(), *telemetry.ROBOT_TOPICS.items())}
+_TOPICS = {telemetry.message_class(name): topic for topic, name in telemetry.TOPICS.items()}
 
 Subscriber = Callable[[Message], None]
 
@@ -42,26 +40,28 @@ def topic_of(message: Message) -> str:
     return _TOPICS[type(message)]
 
 
-def state(sample: Sample, drive_state: str) -> Message:
-    return State(t=sample.t, position=sample.position, velocity=sample.velocity,
-                 motor_current=sample.motor_current, joint_torque=sample.joint_torque,
-                 statusword=sample.statusword, drive_state=drive_state)
-
-
-def command(t: float, safe: SafeCommand, limits: Limits) -> Message:
-    decision = safe.decision
-    return Command(t=t, current=safe.current, planned_current=decision.planned_current,
-                   reference_position=decision.reference_position,
-                   reference_velocity=decision.reference_velocity,
-                   current_limit=limits.current_max, position_min=limits.position_min,
-                   position_max=limits.position_max, saturated=safe.saturated,
-                   fallback=safe.fault is not None)
-
-
-def solver_stats(t: float, safe: SafeCommand, decide_time: float) -> Message:
-    decision = safe.decision
-    return SolverStats(t=t, solve_time_us=decide_time * 1e6, iterations=decision.iterations,
-                       rollouts=decision.rollouts, status=decision.status, cost=decision.cost)
+def joint_view(t: float, sample: list, drive_state: str, current: float, header: list,
+               status: str, fallback: bool, limits: Limits, decide_time: float
+               ) -> tuple[Message, Message, Message]:
+    """One joint's cycle as its own State, Command and SolverStats, from the cycle's row of
+    samples (`sample`: `driver.Sample` fields as a list) and the decision's header
+    (`header`: a `controller.workspace` header as a list); `current` went out, `fallback`
+    says the safety net chose it."""
+    planned = header[ws.PLANNED_CURRENT]
+    return (State(t=t, position=sample[SAMPLE_POSITION], velocity=sample[SAMPLE_VELOCITY],
+                  motor_current=sample[SAMPLE_MOTOR_CURRENT],
+                  joint_torque=sample[SAMPLE_JOINT_TORQUE],
+                  statusword=int(sample[SAMPLE_STATUSWORD]), drive_state=drive_state),
+            Command(t=t, current=current, planned_current=planned,
+                    reference_position=header[ws.REFERENCE_POSITION],
+                    reference_velocity=header[ws.REFERENCE_VELOCITY],
+                    current_limit=limits.current_max, position_min=limits.position_min,
+                    position_max=limits.position_max,
+                    saturated=not fallback and planned != current, fallback=fallback),
+            SolverStats(t=t, solve_time_us=decide_time * 1e6,
+                        iterations=int(header[ws.ITERATIONS]),
+                        rollouts=int(header[ws.ROLLOUTS]), status=status,
+                        cost=header[ws.COST]))
 
 
 def plan(snapshot: PlanSnapshot) -> Message:

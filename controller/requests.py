@@ -1,7 +1,9 @@
-"""Requests from outside (Zenoh queryables): read the parameters, change the reference or the
-cost weights. Validated here (in the queryable's thread, never the loop's), applied by the loop
-at the start of a cycle, and every change, accepted or refused, leaves an audit line on
-{prefix}/audit.
+"""Requests from outside (Zenoh queryables): read the parameters, change a joint's reference or
+cost weights (every joint of a robot has its own, at {prefix}/joints/{name}/reference and
+.../weights; a robot of one joint also at {prefix}/reference and {prefix}/weights, see
+`protocol.telemetry`). Validated here (in the queryable's thread, never the loop's), applied
+by the loop at the start of a cycle, and every change, accepted or refused, leaves an audit
+line on {prefix}/audit naming the joint.
 
 A request is a small flat JSON object. Whatever a client sends, the work done for it is
 bounded before any of it is parsed, so no body can hold the interpreter lock long enough to
@@ -20,8 +22,8 @@ import math
 from collections.abc import Callable
 from typing import NamedTuple
 
-from controller.loop import ControlLoop
-from controller.mpc import Mpc
+from controller.loop import ControlLoop, MpcJoints
+from controller.mpc import JointRow
 from controller.problem import UnsafeWeights, Weights
 from controller.reference import ReferenceError, reference_from_dict
 from model.parameters import ActuatorModel, Payload
@@ -115,10 +117,12 @@ def parse_weights(spec: object) -> dict[str, float]:
 
 
 def audit_line(time: str, t: float, request: str, body: Body, excerpt: bytes, accepted: bool,
-               reason: str) -> str:
+               reason: str, joint: str = "") -> str:
     """One JSON audit line of at most AUDIT_LINE_MAX bytes: the payload is quoted as far as
-    the bound allows (its full size is given), the reason cut to REASON_MAX."""
-    fields = {"time": time, "t": t, "request": request, "payload_bytes": body.size,
+    the bound allows (its full size is given), the reason cut to REASON_MAX; `joint` names
+    the joint the request was for."""
+    fields = {"time": time, "t": t, "request": request, "joint": joint,
+              "payload_bytes": body.size,
               "payload": "", "accepted": accepted, "reason": cut(reason, REASON_MAX)}
     room = AUDIT_LINE_MAX - len(json.dumps(fields))
     quote = excerpt[:max(room, 0)].decode("utf-8", errors="replace")
@@ -133,13 +137,27 @@ def audit_line(time: str, t: float, request: str, body: Body, excerpt: bytes, ac
 
 
 class RequestHandler:
-    def __init__(self, loop: ControlLoop, mpc: Mpc, model: ActuatorModel, payload: Payload,
+    """The requests of one joint (`joint`: its index in the loop's robot) of a loop whose
+    policy is the batched MPC: its parameters, reference and weights."""
+
+    def __init__(self, loop: ControlLoop, joint: int, model: ActuatorModel, payload: Payload,
                  audit: Callable[[str], None]):
+        if not isinstance(loop.policy, MpcJoints):
+            raise TypeError("requests change the MPC's reference and weights: the loop's "
+                            "policy is not the MPC")
         self.loop = loop
-        self.mpc = mpc
+        self.index = joint
+        self.name = loop.names[joint]
+        self._batch = loop.policy.batch
         self.model = model
         self.payload = payload
         self.audit = audit
+
+    @property
+    def joint(self) -> JointRow:
+        """The joint's problem in the batch (looked up each time: a new horizon rebuilds the
+        batch)."""
+        return self._batch.joints[self.index]
 
     def parameters(self, body: Body) -> dict:
         """The model, limits, settings and reference; a query carrying a body over the limit
@@ -147,20 +165,20 @@ class RequestHandler:
         if body.size > MAX_BODY:
             return self._refuse("parameters", body, b"", f"body of {body.size} bytes refused "
                                 f"unread: a parameters query needs none (at most {MAX_BODY})")
-        mpc = self.mpc
-        p = mpc.parameters
+        joint = self.joint
+        p = joint.parameters
         parameters = {f.name: getattr(p, f.name) for f in dataclasses.fields(p)
                       if f.name != "effects"}
         parameters["effects"] = {name: p.effects.section(name) for name in p.effects.enabled()}
         return {"parameters": parameters,
                 "limits": vars(self.model.limits), "provenance": self.model.provenance,
                 "payload": vars(self.payload),
-                "settings": {"horizon": mpc.settings.horizon, "dt": mpc.settings.dt,
-                             "weights": vars(mpc.settings.weights),
-                             "sharpness": vars(mpc.settings.sharpness),
-                             "friction_sharpness": mpc.settings.friction_sharpness},
-                "reference": {"kind": type(mpc.reference).__name__.lower(),
-                              **vars(mpc.reference)}}
+                "settings": {"horizon": joint.settings.horizon, "dt": joint.settings.dt,
+                             "weights": vars(joint.settings.weights),
+                             "sharpness": vars(joint.settings.sharpness),
+                             "friction_sharpness": joint.settings.friction_sharpness},
+                "reference": {"kind": type(joint.reference).__name__.lower(),
+                              **vars(joint.reference)}}
 
     def set_reference(self, body: Body) -> dict:
         return self._change("reference", body, self._reference)
@@ -173,27 +191,28 @@ class RequestHandler:
             reference = reference_from_dict(spec, self.model.limits)
         except ReferenceError as exc:
             raise RequestError(str(exc)) from None
-        mpc = self.mpc
-        return lambda: mpc.set_reference(reference)
+        joint = self.joint
+        return lambda: joint.set_reference(reference)
 
     def _weights(self, spec: object) -> Callable[[], None]:
         changes = parse_weights(spec)
-        mpc = self.mpc
         try:  # checked against the weights in force, as a reference is against the limits
-            mpc.settings.with_weights(**changes).check_weights()
+            self.joint.settings.with_weights(**changes).check_weights()
         except UnsafeWeights as exc:
             raise RequestError(str(exc)) from None
-        loop = self.loop
+        loop, batch, name = self.loop, self._batch, self.name
 
         def apply() -> None:
             # again in the loop's thread: another change may have been applied in between
-            settings = mpc.settings.with_weights(**changes)
+            joint = self.joint
+            settings = joint.settings.with_weights(**changes)
             try:
                 settings.check_weights()
             except UnsafeWeights as exc:
-                loop.fault(loop.time, "request", f"weights refused: {exc}", "weights unchanged")
+                loop.fault(loop.time, "request", f"joint {name}: weights refused: {exc}",
+                           "weights unchanged")
                 return
-            mpc.set_settings(settings)
+            batch.set_settings(joint, settings)
 
         return apply
 
@@ -219,11 +238,14 @@ class RequestHandler:
         self._audit(what, body, excerpt, False, reason)
         loop = self.loop
         # published by the loop's thread, like all its telemetry
-        loop.request(lambda: loop.fault(loop.time, "request", f"{what} refused: {reason}",
+        name = self.name
+        loop.request(lambda: loop.fault(loop.time, "request",
+                                        f"joint {name}: {what} refused: {reason}",
                                         f"{what} unchanged"))
         return {"ok": False, "reason": reason}
 
     def _audit(self, what: str, body: Body, excerpt: bytes, accepted: bool,
                reason: str) -> None:
         now = datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds")
-        self.audit(audit_line(now, self.loop.time, what, body, excerpt, accepted, reason))
+        self.audit(audit_line(now, self.loop.time, what, body, excerpt, accepted, reason,
+                              self.name))

@@ -1,17 +1,17 @@
 """Zenoh side of actuatord: publishers fed from a queue by their own thread (the control loop
 never waits on the network, nor serialises), and the queryables for parameters and the
-reference."""
+reference and weights of every joint."""
 
 import collections
 import json
 import logging
 import threading
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 
 import zenoh
 
 from controller.messages import topic_of
-from controller.requests import Body
+from controller.requests import Body, RequestHandler
 from protocol import telemetry as schema
 
 log = logging.getLogger(__name__)
@@ -34,10 +34,12 @@ class TelemetryPublisher:
     waited for."""
 
     def __init__(self, session: zenoh.Session, prefix: str = schema.DEFAULT_PREFIX,
-                 topics: Iterable[str] = tuple(schema.TOPICS), ros2_domain: int | None = None):
-        """`topics`: the keys under the prefix to publish (`schema.ROBOT_TOPICS` for a
-        robot). `ros2_domain`: also publish `/joint_states` as rmw_zenoh does in that ROS
-        domain (a single joint is named by the prefix's last segment, e.g. `elbow`)."""
+                 topics: Iterable[str] = tuple(schema.topics(1)),
+                 ros2_domain: int | None = None):
+        """`topics`: the keys under the prefix to publish (`schema.topics(joints)`: one
+        joint's view by default). `ros2_domain`: also publish `/joint_states` as rmw_zenoh
+        does in that ROS domain (a single joint is named by the prefix's last segment, e.g.
+        `elbow`)."""
         self.session = session
         self.prefix = prefix
         self.dropped = 0
@@ -105,6 +107,18 @@ class TelemetryPublisher:
 
         self._queryables.append(
             self.session.declare_queryable(schema.key_expr(self.prefix, name), on_query))
+
+    def serve_requests(self, handlers: Sequence[RequestHandler]) -> None:
+        """Every joint's reference and weights queryables, {prefix}/joints/{name}/reference
+        and .../weights; a robot of one joint also keeps its own {prefix}/reference and
+        {prefix}/weights."""
+        for handler in handlers:
+            self.serve_json(schema.joint_key(handler.name, schema.REFERENCE),
+                            handler.set_reference)
+            self.serve_json(schema.joint_key(handler.name, schema.WEIGHTS), handler.set_weights)
+        if len(handlers) == 1:
+            self.serve_json(schema.REFERENCE, handlers[0].set_reference)
+            self.serve_json(schema.WEIGHTS, handlers[0].set_weights)
 
     def _run(self) -> None:
         while not self._closing.wait(DRAIN_PERIOD):

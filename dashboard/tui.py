@@ -32,7 +32,7 @@ HISTORY = 200  # points in the scrolling plots: 10 s at REFRESH_HZ
 BAR_WIDTH = 40
 # not the large plan; `joints` is actuatord --robot's one message with every joint
 LATEST_ONLY = ("state", "command", "solver", "loop_stats", "joints")
-CLASSES = {**telemetry.TOPICS, **telemetry.ROBOT_TOPICS}
+CLASSES = telemetry.TOPICS
 FAULTS_KEPT = 1000  # faults waiting for the next frame; a fault storm drops the oldest
 
 

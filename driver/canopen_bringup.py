@@ -10,7 +10,7 @@ from canopen.objectdictionary import ObjectDictionary
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from driver.canopen_cycle import PlannedPdo
-from driver.interface import DriveError, ProfileError
+from driver.interface import DriveError, ProfileError, SdoRefused
 from protocol import cia301, objects
 from protocol.dictionary import default_value, has, variable
 from protocol.pdo import MappedObject, PdoLayout
@@ -44,6 +44,9 @@ class SdoAccess:
         var = self._variable(index, subindex)
         try:
             self.node.sdo.download(index, subindex, var.encode_raw(value))
+        except SdoAbortedError as exc:
+            raise SdoRefused(f"{self.name}: SDO write 0x{index:04X}:{subindex:02X} = {value} "
+                             f"aborted: {cia301.sdo_abort_name(exc.code)}", exc.code) from exc
         except _BUS_ERRORS as exc:
             raise DriveError(f"{self.name}: SDO write 0x{index:04X}:{subindex:02X} = {value} "
                              f"failed: {exc}") from exc

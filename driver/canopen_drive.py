@@ -1,12 +1,14 @@
 """`CanOpenDrive`: the CiA 402 layer over the CANopen transport, what the commands build for
 `--bus` and `--sim`."""
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import canopen
 
 from driver.canopen_transport import DEFAULT_HEARTBEAT_MS, CanOpenTransport, open_network
 from driver.cia402_drive import Cia402Drive
+from protocol.dictionary import StartupParameter
 
 __all__ = ["CanOpenDrive", "open_network"]
 
@@ -16,7 +18,8 @@ class CanOpenDrive(Cia402Drive):
 
     `velocity_limit` (rad/s, the joint's) sets the encoder-glitch guard; `drive_gain` (N.m/A,
     the model's) converts currents for drives commanded in torque; `eds` is the drive's EDS
-    (default: the shipped elbow drive); `lockstep` makes every watchdog count cycles.
+    (default: the shipped elbow drive); `lockstep` makes every watchdog count cycles;
+    `startup` are objects written in PRE-OPERATIONAL and read back (see `Cia402Drive`).
     ProfileError if the EDS lacks what the loop needs (nothing is sent to the drive then).
     """
 
@@ -24,13 +27,14 @@ class CanOpenDrive(Cia402Drive):
                  period: float = 1e-3, drive_gain: float | None = None,
                  current_max: float | None = None,
                  eds: str | Path | None = None, lockstep: bool = False,
-                 response_timeout: float = 1.0, heartbeat_ms: int = DEFAULT_HEARTBEAT_MS):
+                 response_timeout: float = 1.0, heartbeat_ms: int = DEFAULT_HEARTBEAT_MS,
+                 startup: Sequence[StartupParameter] = ()):
         transport = CanOpenTransport(network, node_id, eds=eds, lockstep=lockstep,
                                      response_timeout=response_timeout,
                                      heartbeat_ms=heartbeat_ms)
         try:
             super().__init__(transport, velocity_limit=velocity_limit, period=period,
-                             drive_gain=drive_gain, current_max=current_max)
+                             drive_gain=drive_gain, current_max=current_max, startup=startup)
         except Exception:
             transport.close()
             raise

@@ -10,7 +10,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from canopen.emcy import EmcyError
@@ -24,12 +24,14 @@ from driver.interface import (
     EncoderGlitch,
     ProfileError,
     Sample,
+    SdoRefused,
 )
 from driver.profile import Profile, Scaling, read_scaling, select_profile
 from driver.sample_guard import SampleGuard
 from driver.transport import Transport
 from protocol import cia301, cia402, objects
 from protocol.cia402 import State
+from protocol.dictionary import StartupParameter, variable
 
 log = logging.getLogger(__name__)
 
@@ -56,13 +58,15 @@ class Cia402Drive(Drive):
     `velocity_limit` (rad/s) is the joint's, for the sample guard; `drive_gain` (N.m/A) is
     the model's, needed when the drive is commanded in torque (0x6071); `current_max` (A) is
     the most the controller will command: a drive that accepts less is refused at start,
-    before it is enabled (ProfileError). The profile is chosen
+    before it is enabled (ProfileError). `startup` are the robot file's objects for this drive,
+    written right after boot (PRE-OP / PRE-OPERATIONAL) and read back. The profile is chosen
     from the transport's dictionary here, before any traffic: ProfileError if the drive lacks
     what the loop needs.
     """
 
     def __init__(self, transport: Transport, *, velocity_limit: float, period: float = 1e-3,
-                 drive_gain: float | None = None, current_max: float | None = None):
+                 drive_gain: float | None = None, current_max: float | None = None,
+                 startup: Sequence[StartupParameter] = ()):
         if not 50e-6 <= period <= 1.0:
             raise ValueError(f"period {period} s outside 50 us .. 1 s")
         self.transport = transport
@@ -70,6 +74,7 @@ class Cia402Drive(Drive):
         self.period = period
         self.drive_gain = drive_gain
         self.current_max = current_max
+        self.startup = tuple(startup)
         self.profile: Profile = select_profile(transport.dictionary, drive_gain)
         self.guard = SampleGuard(velocity_limit, period)
         self.scaling: Scaling | None = None
@@ -93,6 +98,7 @@ class Cia402Drive(Drive):
         t = self.transport
         t.boot(BOOT_TIMEOUT)
         self._booted = True  # from here on the drive is ours to leave disabled
+        self._write_startup()
         self.scaling = read_scaling(self.profile, t.read, t.dictionary, self.drive_gain)
         self.current_limit = self.scaling.current_limit
         if self.current_max is not None and self.current_max > self.current_limit * (1 + 1e-9):
@@ -105,6 +111,31 @@ class Cia402Drive(Drive):
         t.write(objects.MODES_OF_OPERATION, 0, self.profile.mode)
         t.map_process_data(self.profile.outputs, self.profile.inputs)
         t.start(self.period)
+
+    def _write_startup(self) -> None:
+        """The start-up parameters, in order, each read back: before the scaling is read, so
+        a changed limit (0x6073, 0x6072) is the one the master plans with. A drive that
+        refuses one, or keeps another value, stops the start in one line naming the object
+        and the abort code in words (the robot file was checked against the EDS already, so
+        this is the drive's own answer)."""
+        t = self.transport
+        for index, subindex, value in self.startup:
+            var = variable(t.dictionary, index, subindex)
+            what = f"start-up parameter 0x{index:04X}:{subindex:02X}" + (
+                f" ({var.name})" if var is not None else "")
+            try:
+                t.write(index, subindex, value)
+                if var is not None and var.access_type == "wo":
+                    continue  # nothing to read back
+                kept = t.read(index, subindex)
+            except SdoRefused as exc:
+                raise SdoRefused(f"{self.name}: {what} = {value} refused by the drive: "
+                                 f"{cia301.sdo_abort_name(exc.abort_code)}",
+                                 exc.abort_code) from exc
+            expected = var.decode_raw(var.encode_raw(value)) if var is not None else value
+            if kept != expected:
+                raise DriveError(f"{self.name}: {what} = {value} written, the drive reads back "
+                                 f"{kept}")
 
     def start(self) -> None:
         self.configure()

@@ -1,6 +1,10 @@
-"""The master's cycle clock: when to trigger the next SYNC. Real time sleeps to each period's
-deadline (and records how late it woke); lock-step returns at once, the drive's time being
-whatever the SYNC count says."""
+"""The time a loop is given, and its cycle clock: when to trigger the next SYNC.
+
+Two clocks answer the same two questions, what time it is and "wake me at this deadline": the
+wall clock (real time: sleeping to a deadline sleeps, and a host that wakes the loop late is
+seen) and drive time (lock-step with virtual drives: time passes only as the drives cycle, so
+"sleeping" to a deadline is drive time reaching it, at once, on every run alike). What runs on
+a clock has one code path whichever it is given; `clock_for` is where the choice is made."""
 
 import contextlib
 import gc
@@ -97,17 +101,56 @@ class RingStats:
         return np.roll(self._values[:n], -start)
 
 
+class WallClock:
+    """Real time: the monotonic wall clock (s, `time.perf_counter`)."""
+
+    now = staticmethod(time.perf_counter)
+
+    @staticmethod
+    def sleep_until(deadline: float) -> None:
+        """Sleep to `deadline` (s on this clock): sleep until SPIN_BEFORE_DEADLINE before it,
+        then spin (a sleep wakes up to ~100 us late; the spin makes the wake-up exact)."""
+        remaining = deadline - time.perf_counter()
+        if remaining > SPIN_BEFORE_DEADLINE:
+            time.sleep(remaining - SPIN_BEFORE_DEADLINE)
+        while time.perf_counter() < deadline:
+            pass
+
+
+class DriveClock:
+    """Lock-step: drive time (s), which passes only as the drives cycle. Waiting for a
+    deadline is the drives cycling up to it, so it returns at once with the clock there: a
+    lock-step loop is never late and runs as fast as the drives answer."""
+
+    def __init__(self) -> None:
+        self._now = 0.0
+
+    def now(self) -> float:
+        return self._now
+
+    def sleep_until(self, deadline: float) -> None:
+        self._now = max(self._now, deadline)
+
+
+def clock_for(lockstep: bool) -> WallClock | DriveClock:
+    """The clock of a run: drive time in lock-step (virtual drives), else the wall clock."""
+    return DriveClock() if lockstep else WallClock()
+
+
 class CycleClock:
-    def __init__(self, period: float, lockstep: bool):
+    """The loop's rhythm on the clock it is given: a deadline each period, the deadlines a
+    late cycle skipped counted as missed, the wake-ups' lateness and period jitter."""
+
+    def __init__(self, period: float, clock: WallClock | DriveClock):
         self.period = period
-        self.lockstep = lockstep
+        self.clock = clock
         self.missed_cycles = 0
         self.jitter_us = RingStats()  # |actual - nominal period| between wake-ups
         self.restart()
 
     def restart(self) -> None:
         """Deadlines count from now (after a long first cycle, say)."""
-        self._deadline = time.perf_counter()
+        self._deadline = self.clock.now()
         self._last_wake: float | None = None
         self.wake_lateness = 0.0
 
@@ -115,31 +158,27 @@ class CycleClock:
         """Return at the next deadline; a deadline already more than a period past is skipped
         and counted as missed. Returns the deadlines this call skipped (what came before it,
         the previous cycle or the host, overran); `wake_lateness` is how late this wake-up
-        came after its deadline (s, 0 in lock-step). `trim` (s) moves this deadline: an
-        EtherCAT line on distributed clocks keeps the cycle on its reference clock."""
+        came after its deadline (s). `trim` (s) moves this deadline: an EtherCAT line on
+        distributed clocks keeps the cycle on its reference clock."""
+        clock, period = self.clock, self.period
+        self._deadline += period + trim
+        now = clock.now()
         late = 0
-        if not self.lockstep:
-            self._deadline += self.period + trim
-            now = time.perf_counter()
-            if now > self._deadline + self.period:
-                late = int((now - self._deadline) / self.period)
-                self.missed_cycles += late
-                self._deadline += late * self.period
-            remaining = self._deadline - time.perf_counter()
-            if remaining > SPIN_BEFORE_DEADLINE:
-                time.sleep(remaining - SPIN_BEFORE_DEADLINE)
-            while time.perf_counter() < self._deadline:
-                pass
-        wake = time.perf_counter()
-        self.wake_lateness = wake - self._deadline if not self.lockstep else 0.0
+        if now > self._deadline + period:
+            late = int((now - self._deadline) / period)
+            self.missed_cycles += late
+            self._deadline += late * period
+        clock.sleep_until(self._deadline)
+        wake = clock.now()
+        self.wake_lateness = wake - self._deadline
         if self._last_wake is not None:
-            self.jitter_us.add(abs(wake - self._last_wake - self.period) * 1e6)
+            self.jitter_us.add(abs(wake - self._last_wake - period) * 1e6)
         self._last_wake = wake
         return late
 
     def check_overrun(self) -> bool:
         """Call when the cycle's work is done: counts it as missed if it overran its period."""
-        if not self.lockstep and time.perf_counter() > self._deadline + self.period:
+        if self.clock.now() > self._deadline + self.period:
             self.missed_cycles += 1
             return True
         return False
@@ -153,7 +192,7 @@ def bare_loop(duration: float, period: float = 1e-3,
     the missed cycles and the jitter."""
     refused = prefer_real_time(priority) if priority else None
     try:
-        clock = CycleClock(period, lockstep=False)
+        clock = CycleClock(period, WallClock())
         for _ in range(int(round(duration / period))):
             clock.wait()
             clock.check_overrun()

@@ -27,6 +27,7 @@ from driver.interface import (
     SAMPLE_VELOCITY,
     CommandRangeError,
     DriveError,
+    DriveFault,
     EncoderGlitch,
     Sample,
 )
@@ -58,6 +59,10 @@ class Segment:
     def __init__(self, name: str, joints: Sequence[tuple[str, Cia402Drive]]):
         self.name = name
         self.joints = list(joints)
+
+    def failed(self, joint: str, exc: DriveError) -> JointFailure:
+        """`exc`, met while working on `joint`, as the failure of the joint it concerns."""
+        return JointFailure(joint, exc)
 
     def started(self) -> None:
         """Every drive of the group is up; cycles begin."""
@@ -153,6 +158,16 @@ class EthercatLine(Segment):
     emergencies and naming the joint that failed; a line whose slaves do not share one PDO
     layout (different drives on one line) runs each drive's own path instead."""
 
+    def failed(self, joint: str, exc: DriveError) -> JointFailure:
+        """The line's own failure (`driver.ethercat_master.LineFailure`) names the joint of
+        the first slave it blames (a slave that refused a state or left OP, one that did not
+        answer), not whichever joint's call met it."""
+        positions = getattr(exc, "positions", ())
+        if positions:
+            joint = next((name for name, drive in self.joints
+                          if drive.transport.position == positions[0]), joint)
+        return JointFailure(joint, exc)
+
     def started(self) -> None:
         drives = [drive for _, drive in self.joints]
         transports = [drive.transport for drive in drives]
@@ -196,16 +211,30 @@ class EthercatLine(Segment):
                 out += [f"joint {joint}: {warning}" for warning in drive.warnings()]
         return out
 
+    def _check_line(self, joint: str) -> None:
+        """A drive reported a fault: a slave that left OP is the cause to name first (its
+        drive's fault is the reaction to it, EMCY 0xA000)."""
+        try:
+            self._line.check_states()
+        except DriveError as exc:
+            raise self.failed(joint, exc) from exc
+
     def collect(self) -> np.ndarray:
         if not self._image:
-            return super().collect()
+            try:
+                return super().collect()
+            except JointFailure as failure:
+                if isinstance(failure.cause, DriveFault):
+                    self._check_line(failure.joint)
+                raise self.failed(failure.joint, failure.cause) from failure.cause
         for joint, drive in self.joints:
             if drive.fault is not None:
+                self._check_line(joint)
                 raise JointFailure(joint, drive.fault)
         try:
             self._transports[0].exchange()  # this cycle's frame, for every slave on the line
         except DriveError as exc:
-            raise JointFailure(self.joints[0][0], exc) from exc
+            raise self.failed(self.joints[0][0], exc) from exc
         with self._line.lock:  # the line's keeper may be sending a frame
             data = b"".join([slave.input for slave in self._slaves])
         raw = np.frombuffer(data, self._in_dtype)
@@ -244,6 +273,7 @@ class EthercatLine(Segment):
         if faulted.any():  # the drive's own path names the emergency behind it
             j = int(np.argmax(faulted))
             joint, drive = self.joints[j]
+            self._check_line(joint)
             try:
                 drive.take(lambda: tuple(int(v) for v in raw[j]))
             except DriveError as exc:
@@ -253,7 +283,12 @@ class EthercatLine(Segment):
     def command(self, currents: np.ndarray) -> None:
         """This cycle's motor currents (A), one per joint of the line, out in the next frame."""
         if not self._image:
-            return super().command(currents)
+            try:
+                return super().command(currents)
+            except JointFailure as failure:
+                if isinstance(failure.cause, DriveFault):
+                    self._check_line(failure.joint)
+                raise
         bad = ~(np.abs(currents) <= self._current_limit)  # NaN is bad too
         if bad.any():
             j = int(np.argmax(bad))
@@ -264,6 +299,7 @@ class EthercatLine(Segment):
                 raise JointFailure(joint, exc) from exc
         for joint, drive in self.joints:
             if drive.fault is not None:
+                self._check_line(joint)
                 raise JointFailure(joint, drive.fault)
         outputs = self._outputs
         outputs["f0"] = cia402.Command.ENABLE_OPERATION.value
@@ -291,6 +327,9 @@ class DriveGroup:
         # each segment's joints' places in joint order (for their commands)
         self._rows = [np.array([self.names.index(joint) for joint, _ in segment.joints],
                                dtype=np.intp) for segment in segments]
+        # one segment with its joints in order (a robot of one, a single line): the samples
+        # and commands need no reordering, a cycle no indexing
+        self._whole = len(self.segments) == 1 and self._in_order
         self.period = self.drives[0].period
         self.clocks: list[DcLine] = []
         self._closed = False
@@ -302,12 +341,13 @@ class DriveGroup:
         """Configure every drive, then enable every one, in joint order: a drive that does not
         fit its joint is refused before any is enabled. A failure names the joint (the caller
         closes the group, which disables those already enabled)."""
+        segment_of = {joint: segment for segment in self.segments for joint, _ in segment.joints}
         for step in ("configure", "enable"):
             for name, drive in zip(self.names, self.drives, strict=True):
                 try:
                     getattr(drive, step)()
                 except DriveError as exc:
-                    raise JointFailure(name, exc) from exc
+                    raise segment_of[name].failed(name, exc) from exc
         for segment in self.segments:
             segment.started()
         # the distributed clocks of the lines that run on them (made as the lines went to OP)
@@ -317,6 +357,10 @@ class DriveGroup:
     def sync(self) -> np.ndarray:
         """One cycle: trigger every segment, then every joint's sample, a row per joint in
         joint order (`driver.interface.SAMPLE_*` columns)."""
+        if self._whole:
+            segment = self.segments[0]
+            segment.trigger()
+            return segment.collect()
         for segment in self.segments:
             segment.trigger()
         tables = [segment.collect() for segment in self.segments]
@@ -326,6 +370,9 @@ class DriveGroup:
     def command_currents(self, currents: Sequence[float]) -> None:
         """One motor current (A) per joint, in joint order, applied from the next cycle."""
         currents = np.asarray(currents, dtype=float)
+        if self._whole:
+            self.segments[0].command(currents)
+            return
         for segment, rows in zip(self.segments, self._rows, strict=True):
             segment.command(currents[rows])
 
@@ -363,3 +410,9 @@ class DriveGroup:
         for segment in self.segments:
             segment.close()
 
+
+
+def single_joint(drive: Cia402Drive, name: str = "joint") -> DriveGroup:
+    """One drive as a robot of one joint named `name`: alone on its segment, its own `sync`
+    each cycle (the drive's transport sends its SYNC or its line's frame)."""
+    return DriveGroup([name], [Segment(name, [(name, drive)])])

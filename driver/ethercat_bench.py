@@ -1,14 +1,17 @@
 """How fast an EtherCAT line runs from this master: lock-step cycles per second (the next frame
-sent as soon as the last came back) and the frame round trip at a real-time period (send to
-receive of the one frame per cycle, median and p99). Measured against whatever line is on the
-interface (`sim_bus.ethercat.netns` makes a virtual one); `bus-bench` prints the figures."""
+sent as soon as the last came back), the frame round trip at a real-time period (send to
+receive of the one frame per cycle, median and p99), and the read of every slave's AL status
+the line makes every STATE_CHECK_FRAMES cycles (median and p99). Measured against whatever
+line is on the interface (`sim_bus.ethercat.netns` makes a virtual one); `bus-bench` prints
+the figures."""
 
 import os
 import time
 
 import numpy as np
 
-from driver.clock import CycleClock, prefer_real_time
+from driver.clock import CycleClock, clock_for, prefer_real_time
+from driver.ethercat_master import STATE_CHECK_FRAMES
 from driver.ethercat_transport import EthercatTransport, open_ethercat_transports
 from protocol import objects
 from protocol.dictionary import mapped_object, variable
@@ -41,7 +44,8 @@ def _cycle(transports: list[EthercatTransport], outputs: tuple[int, ...]) -> Non
 def measure_line(interface: str, slaves: int, cycles: int = 5000,
                  period: float = 1e-3, sync: str = "free_run") -> dict:
     """{'slaves', 'lockstep_cycles_per_s', 'round_trip_median_us', 'round_trip_p99_us',
-    'missed_cycles'} for the first `slaves` slaves on `interface` (the line must be there).
+    'missed_cycles', 'state_check_median_us', 'state_check_p99_us'} for the first `slaves`
+    slaves on `interface` (the line must be there).
     `sync` "dc": the line on distributed clocks, the real-time cycles following the reference
     clock, with the propagation delays measured and the master-to-reference-clock offset
     ('dc_delays_ns', 'dc_offset' median/p99/max in us after settling); no lock-step figure
@@ -64,7 +68,7 @@ def measure_line(interface: str, slaves: int, cycles: int = 5000,
                 _cycle(transports, outputs)
             rate = round(cycles / (time.perf_counter() - start))
         line = transports[0].line
-        clock = CycleClock(period, lockstep=False)
+        clock = CycleClock(period, clock_for(lockstep=False))
         round_trips = np.empty(cycles)
         for k in range(cycles):
             clock.wait(line.clock_trim())
@@ -78,6 +82,11 @@ def measure_line(interface: str, slaves: int, cycles: int = 5000,
                           "p99_us": round(line.dc.offsets_ns.percentile(99) / 1e3, 1),
                           "max_us": round(line.dc.offsets_ns.max / 1e3, 1),
                           "cycles": line.dc.offsets_ns.count}}
+        checks = np.empty(cycles // STATE_CHECK_FRAMES)
+        for k in range(len(checks)):
+            t0 = time.perf_counter()
+            line.check_states()
+            checks[k] = time.perf_counter() - t0
         return {
             **figures,
             "slaves": slaves,
@@ -87,6 +96,8 @@ def measure_line(interface: str, slaves: int, cycles: int = 5000,
             "round_trip_p99_us": round(float(np.percentile(round_trips, 99)) * 1e6, 1),
             "period_us": round(period * 1e6),
             "missed_cycles": clock.missed_cycles,
+            "state_check_median_us": round(float(np.median(checks)) * 1e6, 1),
+            "state_check_p99_us": round(float(np.percentile(checks, 99)) * 1e6, 1),
         }
     finally:
         if refused is None:

@@ -11,6 +11,7 @@ import pysoem
 
 from driver.cia402_drive import Cia402Drive
 from driver.ethercat_transport import open_ethercat_transports
+from protocol.dictionary import StartupParameter
 from protocol.esi import EsiDevice
 
 
@@ -19,13 +20,17 @@ class JointOnLine:
     """One joint's drive on the line: its slave position (0-based, in line order), its
     velocity limit (rad/s, for the sample guard), its model's drive gain (N.m/A, to command
     current through target torque 0x6071), where a robot file names one, its own EDS (else
-    the line's `eds`), and the most current its controller commands (A, checked at start)."""
+    the line's `eds`), the most current its controller commands (A, checked at start), and
+    the joint's name (named with its slave in the line's reports), and its start-up parameters
+    (written in PRE-OP, read back: `driver.cia402_drive.Cia402Drive`)."""
 
     position: int
     velocity_limit: float
     drive_gain: float
     eds: str | Path | None = None
     current_max: float | None = None
+    name: str | None = None
+    startup: tuple[StartupParameter, ...] = ()
 
 
 def open_ethercat_drives(interface: str, joints: Sequence[JointOnLine], *,
@@ -45,13 +50,14 @@ def open_ethercat_drives(interface: str, joints: Sequence[JointOnLine], *,
         interface, [j.position for j in joints], lockstep=lockstep, esi=esi,
         eds=[j.eds if j.eds is not None else eds for j in joints],
         response_timeout=response_timeout, watchdog=watchdog, open_master=open_master,
-        sync=sync)
+        names=[j.name for j in joints], sync=sync)
     drives = []
     try:
         for joint, transport in zip(joints, transports, strict=True):
             drives.append(Cia402Drive(transport, velocity_limit=joint.velocity_limit,
                                       current_max=joint.current_max,
-                                      period=period, drive_gain=joint.drive_gain))
+                                      period=period, drive_gain=joint.drive_gain,
+                                      startup=joint.startup))
     except Exception:
         for transport in transports:
             transport.close()

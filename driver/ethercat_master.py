@@ -9,7 +9,16 @@ each joint its slave, and the first `exchange` of a cycle sends the one frame of
 Working counter: the frame comes back with every slave's contribution (+2 for the outputs it
 took, +1 for the inputs it gave); anything less means a slave is gone or left OP. The master
 stops the line at once (sticky failure) and names the slaves that are not in OP, with their
-state and AL status code, as read right after the failed frame.
+state and AL status code, as read right after the failed frame (SOEM's simple_test does the
+same with ecx_readstate), and those that did not answer that read at all.
+
+A slave that leaves OP on its own (a sync error, a local restart) keeps answering the cyclic
+frame: an ESC counts the process data it moves whatever the application's state, so the
+working counter stays whole. The master therefore reads every slave's AL status every
+STATE_CHECK_FRAMES cycles (one broadcast read while all are in OP), and whenever a drive
+reports a fault, so the slave that left is named with its AL status code before its drive's
+reaction (EMCY 0xA000) is taken for the cause. Slaves carry their joint's name where the
+robot gives one (`names`).
 """
 
 import logging
@@ -40,6 +49,23 @@ DEFAULT_DC_PERIOD = 1e-3  # s: SYNC0 period when no transport said (start sets i
 DC_OP_TIMEOUT = 1.0  # s for the slaves to take OP at a SYNC0 (the first comes 100 ms after set-up)
 DC_OP_CHECK_FRAMES = 8  # DC: frames between two reads of the slaves' states on the way to OP
 DC_SETTLE_FRAMES = 2  # DC: frames before the first cycle (see `settle`)
+# cycles between two reads of the slaves' AL status: a slave out of OP is named within 10 ms
+# at 1 kHz, at the cost of one broadcast read in ten cycles (counted in cycles, so lock-step
+# finds it in the same cycle every run)
+STATE_CHECK_FRAMES = 10
+
+
+class LineFailure(DriveError):
+    """What particular slaves of the line did (0-based `positions`, in the order the message
+    names them), so a drive group can name their joints: a state change refused."""
+
+    def __init__(self, message: str, positions: tuple[int, ...] = ()):
+        super().__init__(message)
+        self.positions = positions
+
+
+class LineLost(LineFailure, DriveLost):
+    """The line stopped mid-run: a frame short of its working counter, or slaves out of OP."""
 
 
 class EthercatMaster:
@@ -79,6 +105,7 @@ class EthercatMaster:
         self.watchdog = watchdog
         self.master: pysoem.Master | None = None
         self.slaves: list = []
+        self.names: dict[int, str] = {}  # position -> joint name, where the robot gives one
         self.frames = 0  # cyclic frames sent since the line went operational
         self.failure: DriveError | None = None
         self.operational = False
@@ -282,12 +309,24 @@ class EthercatMaster:
         if master.state_check(state, STATE_TIMEOUT_US) == state:
             return
         master.read_state()
-        stuck = [self._describe(position, slave) for position, slave in enumerate(self.slaves)
+        stuck = [position for position, slave in enumerate(self.slaves)
                  if slave.state & ec.AL_STATE_MASK != state]
-        raise DriveError(f"EtherCAT {self.interface}: {name} refused: " + "; ".join(stuck))
+        raise LineFailure(f"EtherCAT {self.interface}: {name} refused: "
+                          + "; ".join(self._describe(position) for position in stuck),
+                          tuple(stuck))
 
-    def _describe(self, position: int, slave) -> str:
-        text = f"slave {position} in {ec.al_state_name(slave.state)}"
+    def label(self, position: int) -> str:
+        """'slave 3 (arm_left_4_joint)', or 'slave 3' where no joint name is known."""
+        name = self.names.get(position)
+        return f"slave {position}" + (f" ({name})" if name else "")
+
+    def _describe(self, position: int) -> str:
+        """The slave's state and AL status code in words, as last read; a slave whose state
+        read back as 0 did not answer the read (SOEM leaves a missing slave's record zero)."""
+        slave = self.slaves[position]
+        if not slave.state & ec.AL_STATE_MASK:
+            return f"{self.label(position)} did not answer (gone from the line?)"
+        text = f"{self.label(position)} in {ec.al_state_name(slave.state)}"
         if slave.state & ec.AL_ERROR or slave.al_status:
             text += f", AL status code {ec.al_status_name(slave.al_status)}"
         return text
@@ -296,12 +335,40 @@ class EthercatMaster:
 
     def cycle(self) -> None:
         """Send the one frame of this cycle and check its working counter (DC: and the
-        master's offset from the reference clock)."""
+        master's offset from the reference clock); every STATE_CHECK_FRAMES cycles, every
+        slave's AL status too."""
         with self.lock:
             self.frames += 1
             self._frame()
             if self.dc is not None:
                 self.dc.observe(self.master.dc_time, self._sent_at)
+            if self.frames % STATE_CHECK_FRAMES == 0:
+                self._check_states()
+
+    def check_states(self) -> None:
+        """Read every slave's AL status now (a drive reported a fault: its slave may have left
+        OP, which is then the cause to name); LineFailure naming each slave in the cycle that
+        is not in OP. Nothing to do before OP or once the line has failed."""
+        with self.lock:
+            if self.failure is not None:
+                raise self.failure
+            if self.operational:
+                self._check_states()
+
+    def _check_states(self) -> None:
+        try:
+            self.master.read_state()
+        except pysoem.WkcError:
+            return  # the next frame's working counter tells
+        out = [position for position, slave in enumerate(self.slaves)
+               if position not in self._released
+               and slave.state & ec.AL_STATE_MASK != pysoem.OP_STATE]
+        if out:
+            self.failure = LineLost(
+                f"EtherCAT {self.interface}: left OP by cycle {self.frames}: "
+                + "; ".join(self._describe(position) for position in out), tuple(out))
+            log.error("%s", self.failure)
+            raise self.failure
 
     def _start_keeper(self) -> None:
         """Real time: from OP on, a thread of the line's own sends a frame whenever the
@@ -373,28 +440,31 @@ class EthercatMaster:
         wkc = master.receive_processdata(self.response_timeout_us)
         self._last_frame = time.monotonic()
         if wkc != self._expected_wkc:
-            self.failure = DriveLost(self._diagnose(wkc))
+            self.failure = self._diagnose(wkc)
             log.error("%s", self.failure)
             raise self.failure
 
-    def _diagnose(self, wkc: int) -> str:
+    def _diagnose(self, wkc: int) -> LineLost:
+        """The failed frame's report: the slaves in the cycle not in OP (or not answering)
+        as read right after it, each with its AL status code in words."""
+        in_cycle = [p for p in range(len(self.slaves)) if p not in self._released]
         if wkc < 0:
             # nothing answers, so no state can be read: every slave in the cycle is lost
-            lost = [str(p) for p in range(len(self.slaves)) if p not in self._released]
-            return (f"EtherCAT {self.interface}: no frame came back within "
-                    f"{self.response_timeout_us / 1e3:.0f} ms (cycle {self.frames}): "
-                    f"slave{'s' if len(lost) > 1 else ''} {', '.join(lost)} lost, the line is "
-                    "broken or its slaves are off")
+            return LineLost(
+                f"EtherCAT {self.interface}: no frame came back within "
+                f"{self.response_timeout_us / 1e3:.0f} ms (cycle {self.frames}): "
+                f"{', '.join(self.label(p) for p in in_cycle)} lost, the line is broken or "
+                "its slaves are off", tuple(in_cycle))
         text = (f"EtherCAT {self.interface}: working counter {wkc}, expected "
                 f"{self._expected_wkc} (cycle {self.frames})")
         try:
             self.master.read_state()
         except pysoem.WkcError:
-            return text
-        lost = [self._describe(position, slave) for position, slave in enumerate(self.slaves)
-                if position not in self._released
-                and slave.state & ec.AL_STATE_MASK != pysoem.OP_STATE]
-        return text + (": " + "; ".join(lost) if lost else "")
+            return LineLost(text)
+        lost = [p for p in in_cycle
+                if self.slaves[p].state & ec.AL_STATE_MASK != pysoem.OP_STATE]
+        return LineLost(text + (": " + "; ".join(self._describe(p) for p in lost)
+                                   if lost else ""), tuple(lost))
 
     def release(self, position: int) -> None:
         """Take one slave out of the cycle (to PRE-OP) without failing the others: the

@@ -18,9 +18,9 @@ from typing import Any
 import pysoem
 
 from driver.ethercat_master import EthercatMaster
-from driver.interface import DriveError, DriveLost, ProfileError
+from driver.interface import DriveError, DriveLost, ProfileError, SdoRefused
 from driver.transport import Transport
-from protocol import cia402, objects
+from protocol import cia301, cia402, objects
 from protocol import eds_path as shipped_eds_path
 from protocol import esi_path as shipped_esi_path
 from protocol import ethercat as ec
@@ -49,7 +49,7 @@ class EthercatTransport(Transport):
             raise ValueError(f"slave position {position}: positions count from 0")
         self.line = line
         self.position = position
-        self.name = f"slave {position}"
+        self.name = line.label(position)  # 'slave 3 (arm_left_4_joint)' in every report
         self.dictionary = ethercat_dictionary(
             load_dictionary(eds if eds is not None else shipped_eds_path()), line.esi)
         self._outputs: tuple[MappedObject, ...] = ()
@@ -113,8 +113,9 @@ class EthercatTransport(Transport):
         try:
             data = self._mailbox(self.slave.sdo_read, index, subindex)
         except pysoem.SdoError as exc:
-            raise DriveError(f"{self.name}: CoE read 0x{index:04X}:{subindex:02X} aborted: "
-                             f"0x{exc.abort_code:08X} {exc.desc}") from None
+            raise SdoRefused(f"{self.name}: CoE read 0x{index:04X}:{subindex:02X} aborted: "
+                             f"{cia301.sdo_abort_name(exc.abort_code)}",
+                             exc.abort_code) from None
         return var.decode_raw(data)
 
     def write(self, index: int, subindex: int, value: int) -> None:
@@ -137,8 +138,9 @@ class EthercatTransport(Transport):
         try:
             self._mailbox(self.slave.sdo_write, index, subindex, var.encode_raw(value))
         except pysoem.SdoError as exc:
-            raise DriveError(f"{self.name}: CoE write 0x{index:04X}:{subindex:02X} = {value} "
-                             f"aborted: 0x{exc.abort_code:08X} {exc.desc}") from None
+            raise SdoRefused(f"{self.name}: CoE write 0x{index:04X}:{subindex:02X} = {value} "
+                             f"aborted: {cia301.sdo_abort_name(exc.abort_code)}",
+                             exc.abort_code) from None
 
     def _mailbox(self, access, index: int, subindex: int, *data: bytes):
         """One CoE SDO access, tried again when the mailbox exchange itself got no answer (a
@@ -207,7 +209,7 @@ class EthercatTransport(Transport):
             self._mailbox(self.slave.sdo_write, index, subindex, data)
         except pysoem.SdoError as exc:
             raise ProfileError(f"{self.name}: PDO configuration 0x{index:04X}:{subindex:02X} "
-                               f"refused: 0x{exc.abort_code:08X} {exc.desc}") from None
+                               f"refused: {cia301.sdo_abort_name(exc.abort_code)}") from None
 
     def start(self, period: float) -> None:
         """The drive's cycle period (0x1006, the physics step of an SM-synchronous drive),
@@ -259,12 +261,6 @@ class EthercatTransport(Transport):
 
     def _on_emergency(self, emergency) -> None:
         self._emergency_polls = EMERGENCY_POLLS  # found it
-        if emergency.error_code == ec.EMCY_ESM_TRANSITION:
-            # the slave left OP on its own (sync error, watchdog): the line's next frame
-            # misses its working counter and names the slave with its AL status code, which
-            # says why; the emergency alone would only say that it left
-            log.warning("%s: left OP (EMCY 0x%04X)", self.name, emergency.error_code)
-            return
         self.on_emergency(emergency.error_code, emergency.error_reg)
 
     @property
@@ -295,10 +291,12 @@ def open_ethercat_transports(interface: str, positions: Sequence[int], *,
                              response_timeout: float | None = None,
                              watchdog: float | None = None,
                              open_master: Callable[[], Any] = pysoem.Master,
+                             names: Sequence[str | None] | None = None,
                              sync: str = "free_run") -> list[EthercatTransport]:
     """One transport per slave position on the line at `interface`, sharing its master (one
     frame per cycle for all of them). `esi` defaults to the shipped elbow drive ESI; `eds` is
-    every slave's EDS, or a list with one per position (drives of different joints differ).
+    every slave's EDS, or a list with one per position (drives of different joints differ);
+    `names` the joint of each position, named with its slave in every report.
     `open_master`, `sync`: see `driver.ethercat_master.EthercatMaster`."""
     if not isinstance(esi, EsiDevice):
         esi = load_esi(esi if esi is not None else shipped_esi_path())
@@ -306,5 +304,8 @@ def open_ethercat_transports(interface: str, positions: Sequence[int], *,
         eds = [eds] * len(positions)
     line = EthercatMaster(interface, esi, lockstep=lockstep, response_timeout=response_timeout,
                           watchdog=watchdog, open_master=open_master, sync=sync)
+    for position, name in zip(positions, names or (), strict=False):
+        if name:
+            line.names[position] = name
     return [EthercatTransport(line, position, eds=path)
             for position, path in zip(positions, eds, strict=True)]

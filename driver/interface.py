@@ -46,6 +46,15 @@ class DriveLost(DriveError):
     """The drive stopped talking (heartbeat missing, or it rebooted under us)."""
 
 
+class SdoRefused(DriveError):
+    """The drive answered an SDO access with an abort (`abort_code`, CiA 301): its answer,
+    not a lost message."""
+
+    def __init__(self, message: str, abort_code: int):
+        super().__init__(message)
+        self.abort_code = abort_code
+
+
 class DriveTimeout(DriveError):
     """A SYNC went unanswered: the sample did not arrive in time."""
 

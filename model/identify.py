@@ -35,6 +35,7 @@ import numpy as np
 from scipy import signal
 
 from model import dynamics
+from model.defaults import CUTOFF_HZ
 from model.dynamics import inverse_dynamics
 from model.effects import EFFECTS, Effects
 from model.parameters import ActuatorParameters, Payload
@@ -44,7 +45,6 @@ PARAMETERS = ("motor_inertia", "link_inertia", "first_moment_y", "first_moment_x
               "viscous_friction_motor", "viscous_friction_joint", "dry_friction_motor",
               "dry_friction_joint", "torque_offset_motor", "torque_offset_joint", "drive_gain",
               "torque_sensor_gain")
-CUTOFF_HZ = 25.0
 FILTER_ORDER = 4
 DECIMATE_TO_HZ = 100.0
 MIN_SPEED = 0.05  # rad/s: slower samples say nothing clean about dry friction

@@ -2,6 +2,8 @@
 communication parameters, emergency codes. Declared once here for the master, the virtual
 drive and the EtherCAT transport (CoE reuses the SDO abort and emergency codes)."""
 
+from canopen.sdo.exceptions import SdoAbortedError
+
 # Predefined connection set: COB-ID = base (+ node id where the service is per node)
 NMT_COB_ID = 0x000
 SYNC_COB_ID = 0x080  # the SYNC frame (not to be confused with object 0x1005, which holds it)
@@ -54,6 +56,16 @@ SDO_ABORT_VALUE_RANGE = 0x06090030
 SDO_ABORT_VALUE_TOO_HIGH = 0x06090031
 SDO_ABORT_VALUE_TOO_LOW = 0x06090032
 SDO_ABORT_WRONG_STATE = 0x08000022  # "because of the present device state"
+# not in canopen's table: ETG.1000.6 (CoE) adds it for PDO mapping and assignment objects
+_SDO_ABORT_EXTRA = {0x06010003: "Subindex cannot be written, SI0 must be 0 for write access"}
+
+
+def sdo_abort_name(code: int) -> str:
+    """'Value range of parameter exceeded (0x06090030)': the CiA 301 words for an SDO abort
+    code (canopen's table, which a CANopen master shows too), the number where none is
+    known."""
+    words = SdoAbortedError.CODES.get(code) or _SDO_ABORT_EXTRA.get(code, "unknown abort code")
+    return f"{words} (0x{code:08X})"
 
 # Emergency error codes (CiA 301 table 21, CiA 402 annex)
 EMCY_NO_ERROR = 0x0000

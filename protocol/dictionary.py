@@ -7,6 +7,7 @@ import configparser
 import io
 import math
 from pathlib import Path
+from typing import NamedTuple
 
 import canopen
 from canopen.objectdictionary import ObjectDictionary, ODVariable, datatypes
@@ -203,3 +204,60 @@ def default_value(var: ODVariable) -> int | str | bytes:
         if value is not None:
             return value
     return 0
+
+
+class StartupParameter(NamedTuple):
+    """One CoE / SDO object the master writes in PRE-OP before the drive's configuration (as
+    ros2_canopen's `sdo` lists or an ENI's InitCmds), then reads back."""
+
+    index: int
+    subindex: int
+    value: int | float
+
+
+# objects the master sets itself during bring-up and the cycle: a start-up value would be
+# overwritten, or would fight the master (PDO communication and mapping, sync managers)
+_MASTER_OWNED = (
+    (range(objects.CONTROLWORD, objects.CONTROLWORD + 1), "the controlword"),
+    (range(objects.MODES_OF_OPERATION, objects.MODES_OF_OPERATION + 1), "the mode"),
+    (range(objects.TARGET_TORQUE, objects.TARGET_TORQUE + 1), "the torque target"),
+    (range(objects.TARGET_CURRENT, objects.TARGET_CURRENT + 1), "the current target"),
+    (range(objects.CYCLE_PERIOD_US, objects.CYCLE_PERIOD_US + 1), "the cycle period"),
+    (range(objects.CONSUMER_HEARTBEAT, objects.SYNC_COUNTER_OVERFLOW + 1),
+     "heartbeats and the SYNC counter"),
+    (range(objects.RPDO_COMM, 0x1C00), "the PDO communication and mapping"),
+    # sync manager types and PDO assignment; 0x1C30.. (sync mode, cycle) stay the user's,
+    # as in an ENI's InitCmds
+    (range(0x1C00, 0x1C30), "the sync manager types and PDO assignment"),
+)
+
+
+def startup_problem(dictionary: ObjectDictionary, parameter: StartupParameter) -> str | None:
+    """What makes a start-up parameter unusable with this dictionary (the object missing,
+    read-only, owned by the master, the value outside its type or its EDS limits), or None:
+    the checks a robot file gets before any bus is opened."""
+    index, subindex, value = parameter
+    var = variable(dictionary, index, subindex)
+    if var is None:
+        return f"0x{index:04X}:{subindex:02X} is not in the drive's dictionary"
+    where = f"0x{index:04X}:{subindex:02X} ({var.name})"
+    owner = next((what for span, what in _MASTER_OWNED if index in span), None)
+    if owner is not None:
+        return f"{where}: the master sets {owner} itself"
+    if var.access_type not in ("rw", "wo", "rww", "rwr"):
+        return f"{where} is {var.access_type}, not writable"
+    if var.data_type in datatypes.FLOAT_TYPES:
+        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(
+                value):
+            return f"{where}: expected a finite number, got {value!r}"
+        return None
+    if var.data_type not in ODVariable.STRUCT_TYPES:
+        return f"{where}: only numeric objects can be start-up parameters"
+    if isinstance(value, bool) or not isinstance(value, int):
+        return f"{where}: expected an integer, got {value!r}"
+    low, high = (0, 1) if var.data_type == datatypes.BOOLEAN else integer_range(var)
+    if not low <= value <= high:
+        return f"{where}: {value} is outside its data type's {low}..{high}"
+    if var.min is not None and value < var.min or var.max is not None and value > var.max:
+        return f"{where}: {value} is outside the EDS limits {var.min}..{var.max}"
+    return None

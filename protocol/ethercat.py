@@ -127,6 +127,7 @@ AL_UNKNOWN_STATE = 0x0012
 AL_BOOTSTRAP_NOT_SUPPORTED = 0x0013
 AL_INVALID_MAILBOX_CONFIGURATION = 0x0016
 AL_INVALID_SM_CONFIGURATION = 0x0017
+AL_SYNCHRONIZATION_ERROR = 0x001A
 AL_SM_WATCHDOG = 0x001B
 AL_INVALID_OUTPUT_CONFIGURATION = 0x001D
 AL_INVALID_INPUT_CONFIGURATION = 0x001E
@@ -283,6 +284,45 @@ COE_SERVICE_SHIFT = 12
 COE_EMERGENCY = 0x01
 COE_SDO_REQUEST = 0x02
 COE_SDO_RESPONSE = 0x03
+COE_SDO_INFORMATION = 0x08
+
+# SDO Information service (ETG.1000.6 5.6.3): after the CoE header, opcode (bit 7: more
+# fragments follow), a reserved byte, the fragments left; then the opcode's data
+SDO_INFO_HEADER = struct.Struct("<BBH")
+SDO_INFO_INCOMPLETE = 0x80
+SDO_INFO_OPCODE_MASK = 0x7F
+SDO_INFO_GET_OD_LIST_REQUEST = 0x01
+SDO_INFO_GET_OD_LIST_RESPONSE = 0x02
+SDO_INFO_GET_OBJECT_DESCRIPTION_REQUEST = 0x03
+SDO_INFO_GET_OBJECT_DESCRIPTION_RESPONSE = 0x04
+SDO_INFO_GET_ENTRY_DESCRIPTION_REQUEST = 0x05
+SDO_INFO_GET_ENTRY_DESCRIPTION_RESPONSE = 0x06
+SDO_INFO_ERROR = 0x07  # data: the SDO abort code
+# Get OD List: which list (0: the length of each of lists 1-5)
+OD_LIST_LENGTHS = 0
+OD_LIST_ALL = 1
+OD_LIST_RXPDO_MAPPABLE = 2
+OD_LIST_TXPDO_MAPPABLE = 3
+OD_LIST_BACKUP = 4
+OD_LIST_SETTINGS = 5
+OD_LISTS = (OD_LIST_ALL, OD_LIST_RXPDO_MAPPABLE, OD_LIST_TXPDO_MAPPABLE, OD_LIST_BACKUP,
+            OD_LIST_SETTINGS)
+# Get Object Description response: index, data type, max sub-index, object code; then name
+OBJECT_DESCRIPTION = struct.Struct("<HHBB")
+OBJECT_CODE_VAR = 0x07
+OBJECT_CODE_ARRAY = 0x08
+OBJECT_CODE_RECORD = 0x09
+# Get Entry Description request: index, sub-index, value info; the response adds data type,
+# bit length, object access, then (where value info asks: unit type, default, minimum,
+# maximum) and the name
+ENTRY_DESCRIPTION_REQUEST = struct.Struct("<HBB")
+ENTRY_DESCRIPTION = struct.Struct("<HBBHHH")
+ENTRY_VALUE_INFO_OPTIONAL = 0x78  # unit type, default, minimum, maximum: not given here
+# object access bits of an entry description
+ENTRY_ACCESS_READ = 0x0007  # in PRE-OP, SAFE-OP and OP
+ENTRY_ACCESS_WRITE = 0x0038
+ENTRY_ACCESS_RXPDO = 0x0040
+ENTRY_ACCESS_TXPDO = 0x0080
 
 # CoE details in the SII general category / ESI <CoE> attributes
 COE_DETAILS_SDO = 0x01

@@ -9,10 +9,14 @@ Key expressions live under a prefix, e.g. `actuators/elbow`:
     {prefix}/solver      SolverStats  every control cycle
     {prefix}/fault       Fault        when something goes wrong (or a request is refused)
     {prefix}/loop_stats  LoopStats    once a second and at exit
-    {prefix}/joints      JointStates  every control cycle, every joint (actuatord --robot)
+    {prefix}/joints      JointStates  every control cycle, every joint (a robot of several
+                                      joints: it replaces state, command, plan and solver)
     {prefix}/parameters  queryable: model parameters, limits and solver settings (JSON)
-    {prefix}/reference   queryable: set the reference, payload JSON; reply {"ok", "reason"}
-    {prefix}/weights     queryable: set cost weights, e.g. {"position": 300}; same reply
+    {prefix}/joints/{name}/reference  queryable: set joint `name`'s reference, payload JSON;
+                         reply {"ok", "reason"} (a robot of one joint also at
+                         {prefix}/reference)
+    {prefix}/joints/{name}/weights    queryable: set joint `name`'s cost weights, e.g.
+                         {"position": 300}; same reply (one joint: also {prefix}/weights)
     {prefix}/audit       JSON line for every change request, accepted or refused
     {prefix}/alive       liveliness token of the actuatord publishing under the prefix: gone
                          when the process is (dashboards show it)
@@ -107,11 +111,23 @@ SCHEMAS: dict[str, list[tuple]] = {
     ],
 }
 
+# every topic a control loop publishes on, and its message: the one set for one joint and for a
+# robot. A robot publishes every joint in one `joints` message a cycle; a robot of one joint
+# keeps the single joint's own view instead (state, command, plan, solver), which dashboards,
+# recordings and their layouts read. `fault` and `loop_stats` either way (`topics`).
 TOPICS = {"state": "State", "command": "Command", "plan": "Plan", "solver": "SolverStats",
-          "fault": "Fault", "loop_stats": "LoopStats"}
-# what `actuatord --robot` publishes: every joint in one message per cycle instead of the
-# single joint's state, command and solver topics
-ROBOT_TOPICS = {"joints": "JointStates", "fault": "Fault", "loop_stats": "LoopStats"}
+          "joints": "JointStates", "fault": "Fault", "loop_stats": "LoopStats"}
+JOINT_VIEW = ("state", "command", "plan", "solver")
+ROBOT_VIEW = ("joints",)
+
+
+def topics(joints: int) -> dict[str, str]:
+    """The topics (and their messages) a robot of `joints` joints publishes on."""
+    view = JOINT_VIEW if joints == 1 else ROBOT_VIEW
+    return {topic: name for topic, name in TOPICS.items()
+            if topic in view or topic in ("fault", "loop_stats")}
+
+
 # the audit lines (JSON, controller.requests.audit_line) as a named JSON schema, so viewers
 # show `actuator.Audit` rather than a generated name
 AUDIT_SCHEMA_NAME = f"{PACKAGE}.Audit"
@@ -122,6 +138,7 @@ AUDIT_SCHEMA = {
         "time": {"type": "string", "description": "UTC, ISO 8601, when it was handled"},
         "t": {"type": "number", "description": "s, drive time"},
         "request": {"type": "string", "description": "reference | weights | parameters"},
+        "joint": {"type": "string", "description": "the joint the request was for"},
         "payload_bytes": {"type": "integer", "description": "size of the request body"},
         "payload": {"type": "string", "description": "the body, quoted as far as fits"},
         "accepted": {"type": "boolean"},
@@ -129,6 +146,7 @@ AUDIT_SCHEMA = {
 PARAMETERS = "parameters"
 REFERENCE = "reference"
 WEIGHTS = "weights"
+JOINTS = "joints"
 AUDIT = "audit"
 LIVELINESS = "alive"
 DEFAULT_PREFIX = "actuators/elbow"
@@ -153,6 +171,11 @@ class TimeBase:
 
 def key_expr(prefix: str, topic: str) -> str:
     return f"{prefix.rstrip('/')}/{topic}"
+
+
+def joint_key(joint: str, request: str) -> str:
+    """The key under the prefix of one joint's request queryable, e.g. joints/elbow/weights."""
+    return f"{JOINTS}/{joint}/{request}"
 
 
 @cache

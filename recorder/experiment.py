@@ -5,22 +5,22 @@ import threading
 from collections.abc import Callable, Sequence
 
 from controller import messages
-from controller.loop import ControlLoop, LoopOptions, LoopReport
+from controller.loop import ControlLoop, Joints, LoopOptions, LoopReport
 from controller.messages import Subscriber
-from driver import Drive
+from driver.clock import DriveClock, WallClock
 from model.parameters import Limits
 from recorder.tracking import TrackingLaw, TrackingPolicy, Trajectory
 
 PROGRESS_EVERY = 500  # samples between progress updates
 
 
-def run_trajectory(drive: Drive, trajectory: Trajectory, law: TrackingLaw, limits: Limits,
-                   subscribers: Sequence[Subscriber], lockstep: bool,
+def run_trajectory(joint: Joints, trajectory: Trajectory, law: TrackingLaw, limits: Limits,
+                   subscribers: Sequence[Subscriber], clock: WallClock | DriveClock,
                    progress: Callable[[float], None] = lambda fraction: None,
                    stop: threading.Event | None = None) -> LoopReport:
     """Track the trajectory from the drive's first sample to its end (or until `stop` is set);
-    report.cycles is the number of samples taken. The drive must be started (enabled); the
-    caller closes it."""
+    report.cycles is the number of samples taken. `joint` is a robot of one, started
+    (enabled), on `clock` (drive time in lock-step); the caller closes it."""
     policy = TrackingPolicy(trajectory, law, limits)
     duration = trajectory.duration
 
@@ -28,7 +28,7 @@ def run_trajectory(drive: Drive, trajectory: Trajectory, law: TrackingLaw, limit
         if type(message) is messages.State and loop.report.cycles % PROGRESS_EVERY == 0:
             progress(min(policy.elapsed(message.t) / duration, 1.0))
 
-    loop = ControlLoop(drive, policy, LoopOptions(period=drive.period, lockstep=lockstep),
+    loop = ControlLoop(joint, policy, LoopOptions(period=joint.period, clock=clock),
                        [*subscribers, follow], stop=stop)
     report = loop.run()
     progress(1.0)

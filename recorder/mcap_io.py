@@ -41,7 +41,7 @@ CHUNK_SIZE = 16 * 1024
 WRITE_BUFFER = 4 * CHUNK_SIZE
 METADATA_NAME = "recording"
 # what a Zenoh recording keeps: every telemetry topic of one joint or of a robot
-SAMPLE_SCHEMAS = {**telemetry.TOPICS, **telemetry.ROBOT_TOPICS}
+SAMPLE_SCHEMAS = telemetry.TOPICS
 
 
 class _DataFile:

@@ -5,16 +5,16 @@ and outputs, encoding), measured on a line of virtual slaves linked in this proc
 master's, not the harness's, and needs no root or hardware.
 
 Joints are the elbow's model on one EtherCAT line (the shipped model: the bench needs no
-robot file); the robot's cycle is `controller.robot_loop.RobotLoop`, in lock-step."""
+robot file); the robot's cycle is `controller.loop.ControlLoop`, in lock-step."""
 
 from pathlib import Path
 
 import numpy as np
 
-from controller.loop import LoopOptions
+from controller.loop import ControlLoop, LoopOptions
 from controller.mpc import BatchMpc, JointProblem
 from controller.problem import OcpSettings
-from controller.robot_loop import RobotLoop
+from driver.clock import DriveClock
 from model.parameters import load_model
 from robot.description import JointSpec, RobotSpec, default_reference
 from robot.wiring import open_robot
@@ -41,7 +41,7 @@ def measure_master(joints: int, cycles: int) -> dict:
         group = connection.group
         batch = BatchMpc([JointProblem(joint.model, BENCH_SETTINGS, reference=joint.reference)
                           for joint in spec.joints])
-        loop = RobotLoop(group, batch, LoopOptions(period=1e-3, lockstep=True,
+        loop = ControlLoop(group, batch, LoopOptions(period=1e-3, clock=DriveClock(),
                                                    duration=cycles * 1e-3))
         group.start()
         report = loop.run()

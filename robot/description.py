@@ -30,6 +30,19 @@ refused with the load figure and the fastest period that would fit.
                                            # over the middle half of the joint's range)
     friction_sharpness = 10                # optional: the MPC's beta in tanh(beta qd), 1/(rad/s)
                                            # (default: the paper's 1000; see talos_arm.toml)
+    drive_type = "shoulder"                # optional: the [drive_types] entry it is
+    sdo = [{ index = 0x6072, value = 800 }]  # optional start-up parameters (below)
+
+Start-up parameters (as ros2_canopen's `sdo` lists or an ENI's InitCmds): CoE / SDO objects
+the master writes right after boot, in PRE-OP (PRE-OPERATIONAL on CAN), then reads back; a
+drive that refuses one stops the start naming the joint, the object and the abort code. Each
+is `{ index = 0x6072, subindex = 0, value = 800 }` (subindex defaults to 0), checked here
+against the joint's EDS: the object exists, is writable, is not one the master sets itself,
+and the value fits its data type and EDS limits. Per drive type, written first, then the
+joint's own (which win for the same object):
+
+    [drive_types.shoulder]
+    sdo = [{ index = 0x6073, value = 900 }]
 """
 
 import math
@@ -44,6 +57,7 @@ from model.parameters import ActuatorModel, Limits, ModelFileError, load_model
 from protocol import bus_load
 from protocol import pdo as pdo_layout
 from protocol.bus_spec import BusSpecError, is_ethercat, parse_bus_spec
+from protocol.dictionary import StartupParameter
 from protocol.input_files import (
     TEXT_MAX,
     InputFileError,
@@ -80,6 +94,7 @@ class JointSpec:
     weights: dict[str, float]
     reference: Reference
     friction_sharpness: float | None = None  # the MPC's beta for this joint (None: default)
+    startup: tuple[StartupParameter, ...] = ()  # written in PRE-OP, read back
 
     @property
     def on_ethercat(self) -> bool:
@@ -163,7 +178,7 @@ def load_robot(path: str | Path) -> RobotSpec:
         raise RobotFileError(f"{path}: not valid TOML: {exc}") from None
     except RecursionError:
         raise RobotFileError(f"{path}: nested too deeply for a robot file") from None
-    _keys(path, "", doc, {"robot", "buses", "joints"}, {"robot", "joints"})
+    _keys(path, "", doc, {"robot", "buses", "joints", "drive_types"}, {"robot", "joints"})
     robot = _table(path, "[robot]", doc["robot"])
     _keys(path, "[robot]", robot, {"name", "period_us"}, {"name"})
     name = _string(path, "[robot].name", robot["name"])
@@ -173,6 +188,7 @@ def load_robot(path: str | Path) -> RobotSpec:
         raise RobotFileError(f"{path}: [robot].period_us: expected an integer 100..100000, "
                              f"got {period_us!r}")
     bitrates, syncs = _bus_settings(path, _table(path, "[buses]", doc.get("buses", {})))
+    drive_types = _drive_types(path, _table(path, "[drive_types]", doc.get("drive_types", {})))
     entries = doc["joints"]
     if not isinstance(entries, list) or not entries:
         raise RobotFileError(f"{path}: [[joints]]: expected at least one joint")
@@ -183,8 +199,12 @@ def load_robot(path: str | Path) -> RobotSpec:
     dictionaries: dict[tuple[Path, bool], object] = {}
     for number, entry in enumerate(entries, start=1):
         joints.append(_joint(path, number, _table(path, f"joint {number}", entry), models,
-                             dictionaries))
+                             dictionaries, drive_types))
     _unique(path, joints)
+    used = {entry.get("drive_type") for entry in entries}
+    for kind in drive_types:
+        if kind not in used:
+            raise RobotFileError(f"{path}: [drive_types.{kind}]: no joint is of this type")
     for bus in (*bitrates, *syncs):
         if bus not in {j.bus for j in joints}:
             raise RobotFileError(f"{path}: [buses.\"{bus}\"]: no joint is on this bus")
@@ -201,11 +221,13 @@ def load_robot(path: str | Path) -> RobotSpec:
 
 
 def _joint(path: Path, number: int, entry: dict,
-           models: dict[Path | None, ActuatorModel], dictionaries: dict) -> JointSpec:
+           models: dict[Path | None, ActuatorModel], dictionaries: dict,
+           drive_types: dict[str, list]) -> JointSpec:
     name = _string(path, f"joint {number}.name", entry.get("name"))
     where = f"joint {name!r}"
     _keys(path, where, entry, {"name", "bus", "node_id", "slave", "model", "eds", "limits",
-                               "weights", "reference", "friction_sharpness"}, {"name", "bus"})
+                               "weights", "reference", "friction_sharpness", "drive_type",
+                               "sdo"}, {"name", "bus"})
     bus = _string(path, f"{where}.bus", entry["bus"])
     try:
         parse_bus_spec(bus)
@@ -244,7 +266,58 @@ def _joint(path: Path, number: int, entry: dict,
         if sharpness <= 0:
             raise RobotFileError(f"{path}: {where}.friction_sharpness: expected > 0, got "
                                  f"{sharpness}")
-    return JointSpec(name, bus, address, model, eds, weights, reference, sharpness)
+    startup = ()
+    if "sdo" in entry or "drive_type" in entry:
+        startup = _joint_startup(path, where, entry, drive_types,
+                                 _dictionary(eds, is_ethercat(bus), dictionaries))
+    return JointSpec(name, bus, address, model, eds, weights, reference, sharpness, startup)
+
+
+def _drive_types(path: Path, table: dict) -> dict[str, list]:
+    """[drive_types.NAME] tables: each's `sdo` list, checked per joint that uses it (against
+    that joint's EDS)."""
+    out = {}
+    for kind, settings in table.items():
+        where = f"[drive_types.{kind}]"
+        settings = _table(path, where, settings)
+        _keys(path, where, settings, {"sdo"}, {"sdo"})
+        out[kind] = settings["sdo"]
+    return out
+
+
+def _joint_startup(path: Path, where: str, entry: dict, drive_types: dict[str, list],
+                   dictionary) -> tuple[StartupParameter, ...]:
+    """The joint's start-up parameters: its drive type's, then its own (which replace the
+    type's for the same object), each checked against the joint's dictionary."""
+    from protocol.dictionary import startup_problem
+
+    lists = []
+    if "drive_type" in entry:
+        kind = _string(path, f"{where}.drive_type", entry["drive_type"])
+        if kind not in drive_types:
+            raise RobotFileError(f"{path}: {where}.drive_type: {kind!r} is not in "
+                                 f"[drive_types] ({', '.join(sorted(drive_types)) or 'empty'})")
+        lists.append((f"[drive_types.{kind}].sdo (for {where})", drive_types[kind]))
+    if "sdo" in entry:
+        lists.append((f"{where}.sdo", entry["sdo"]))
+    merged: dict[tuple[int, int], StartupParameter] = {}
+    for label, items in lists:
+        if not isinstance(items, list):
+            raise RobotFileError(f"{path}: {label}: expected a list of "
+                                 "{ index, subindex, value } tables")
+        for k, item in enumerate(items):
+            at = f"{label}[{k}]"
+            item = _table(path, at, item)
+            _keys(path, at, item, {"index", "subindex", "value"}, {"index", "value"})
+            parameter = StartupParameter(
+                _integer(path, f"{at}.index", item["index"], 0x1000, 0xFFFF),
+                _integer(path, f"{at}.subindex", item.get("subindex", 0), 0, 0xFF),
+                item["value"])
+            problem = startup_problem(dictionary, parameter)
+            if problem is not None:
+                raise RobotFileError(f"{path}: {at}: {problem}")
+            merged[parameter[:2]] = parameter
+    return tuple(merged.values())
 
 
 def _check_eds(path: Path, where: str, eds: Path, model: ActuatorModel, ethercat: bool,
@@ -255,22 +328,30 @@ def _check_eds(path: Path, where: str, eds: Path, model: ActuatorModel, ethercat
     whole before any bus is opened. Each file is parsed once per load."""
     from driver.interface import ProfileError
     from driver.profile import select_profile
-    from protocol import esi_path
-    from protocol.dictionary import load_dictionary
-    from protocol.esi import EsiError, check_against_dictionary, ethercat_dictionary, load_esi
+    from protocol.esi import EsiError
 
-    key = (eds.resolve(), ethercat)
     try:
-        if key not in checked:
-            dictionary = load_dictionary(eds)
-            if ethercat:
-                esi = load_esi(esi_path())
-                check_against_dictionary(esi, dictionary)
-                dictionary = ethercat_dictionary(dictionary, esi)
-            checked[key] = dictionary
-        select_profile(checked[key], model.parameters.drive_gain)
+        select_profile(_dictionary(eds, ethercat, checked), model.parameters.drive_gain)
     except (ValueError, EsiError, ProfileError) as exc:
         raise RobotFileError(f"{path}: {where}.eds: {exc}") from None
+
+
+def _dictionary(eds: Path | None, ethercat: bool, checked: dict):
+    """The joint's dictionary as its master sees it (its EDS, the shipped one by default;
+    through the shipped ESI on EtherCAT), parsed once per file and bus kind per load."""
+    from protocol import eds_path, esi_path
+    from protocol.dictionary import load_dictionary
+    from protocol.esi import check_against_dictionary, ethercat_dictionary, load_esi
+
+    key = ((eds if eds is not None else Path(eds_path())).resolve(), ethercat)
+    if key not in checked:
+        dictionary = load_dictionary(key[0])
+        if ethercat:
+            esi = load_esi(esi_path())
+            check_against_dictionary(esi, dictionary)
+            dictionary = ethercat_dictionary(dictionary, esi)
+        checked[key] = dictionary
+    return checked[key]
 
 
 def default_reference(limits: Limits) -> Sinusoid:

@@ -11,7 +11,7 @@ checked from the caller (the command layer parses and checks options).
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import can
@@ -64,24 +64,35 @@ class DriveOpenError(Exception):
 
 @dataclass
 class Connection:
-    """The master drive (CANopen or EtherCAT: the loop only sees the CiA 402 layer), the
-    embedded virtual drive (`--sim`, else None) and the CAN log (`--can-log`, else None),
-    closed together in that order."""
+    """A robot's drives as one group (one joint: a robot of one, named by the caller) and what
+    was opened for them: the embedded virtual buses (`--sim`), the virtual drives by joint
+    (`--sim`), the CAN log (`--can-log`). Closed together in that order: the drives first, so
+    every one is disabled while its bus still carries it."""
 
-    drive: Cia402Drive
-    sim: EmbeddedBus | None
-    can_log: CanLog | None
-    where: str  # the bus, as the user reads it
+    group: DriveGroup
+    sim: list[EmbeddedBus] = field(default_factory=list)
+    devices: dict[str, Cia402Device] = field(default_factory=dict)  # joint -> virtual drive
+    can_log: CanLog | None = None
+    where: str = ""  # the bus, as the user reads it (one joint)
     address: str = ""  # the drive on it, as the user reads it: "node 2", "slave 0"
 
     def close(self) -> None:
         try:
-            self.drive.close()
+            self.group.close()
         finally:
-            if self.sim is not None:
-                self.sim.close()
-            if self.can_log is not None:
-                self.can_log.stop()
+            try:
+                for bus in self.sim:
+                    bus.close()
+            finally:
+                if self.can_log is not None:
+                    self.can_log.stop()
+
+
+def _one(drive: Cia402Drive, name: str, **parts) -> Connection:
+    """A single drive as a robot of one joint named `name`."""
+    from driver.drive_group import single_joint
+
+    return Connection(single_joint(drive, name), **parts)
 
 
 def _master_options(model: ActuatorModel, lockstep: bool, timing: dict) -> dict:
@@ -94,7 +105,8 @@ def _master_options(model: ActuatorModel, lockstep: bool, timing: dict) -> dict:
 
 
 def open_line_drive(bus: str, slave: int, model: ActuatorModel, *, esi: EsiDevice | None,
-                    eds: str | None, lockstep: bool = False, **timing) -> Connection:
+                    eds: str | None, name: str = "joint", lockstep: bool = False,
+                    **timing) -> Connection:
     """The master drive of the slave at 0-based position `slave` on the EtherCAT line `bus`
     (`ethercat:IFACE`), read through `esi` (None: the shipped ESI) and `eds`. Call after every
     option is checked: this is where the line is touched. Raises DriveOpenError (exit 1)."""
@@ -105,11 +117,11 @@ def open_line_drive(bus: str, slave: int, model: ActuatorModel, *, esi: EsiDevic
                         current_max=options.pop("current_max"))
     drive = _open_on_line(bus, parse_bus_spec(bus)["channel"], [joint], esi=esi, eds=eds,
                           **options)[0]
-    return Connection(drive, None, None, bus, f"slave {slave}")
+    return _one(drive, name, where=bus, address=f"slave {slave}")
 
 
 def open_can_drive(config: dict, node_id: int, model: ActuatorModel, *, eds: str | None,
-                   can_log: CanLog | None = None, lockstep: bool = False,
+                   can_log: CanLog | None = None, name: str = "joint", lockstep: bool = False,
                    **timing) -> Connection:
     """The master drive at `node_id` on the CAN bus python-can's `config` names, every frame
     logged to `can_log` (which the connection then owns: it is stopped with it, or at once if
@@ -125,8 +137,8 @@ def open_can_drive(config: dict, node_id: int, model: ActuatorModel, *, eds: str
             can_log.stop()
         raise DriveOpenError(f"cannot open bus {where}: {exc}") from exc
     try:
-        return Connection(CanOpenDrive(network, node_id, eds=eds, **options), None,
-                          can_log, where, f"node {node_id}")
+        return _one(CanOpenDrive(network, node_id, eds=eds, **options), name,
+                    can_log=can_log, where=where, address=f"node {node_id}")
     except Exception as exc:
         network.disconnect()
         if can_log is not None:
@@ -137,8 +149,8 @@ def open_can_drive(config: dict, node_id: int, model: ActuatorModel, *, eds: str
 def open_embedded_drive(model: ActuatorModel, sim_model: ActuatorModel, payload: Payload,
                         node_id: int, *, seed: int, eds: str | None,
                         schedule: Iterable[tuple[Fault, float]] = (),
-                        can_log: CanLog | None = None, lockstep: bool = False,
-                        **timing) -> Connection:
+                        can_log: CanLog | None = None, name: str = "joint",
+                        lockstep: bool = False, **timing) -> Connection:
     """`--sim`: a virtual drive in this process, `sim_model` and `payload` its physics (its
     hidden truth), `schedule` its injected faults, its noise seeded `seed`, linked to a master
     that knows `model`; the link's frames logged to `can_log` (owned as by `open_can_drive`).
@@ -156,8 +168,9 @@ def open_embedded_drive(model: ActuatorModel, sim_model: ActuatorModel, payload:
     for fault, seconds in schedule:
         sim.device.schedule(fault, seconds)
     try:
-        return Connection(CanOpenDrive(sim.master_network, node_id, eds=eds, **options), sim,
-                          can_log, "--sim", f"node {node_id}")
+        return _one(CanOpenDrive(sim.master_network, node_id, eds=eds, **options), name,
+                    sim=[sim], devices={name: sim.device}, can_log=can_log, where="--sim",
+                    address=f"node {node_id}")
     except Exception as exc:
         sim.close()
         if can_log is not None:
@@ -191,26 +204,9 @@ def _open_on_line(bus: str, interface: str, joints: list, **options) -> list[Cia
 
 # --- a robot: every joint's drive, on its bus or embedded ---------------------------------------
 
-@dataclass
-class RobotConnection:
-    """The joints' drive group and, with --sim, the embedded buses behind it; closed
-    together (drives first, so every one is disabled while its bus still carries it)."""
-
-    group: DriveGroup
-    sim: list[EmbeddedBus]
-    devices: dict[str, Cia402Device]  # joint -> its virtual drive (--sim only)
-
-    def close(self) -> None:
-        try:
-            self.group.close()
-        finally:
-            for bus in self.sim:
-                bus.close()
-
-
 def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period: float,
                response_timeout: float,
-               faults: Iterable[tuple[str, Fault, float]] = ()) -> RobotConnection:
+               faults: Iterable[tuple[str, Fault, float]] = ()) -> Connection:
     """Every joint's drive, grouped by bus: one SYNC per CAN bus and one frame per EtherCAT
     line a cycle (`driver.drive_group`; a line's joints opened in slave order, the group
     keeps the file's joint order). With `sim`, every bus keeps its kind, one virtual drive
@@ -238,7 +234,8 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
                 drives = _open_on_line(bus, parse_bus_spec(bus)["channel"], [
                     JointOnLine(j.address, j.model.limits.velocity_max,
                                 j.model.parameters.drive_gain, j.eds,
-                                j.model.limits.current_max) for j in on_line],
+                                j.model.limits.current_max, j.name, j.startup)
+                    for j in on_line],
                     period=period, lockstep=lockstep, response_timeout=response_timeout,
                     sync=robot.sync(bus), **options)
                 segments[-1].joints = [(j.name, drive)
@@ -271,9 +268,9 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
                 segments[-1].joints.append((joint.name, Cia402Drive(
                     transport, velocity_limit=joint.model.limits.velocity_max, period=period,
                     drive_gain=joint.model.parameters.drive_gain,
-                    current_max=joint.model.limits.current_max)))
-        return RobotConnection(DriveGroup([j.name for j in robot.joints], segments), embedded,
-                               devices)
+                    current_max=joint.model.limits.current_max, startup=joint.startup)))
+        return Connection(DriveGroup([j.name for j in robot.joints], segments), embedded,
+                          devices)
     except Exception as exc:
         for segment in segments:
             for _, drive in segment.joints:
@@ -325,21 +322,22 @@ def open_joint(robot: RobotSpec, joint: JointSpec, sim_model: ActuatorModel,
 
     timing = {"lockstep": lockstep, "velocity_limit": joint.model.limits.velocity_max,
               "drive_gain": joint.model.parameters.drive_gain, "eds": joint.eds,
-              "current_max": joint.model.limits.current_max, **timing}
+              "current_max": joint.model.limits.current_max, "startup": joint.startup,
+              **timing}
     kind = "slave" if joint.on_ethercat else "node"
     if not sim and joint.on_ethercat:
         from driver.ethercat_drive import JointOnLine
 
         on_line = JointOnLine(joint.address, timing.pop("velocity_limit"),
                               timing.pop("drive_gain"), timing.pop("eds"),
-                              timing.pop("current_max"))
+                              timing.pop("current_max"), joint.name, timing.pop("startup"))
         drive = _open_on_line(joint.bus, parse_bus_spec(joint.bus)["channel"], [on_line],
                               **timing)[0]
-        return Connection(drive, None, None, joint.bus, f"slave {joint.address}")
+        return _one(drive, joint.name, where=joint.bus, address=f"slave {joint.address}")
     if not sim:
         try:
-            return Connection(CanOpenDrive.open(joint.bus, joint.address, **timing), None, None,
-                              joint.bus, f"node {joint.address}")
+            return _one(CanOpenDrive.open(joint.bus, joint.address, **timing), joint.name,
+                        where=joint.bus, address=f"node {joint.address}")
         except Exception as exc:
             raise DriveOpenError(f"cannot use bus {joint.bus}: {exc}") from exc
     from sim_bus.embedded import EmbeddedBus
@@ -348,10 +346,11 @@ def open_joint(robot: RobotSpec, joint: JointSpec, sim_model: ActuatorModel,
     node_id = 1 if joint.on_ethercat else joint.address
     link = EmbeddedBus(lockstep=lockstep)
     try:
-        link.add_drive(sim_model, payload, SensorNoise(seed=seed), node_id,
-                       eds_path=joint.eds, commissioned=True)
-        return Connection(CanOpenDrive(link.master_network, node_id, **timing), link,
-                          None, "--sim", f"{kind} {joint.address}")
+        device = link.add_drive(sim_model, payload, SensorNoise(seed=seed), node_id,
+                                eds_path=joint.eds, commissioned=True)
+        return _one(CanOpenDrive(link.master_network, node_id, **timing), joint.name,
+                    sim=[link], devices={joint.name: device}, where="--sim",
+                    address=f"{kind} {joint.address}")
     except Exception as exc:
         link.close()
         raise DriveOpenError(f"cannot open the embedded drive of {joint.name}: {exc}") from exc

@@ -307,6 +307,9 @@ class CanOpenNode:
             self._reboot_in_cycle = True
             self.device.reset_application()
             self._restart()
+        elif fault is Fault.LEAVES_OP:
+            log.warning("fault %s is EtherCAT's: a CANopen drive has no OP to leave",
+                        fault.name.lower())
 
     def _flood(self) -> None:
         end = time.monotonic() + FLOOD_SECONDS

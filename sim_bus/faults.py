@@ -17,6 +17,7 @@ class Fault(IntEnum):
     OVERCURRENT_TRIP = 7  # the power stage trips (EMCY 0x2310)
     BUS_FLOOD = 8  # another node floods the bus with high-priority frames for 0.5 s
     REBOOT = 9  # the drive resets and sends its boot-up message mid-run
+    LEAVES_OP = 10  # EtherCAT: the slave drops from OP to SAFE-OP + ERROR (sync error 0x001A)
 
 
 TPDO_DELAY = 0.2  # s

@@ -34,13 +34,13 @@ def start_actuatord(port: int, *extra: str) -> subprocess.Popen:
 def test_dashboard_session_decodes_state_and_talks_to_the_queryables():
     port = free_port()
     proc = start_actuatord(port, "--duration", "600")  # stopped by the test (SIGTERM)
-    received: dict[str, list] = {topic: [] for topic in telemetry.TOPICS}
+    received: dict[str, list] = {topic: [] for topic in telemetry.topics(1)}
     session = dashboard_session(port)
     try:
         subscribers = [session.declare_subscriber(
             telemetry.key_expr(PREFIX, topic),
             lambda sample, topic=topic: received[topic].append(sample.payload.to_bytes()))
-            for topic in telemetry.TOPICS]
+            for topic in telemetry.topics(1)]
         deadline = time.monotonic() + 60
         while len(received["state"]) < 200 and time.monotonic() < deadline:
             time.sleep(0.05)

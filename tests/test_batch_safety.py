@@ -11,6 +11,7 @@ import numpy as np
 from controller.policy import Decision
 from controller.safety import BatchSafety, SafetyNet
 from driver import Sample
+from driver.clock import DriveClock
 from model.parameters import load_model
 
 REPO = Path(__file__).resolve().parent.parent
@@ -92,14 +93,13 @@ class _TwoJoints:
 
 
 def test_a_joint_screened_out_of_the_batch_is_held_and_named_the_others_ticked():
-    from controller.loop import LoopOptions
+    from controller.loop import ControlLoop, LoopOptions
     from controller.mpc import BatchMpc, JointProblem
-    from controller.robot_loop import RobotLoop
 
     faults = []
     joints = _TwoJoints()
     batch = BatchMpc([JointProblem(MODELS[0]), JointProblem(MODELS[0])])
-    loop = RobotLoop(joints, batch, LoopOptions(lockstep=True, duration=5e-3),
+    loop = ControlLoop(joints, batch, LoopOptions(clock=DriveClock(), duration=5e-3),
                      [lambda m: faults.append(m) if type(m).__name__ == "Fault" else None])
     report = loop.run()
     assert report.exit_code == 0 and report.fallbacks == 1

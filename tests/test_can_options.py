@@ -90,10 +90,11 @@ def test_can_log_over_a_python_can_bus_holds_every_frame(no_can_config, tmp_path
     sim.boot()
     connection = open_drive(args, load_model(), load_model(), Payload(), response_timeout=5.0)
     try:
-        connection.drive.start()
+        group = connection.group
+        group.start()
         for _ in range(50):
-            connection.drive.sync()
-            connection.drive.command_current(0.0)
+            group.sync()
+            group.command_currents([0.0])
     finally:
         connection.close()
         sim.close()

@@ -325,10 +325,11 @@ def test_robot_layout_plots_every_joint_from_fields_the_robot_publishes():
     prefix = f"robots/{robot.name}"
     names = [joint.name for joint in robot.joints]
     wanted, services = layout_references(robot_layout(prefix, names))
-    assert set(wanted) == {telemetry.key_expr(prefix, topic) for topic in telemetry.ROBOT_TOPICS}
+    assert set(wanted) == {telemetry.key_expr(prefix, topic)
+                          for topic in telemetry.topics(len(names))}
     indices = set()
     for topic, fields in wanted.items():
-        message = telemetry.message_class(telemetry.ROBOT_TOPICS[topic.rsplit("/", 1)[1]])
+        message = telemetry.message_class(telemetry.TOPICS[topic.rsplit("/", 1)[1]])
         for field in fields:
             name, _, index = field.partition("[")
             assert name in message.DESCRIPTOR.fields_by_name, (topic, field)
@@ -343,7 +344,7 @@ def test_layout_topics_and_fields_exist_on_the_bridge_and_in_both_recordings(tmp
     (every topic and field) and an experiment recording (the state and command it holds)."""
     wanted, services = layout_references()
     assert sum(len(fields) for fields in wanted.values()) >= 8
-    assert {telemetry.key_expr(telemetry.DEFAULT_PREFIX, t) for t in telemetry.TOPICS
+    assert {telemetry.key_expr(telemetry.DEFAULT_PREFIX, t) for t in telemetry.topics(1)
             if t != "plan"} <= set(wanted)
     zenoh_port, ws_port = free_port(), free_port()
     actuatord = subprocess.Popen(

@@ -1,7 +1,9 @@
 """The slave's CoE mailbox server message by message (expedited, normal and segmented SDO in
-both directions, aborts, mailbox errors, emergencies), its object rules (PDO assignment and
+both directions, aborts, mailbox errors, emergencies, the SDO Information service), its object
+rules (PDO assignment and
 mapping only in PRE-OP, only what the ESI offers), and the ESI, SII and EDS agreeing."""
 
+import itertools
 import struct
 
 import pytest
@@ -143,7 +145,7 @@ def test_toggle_error_aborts_a_segmented_upload():
 def test_mailbox_errors_and_repeated_messages():
     server = CoeMailbox(Store(), SIZE)
     client = Client(server)
-    [reply] = client.request(b"\x00" * 8, service=0x08)  # SDO information: not offered
+    [reply] = client.request(b"\x00" * 8, service=0x06)  # RxPDO remote request: not offered
     assert reply[5] & 0x0F == ec.MAILBOX_TYPE_ERROR
     assert struct.unpack_from("<HH", reply, 6) == (1, ec.MAILBOX_ERROR_SERVICE_NOT_SUPPORTED)
     other = ec.MAILBOX_HEADER.pack(4, 0, 0, 0x04 | 2 << 4) + bytes(4)  # FoE
@@ -247,3 +249,106 @@ def test_esi_sii_and_eds_agree():
 def test_bad_esi_is_named(text, message):
     with pytest.raises(EsiError, match=message):
         parse_esi(text)
+
+
+# --- SDO Information (ETG.1000.6 5.6.3) ---------------------------------------------------------
+
+_counters = itertools.cycle(range(1, 8))
+
+
+def info(server: CoeMailbox, opcode: int, data: bytes) -> list[tuple[int, int, bytes]]:
+    """One SDO Information request: each reply's (opcode byte, fragments left, data), every
+    reply a whole CoE message no longer than the mailbox."""
+    body = ec.COE_HEADER.pack(ec.COE_SDO_INFORMATION << 12) + ec.SDO_INFO_HEADER.pack(
+        opcode, 0, 0) + data
+    message = ec.MAILBOX_HEADER.pack(len(body), 0, 0, ec.MAILBOX_TYPE_COE
+                                     | next(_counters) << 4) + body
+    out = []
+    for reply in server.handle(message.ljust(server.size, b"\x00")):
+        length, _, _, kind = ec.MAILBOX_HEADER.unpack_from(reply)
+        assert kind & 0x0F == ec.MAILBOX_TYPE_COE and len(reply) == 6 + length <= server.size
+        assert ec.COE_HEADER.unpack_from(reply, 6)[0] >> 12 == ec.COE_SDO_INFORMATION
+        code, _, left = ec.SDO_INFO_HEADER.unpack_from(reply, 8)
+        out.append((code, left, reply[12:6 + length]))
+    return out
+
+
+@pytest.fixture
+def browser():
+    return CoeMailbox(CoeObjects(Cia402Device(load_model()), ESI), SIZE)
+
+
+def test_the_object_list_comes_in_fragments_that_count_down(browser):
+    whole = info(browser, ec.SDO_INFO_GET_OD_LIST_REQUEST, struct.pack("<H", ec.OD_LIST_ALL))
+    browser.size = 48  # a slave with a small mailbox: 18 indices a message at most
+    replies = info(browser, ec.SDO_INFO_GET_OD_LIST_REQUEST, struct.pack("<H", ec.OD_LIST_ALL))
+    assert len(whole) == 1 and len(replies) > 2
+    assert [left for _, left, _ in replies] == list(range(len(replies) - 1, -1, -1))
+    assert [code for code, _, _ in replies] == (
+        [ec.SDO_INFO_GET_OD_LIST_RESPONSE | ec.SDO_INFO_INCOMPLETE] * (len(replies) - 1)
+        + [ec.SDO_INFO_GET_OD_LIST_RESPONSE])
+    data = b"".join(chunk for _, _, chunk in replies)
+    kind, *indices = struct.unpack(f"<{len(data) // 2}H", data)
+    assert kind == ec.OD_LIST_ALL and indices == sorted(indices)
+    dictionary = load_dictionary(eds_path())
+    # the EDS's objects and the EtherCAT communication objects, not CANopen's PDO COB-IDs
+    assert {0x1000, 0x1018, 0x1600, 0x1A00, 0x6041, 0x6071} <= set(indices)
+    assert {ec.SM_COMMUNICATION_TYPE, ec.RXPDO_ASSIGN, ec.TXPDO_ASSIGN} <= set(indices)
+    assert not {0x1400, 0x1800} & set(indices)
+    assert len(indices) == len([i for i in dictionary if not 0x1400 <= i < 0x1600
+                                and not 0x1800 <= i < 0x1A00]) + 3
+    assert whole[0][2] == data
+    [(_, _, lengths)] = info(browser, ec.SDO_INFO_GET_OD_LIST_REQUEST,
+                             struct.pack("<H", ec.OD_LIST_LENGTHS))
+    counts = struct.unpack("<H5H", lengths)[1:]
+    assert counts[0] == len(indices)
+    [(_, _, tx)] = info(browser, ec.SDO_INFO_GET_OD_LIST_REQUEST,
+                        struct.pack("<H", ec.OD_LIST_TXPDO_MAPPABLE))
+    assert set(struct.unpack(f"<{len(tx) // 2}H", tx)[1:]) == {
+        e.index for e in ESI.txpdos[0].entries}
+    assert counts[2] == len(tx) // 2 - 1
+
+
+def test_object_and_entry_descriptions_follow_the_eds_and_the_esi(browser):
+    [(code, _, data)] = info(browser, ec.SDO_INFO_GET_OBJECT_DESCRIPTION_REQUEST,
+                             struct.pack("<H", objects.STATUSWORD))
+    assert code == ec.SDO_INFO_GET_OBJECT_DESCRIPTION_RESPONSE
+    assert ec.OBJECT_DESCRIPTION.unpack_from(data) == (objects.STATUSWORD, 0x0006, 0,
+                                                       ec.OBJECT_CODE_VAR)
+    assert data[6:] == b"Statusword"
+    [(_, _, data)] = info(browser, ec.SDO_INFO_GET_OBJECT_DESCRIPTION_REQUEST,
+                          struct.pack("<H", ec.RXPDO_ASSIGN))
+    assert ec.OBJECT_DESCRIPTION.unpack_from(data)[1:] == (0x0006, 1, ec.OBJECT_CODE_ARRAY)
+    [(code, _, data)] = info(browser, ec.SDO_INFO_GET_ENTRY_DESCRIPTION_REQUEST,
+                             ec.ENTRY_DESCRIPTION_REQUEST.pack(objects.STATUSWORD, 0, 0x7F))
+    assert code == ec.SDO_INFO_GET_ENTRY_DESCRIPTION_RESPONSE
+    index, sub, value_info, data_type, bits, access = ec.ENTRY_DESCRIPTION.unpack_from(data)
+    # no unit, default, minimum or maximum follow: the name comes right after the access
+    assert (index, sub, value_info, data_type, bits) == (objects.STATUSWORD, 0, 0x07, 6, 16)
+    assert access == ec.ENTRY_ACCESS_READ | ec.ENTRY_ACCESS_TXPDO
+    assert data[ec.ENTRY_DESCRIPTION.size:] == b"Statusword"
+    [(_, _, data)] = info(browser, ec.SDO_INFO_GET_ENTRY_DESCRIPTION_REQUEST,
+                          ec.ENTRY_DESCRIPTION_REQUEST.pack(objects.TARGET_TORQUE, 0, 7))
+    assert ec.ENTRY_DESCRIPTION.unpack_from(data)[5] == (
+        ec.ENTRY_ACCESS_READ | ec.ENTRY_ACCESS_WRITE | ec.ENTRY_ACCESS_RXPDO)
+    [(_, _, data)] = info(browser, ec.SDO_INFO_GET_ENTRY_DESCRIPTION_REQUEST,
+                          ec.ENTRY_DESCRIPTION_REQUEST.pack(0x1A00, 1, 7))
+    assert ec.ENTRY_DESCRIPTION.unpack_from(data)[3:] == (7, 32, ec.ENTRY_ACCESS_READ | 0x08)
+
+
+@pytest.mark.parametrize("opcode, data, abort", [
+    (ec.SDO_INFO_GET_OBJECT_DESCRIPTION_REQUEST, struct.pack("<H", 0x5555),
+     cia301.SDO_ABORT_NOT_IN_DICTIONARY),
+    (ec.SDO_INFO_GET_OBJECT_DESCRIPTION_REQUEST, struct.pack("<H", 0x1800),
+     cia301.SDO_ABORT_NOT_IN_DICTIONARY),
+    (ec.SDO_INFO_GET_ENTRY_DESCRIPTION_REQUEST, ec.ENTRY_DESCRIPTION_REQUEST.pack(0x6041, 1, 7),
+     cia301.SDO_ABORT_NO_SUBINDEX),
+    (ec.SDO_INFO_GET_OD_LIST_REQUEST, struct.pack("<H", 9), cia301.SDO_ABORT_VALUE_RANGE),
+    (ec.SDO_INFO_GET_OD_LIST_REQUEST, b"", cia301.SDO_ABORT_LENGTH_MISMATCH),
+    (0x09, b"", cia301.SDO_ABORT_COMMAND),
+])
+def test_a_request_it_cannot_answer_gets_an_sdo_information_error(browser, opcode, data, abort):
+    """Never a mailbox error (SOEM 2.0 crashes reading one in the middle of its receive)."""
+    [(code, left, reply)] = info(browser, opcode, data)
+    assert (code, left) == (ec.SDO_INFO_ERROR, 0)
+    assert struct.unpack("<I", reply) == (abort,)

@@ -182,6 +182,21 @@ def test_emergency_waits_in_the_mailbox():
     assert master.mailbox(0) is None
 
 
+def test_an_answer_goes_before_an_emergency_still_queued():
+    """A drive fault raised between two frames queues its emergency; the master's next
+    request is answered first, the emergency after (a master waiting for its answer need
+    not handle another message first: SOEM 2.0 crashes on one)."""
+    master = Master()
+    master.operational()
+    master.segment.firmwares[0].device.inject(Fault.OVERCURRENT_TRIP)  # the drive's own thread
+    reply = master.sdo_download(0, objects.MODES_OF_OPERATION, 0, bytes([10]))
+    assert struct.unpack_from("<H", reply, 6)[0] >> 12 == ec.COE_SDO_RESPONSE
+    assert reply[8] == ec.SDO_SCS_DOWNLOAD
+    emergency = master.mailbox(0)
+    assert struct.unpack_from("<HH", emergency, 6) == (ec.COE_EMERGENCY << 12, 0x2310)
+    assert master.mailbox(0) is None
+
+
 def test_silent_and_reboot_faults():
     master = Master(2)
     for slave in (0, 1):

@@ -13,6 +13,8 @@ from controller.mpc import Mpc
 from controller.problem import OcpSettings
 from controller.reference import Sinusoid
 from driver.canopen_drive import CanOpenDrive
+from driver.clock import DriveClock
+from driver.drive_group import single_joint
 from driver.ethercat_drive import JointOnLine, open_ethercat_drive
 from model.parameters import Payload, load_model
 from recorder.csv_io import write_csv
@@ -31,8 +33,9 @@ DURATION = 5.0  # s of drive time
 def track(drive) -> tuple[int, float, int]:
     """(exit code, tracking RMS in rad, cycles) of the MPC on `drive` for DURATION."""
     mpc = Mpc(MODEL, OcpSettings(), Payload(), Sinusoid())
-    loop = ControlLoop(drive, mpc, LoopOptions(period=1e-3, lockstep=True, duration=DURATION,
-                                               keep_history=True))
+    loop = ControlLoop(single_joint(drive), mpc,
+                       LoopOptions(period=1e-3, clock=DriveClock(), duration=DURATION,
+                                   keep_history=True))
     try:
         drive.start()
         report = loop.run()
@@ -84,7 +87,8 @@ def record(drive, payload: Payload, path) -> None:
     law = TrackingLaw(MODEL.parameters.with_payload(payload), MODEL.limits.current_max)
     try:
         drive.start()
-        report = run_trajectory(drive, SHORT, law, MODEL.limits, [sink], lockstep=True)
+        report = run_trajectory(single_joint(drive), SHORT, law, MODEL.limits, [sink],
+                                clock=DriveClock())
         assert report.exit_code == 0, report.reason
     finally:
         drive.close()

@@ -6,6 +6,8 @@ import math
 from controller.messages import topic_of
 from controller.safety import SafetyNet
 from driver import Sample
+from driver.clock import DriveClock
+from driver.drive_group import single_joint
 from model import dynamics
 from model.parameters import load_model
 from recorder.exciting import SlowSinusoid
@@ -27,9 +29,10 @@ def record(duration: float, fault: Fault | None = None, at: float = 0.0):
         drive.start()
         if fault is not None:
             sim.device.schedule(fault, at)
-        report = run_trajectory(drive, SlowSinusoid(duration=duration), LAW, MODEL.limits,
+        report = run_trajectory(single_joint(drive), SlowSinusoid(duration=duration), LAW,
+                                MODEL.limits,
                                 [lambda message: received.append((topic_of(message), message))],
-                                lockstep=True)
+                                clock=DriveClock())
     return report, received
 
 

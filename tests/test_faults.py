@@ -9,6 +9,8 @@ from commands.sim_options import parse_fault
 from controller.loop import ControlLoop, LoopOptions
 from controller.messages import topic_of
 from controller.mpc import Mpc
+from driver.clock import DriveClock
+from driver.drive_group import single_joint
 from model.parameters import load_model
 from protocol import objects
 from protocol.cia402 import State
@@ -27,7 +29,8 @@ def run_with(fault: Fault, duration: float = 1.5, via_sdo: bool = False):
         if via_sdo:
             drive.node.sdo[objects.FAULT_INJECTION].raw = int(Fault.NONE)  # SDO path exists
         sim.device.schedule(fault, AT)
-        loop = ControlLoop(drive, mpc, LoopOptions(lockstep=True, duration=duration),
+        loop = ControlLoop(single_joint(drive), mpc,
+                           LoopOptions(clock=DriveClock(), duration=duration),
                            [lambda message: messages.append((topic_of(message), message))])
         report = loop.run()
         drive.close()
@@ -115,7 +118,7 @@ def test_a_stall_in_real_time_is_reported_on_the_fault_topic():
     try:
         drive.start()
         sim.device.schedule(Fault.TPDO_LATE, 0.3)
-        loop = ControlLoop(drive, Mpc(MODEL), LoopOptions(duration=0.8),
+        loop = ControlLoop(single_joint(drive), Mpc(MODEL), LoopOptions(duration=0.8),
                            [lambda message: messages.append((topic_of(message), message))])
         report = loop.run()
     finally:
@@ -123,7 +126,8 @@ def test_a_stall_in_real_time_is_reported_on_the_fault_topic():
         sim.close()
     assert report.exit_code == 0
     stalls = [f for topic, f in messages if topic == "fault" and "stalled" in f.cause]
-    assert stalls and int(stalls[0].cause.split()[2]) >= 150
+    # the injected 200 ms stall; a loaded host may add short stalls of its own before it
+    assert stalls and max(int(f.cause.split()[2]) for f in stalls) >= 150, stalls
     assert report.missed_cycles >= 150
 
 

@@ -101,9 +101,10 @@ def _identified() -> Identified:
 
 def test_identify_on_a_full_disk_is_one_line_and_leaves_no_file(capsys, disk, tmp_path,
                                                                  monkeypatch):
-    import commands.identify
+    import model.identify
 
-    monkeypatch.setattr(commands.identify, "identify", lambda *args: _identified())
+    # commands.identify imports identify once its arguments are parsed (a quick --help)
+    monkeypatch.setattr(model.identify, "identify", lambda *args: _identified())
     recording = tmp_path / "rec.csv"
     recording.write_text(CSV)
     full = disk(64 * 1024)
@@ -117,7 +118,7 @@ def test_identify_on_a_full_disk_is_one_line_and_leaves_no_file(capsys, disk, tm
 
 
 def test_model_gap_on_a_full_disk_is_one_line(capsys, disk, tmp_path, monkeypatch):
-    import commands.model_gap
+    import model.gap
 
     nan = math.nan
     result = GapResult(effects=[], rmsd_before=1.0, rmsd_after=1.0, sim_rmsd_before=0.1,
@@ -127,7 +128,8 @@ def test_model_gap_on_a_full_disk_is_one_line(capsys, disk, tmp_path, monkeypatc
                        parameters=load_model().parameters, localisation_before={},
                        localisation_after={}, residuals={}, traces_before=[],
                        traces_after=[])
-    monkeypatch.setattr(commands.model_gap, "find_gap", lambda *args: result)
+    # commands.model_gap imports find_gap once its arguments are parsed (a quick --help)
+    monkeypatch.setattr(model.gap, "find_gap", lambda *args: result)
     recording = tmp_path / "rec.csv"
     recording.write_text(CSV)
     full = disk(64 * 1024)

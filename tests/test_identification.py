@@ -11,6 +11,8 @@ from scipy import signal
 
 from controller.loop import ControlLoop, LoopOptions
 from controller.mpc import Mpc
+from driver.clock import DriveClock
+from driver.drive_group import single_joint
 from model.parameters import load_model
 from recorder.csv_io import write_csv
 from recorder.reader import load_recording
@@ -99,8 +101,8 @@ def test_controller_with_the_identified_model_tracks_as_well(recordings, tmp_pat
     def tracking_rms(controller_model) -> float:
         with virtual_pair() as (_, drive):  # the drive always runs the true model
             drive.start()
-            loop = ControlLoop(drive, Mpc(controller_model),
-                               LoopOptions(lockstep=True, duration=3.0, keep_history=True))
+            loop = ControlLoop(single_joint(drive), Mpc(controller_model),
+                               LoopOptions(clock=DriveClock(), duration=3.0, keep_history=True))
             h = {k: np.array(v) for k, v in loop.run().history.items()}
         free = (h["t"] > 0.3) & (h["reference"] > -2.2)
         return float(np.sqrt(np.mean((h["position"][free] - h["reference"][free]) ** 2)))

@@ -12,7 +12,8 @@ from controller.loop import ControlLoop, LoopOptions
 from controller.messages import topic_of
 from controller.mpc import Mpc
 from controller.problem import OcpSettings
-from driver.clock import collector_off_the_cycle
+from driver.clock import DriveClock, collector_off_the_cycle
+from driver.drive_group import single_joint
 from model.parameters import load_model
 from tests.conftest import virtual_pair
 
@@ -29,7 +30,8 @@ def test_failing_solver_holds_position_and_says_so_every_cycle():
     mpc = Mpc(MODEL, OcpSettings().with_weights(position=1e308))  # compiled code loaded first
     with virtual_pair() as (sim, drive):
         drive.start()
-        loop = ControlLoop(drive, mpc, LoopOptions(lockstep=True, duration=0.5), [publish])
+        loop = ControlLoop(single_joint(drive), mpc, LoopOptions(clock=DriveClock(), duration=0.5),
+                           [publish])
         report = loop.run()
         final_position = sim.device.plant.position
     assert report.exit_code == 0 and report.fallbacks == report.cycles == 500
@@ -48,7 +50,8 @@ def test_drive_fault_stops_the_loop_with_exit_code_1_and_a_fault_message():
     with virtual_pair() as (sim, drive):
         drive.start()
         drive.node.sdo[0x2003].raw = 100  # trip at 0.1 A: the first real command faults it
-        loop = ControlLoop(drive, mpc, LoopOptions(lockstep=True, duration=2.0), [publish])
+        loop = ControlLoop(single_joint(drive), mpc, LoopOptions(clock=DriveClock(), duration=2.0),
+                           [publish])
         report = loop.run()
     assert report.exit_code == 1
     assert "drive" in report.reason
@@ -75,6 +78,22 @@ def test_commands_print_help():
         proc = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True,
                               text=True, timeout=60)
         assert proc.returncode == 0 and "usage:" in proc.stdout, module
+
+
+def test_model_commands_answer_help_without_the_numerical_code():
+    """`identify --help` and `model-gap --help` took ~2 s importing scipy and numba before
+    parsing (issue 26); they import them once the arguments are parsed."""
+    script = ("import io, sys\n"
+              "from contextlib import redirect_stdout, suppress\n"
+              "from commands import identify, model_gap\n"
+              "for command in (identify, model_gap):\n"
+              "    with suppress(SystemExit), redirect_stdout(io.StringIO()):\n"
+              "        command.main(['--help'])\n"
+              "print(sorted(m for m in ('scipy', 'numba') if m in sys.modules))\n")
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "[]", proc.stdout
 
 
 def test_ring_stats_percentiles():

@@ -7,6 +7,7 @@ EtherCAT: a line of one virtual slave in its own process on a veth (root); a mas
 closing its socket without a word, as a SIGKILL leaves the line. CAN: the virtual drive in its
 own process over udp_multicast, masters killed with SIGKILL."""
 
+import contextlib
 import signal
 import socket
 import subprocess
@@ -25,7 +26,7 @@ from protocol import cia301, objects
 from protocol import ethercat as ec
 from protocol.cia402 import State, state_from_statusword
 from sim_bus.ethercat.netns import SlaveProcess
-from tests.conftest import udp_bus_spec, virtual_drive_process
+from tests.conftest import as_a_real_time_master, udp_bus_spec, virtual_drive_process
 from tests.test_master_loss import Observer, wait_until
 
 MODEL = load_model()
@@ -47,7 +48,13 @@ def holding_current(position: float, velocity: float) -> float:
 
 
 def hold(drive, cycles: int, period: float | None = None) -> list[tuple[float, float, float]]:
-    """Run the holding loop; (position, commanded current, measured current) per cycle."""
+    """Run the holding loop; (position, commanded current, measured current) per cycle; with
+    a `period`, in real time at the master's priority."""
+    with as_a_real_time_master() if period else contextlib.nullcontext():
+        return _hold(drive, cycles, period)
+
+
+def _hold(drive, cycles: int, period: float | None) -> list[tuple[float, float, float]]:
     out = []
     for _ in range(cycles):
         sample = drive.sync()

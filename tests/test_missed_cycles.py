@@ -7,6 +7,7 @@ import time
 
 from controller.loop import DECISION, LATE_SAMPLE, ControlLoop, LoopOptions
 from controller.policy import Decision
+from driver.drive_group import single_joint
 from model.parameters import load_model
 from sim_bus.plant import SensorNoise
 from tests.conftest import virtual_pair
@@ -43,7 +44,7 @@ class _Holding:
 def test_a_slow_decision_is_named_as_the_cause_of_its_missed_cycles():
     with virtual_pair(lockstep=False, noise=SensorNoise()) as (_, drive):
         drive.start()
-        report = ControlLoop(drive, _Holding(), LoopOptions(duration=0.4)).run()
+        report = ControlLoop(single_joint(drive), _Holding(), LoopOptions(duration=0.4)).run()
     causes = report.missed_by_cause
     stalled = (report.cycles // EVERY) * STALL / 1e-3  # cycles the stalls took
     # the host adds misses of its own (late wake-ups on a busy machine), never fewer
@@ -71,7 +72,8 @@ class _SlowDrive:
 def test_a_late_sample_is_named_as_the_cause_of_its_missed_cycles():
     with virtual_pair(lockstep=False) as (_, drive):
         drive.start()
-        report = ControlLoop(_SlowDrive(drive), _Holding(), LoopOptions(duration=0.4)).run()
+        report = ControlLoop(single_joint(_SlowDrive(drive)), _Holding(),
+                             LoopOptions(duration=0.4)).run()
     causes = report.missed_by_cause
     stalled = (report.cycles // EVERY) * STALL / 1e-3
     assert causes[LATE_SAMPLE] >= 0.5 * stalled and max(causes, key=causes.get) == LATE_SAMPLE, (

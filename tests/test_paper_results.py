@@ -7,6 +7,8 @@ import pytest
 from controller.loop import ControlLoop, LoopOptions
 from controller.mpc import Mpc
 from controller.problem import OcpSettings
+from driver.clock import DriveClock
+from driver.drive_group import single_joint
 from model.parameters import Payload, load_model
 from tests.conftest import virtual_pair
 
@@ -19,8 +21,9 @@ def run(payload=Payload(), settings=OcpSettings(), duration=ONE_SWING):
     with virtual_pair(payload=payload) as (_, drive):
         drive.start()
         mpc = Mpc(MODEL, settings, payload)
-        loop = ControlLoop(drive, mpc, LoopOptions(lockstep=True, duration=duration,
-                                                   keep_history=True))
+        loop = ControlLoop(single_joint(drive), mpc,
+                           LoopOptions(clock=DriveClock(), duration=duration,
+                                       keep_history=True))
         report = loop.run()
     assert report.exit_code == 0, report.reason
     return {k: np.array(v) for k, v in report.history.items()}

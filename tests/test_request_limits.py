@@ -19,6 +19,8 @@ from controller.mpc import Mpc
 from controller.requests import AUDIT_LINE_MAX, MAX_BODY, Body, RequestHandler
 from controller.telemetry import TelemetryPublisher
 from driver.canopen_drive import CanOpenDrive
+from driver.clock import DriveClock
+from driver.drive_group import single_joint
 from model.parameters import Payload, load_model
 from protocol import telemetry
 from sim_bus.embedded import EmbeddedDrive
@@ -46,8 +48,8 @@ def handler():
     mpc = Mpc(MODEL)
     with virtual_pair() as (_, drive):
         audit: list[str] = []
-        loop = ControlLoop(drive, mpc, LoopOptions(lockstep=True))
-        yield RequestHandler(loop, mpc, MODEL, Payload(), audit.append), audit
+        loop = ControlLoop(single_joint(drive), mpc, LoopOptions(clock=DriveClock()))
+        yield RequestHandler(loop, 0, MODEL, Payload(), audit.append), audit
 
 
 def refused(handler, answer, audit, needle: str) -> dict:
@@ -113,7 +115,7 @@ def test_an_accepted_request_is_applied_by_the_loop_and_audited(handler):
     answer = handler.set_weights(body(b'{"position": 300}'))
     assert answer == {"ok": True, "weights": {"position": 300}}
     assert json.loads(audit[-1])["accepted"] is True
-    assert handler.mpc.settings.weights.position == 400.0  # not before the next cycle
+    assert handler.joint.settings.weights.position == 400.0  # not before the next cycle
 
 
 class BlockedTime:
@@ -194,8 +196,9 @@ def service():
                              lockstep=True, response_timeout=1.0)
         cleanup.callback(drive.close)
         drive.start()
-        loop = ControlLoop(drive, mpc, LoopOptions(lockstep=True), [publisher.publish])
-        handler = RequestHandler(loop, mpc, MODEL, Payload(), publisher.publish_audit)
+        loop = ControlLoop(single_joint(drive), mpc, LoopOptions(clock=DriveClock()),
+                           [publisher.publish])
+        handler = RequestHandler(loop, 0, MODEL, Payload(), publisher.publish_audit)
         publisher.serve_json(telemetry.PARAMETERS, handler.parameters)
         publisher.serve_json(telemetry.REFERENCE, handler.set_reference)
         runner = threading.Thread(target=loop.run, daemon=True)

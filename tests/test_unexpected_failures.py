@@ -66,13 +66,13 @@ def _check_ended(capsys, code: int, needle: str) -> str:
 @pytest.mark.parametrize("where", ["loop", "thread"])
 def test_a_robot_run_quick_stops_every_drive_and_exits_1(capsys, tmp_path, monkeypatch,
                                                          robot_devices, where):
-    from controller.robot_loop import RobotLoop
+    from controller.loop import ControlLoop
     from controller.telemetry import TelemetryPublisher
     from protocol.cia402 import State
 
     if where == "loop":
-        monkeypatch.setattr(RobotLoop, "_published", failing_after(
-            RobotLoop._published, 50, TypeError("injected bug")))
+        monkeypatch.setattr(ControlLoop, "_robot_view", failing_after(
+            ControlLoop._robot_view, 50, TypeError("injected bug")))
         needle = "internal error: TypeError: injected bug"
     else:
         monkeypatch.setattr(TelemetryPublisher, "_drain", failing_after(
@@ -92,8 +92,8 @@ def test_a_robot_run_quick_stops_every_drive_and_exits_1(capsys, tmp_path, monke
 def test_a_single_joint_run_ends_in_one_line_and_exit_1(capsys, monkeypatch):
     from controller.loop import ControlLoop
 
-    monkeypatch.setattr(ControlLoop, "_published", failing_after(
-        ControlLoop._published, 50, KeyError("injected")))
+    monkeypatch.setattr(ControlLoop, "_joint_view", failing_after(
+        ControlLoop._joint_view, 50, KeyError("injected")))
     out = _check_ended(capsys, main(ARGS), "internal error: KeyError")
     assert "ran 5" not in out
 

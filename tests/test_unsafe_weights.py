@@ -13,6 +13,8 @@ from controller.loop import ControlLoop, LoopOptions
 from controller.mpc import Mpc
 from controller.problem import OcpSettings, UnsafeWeights
 from controller.requests import Body, RequestHandler
+from driver.clock import DriveClock
+from driver.drive_group import single_joint
 from model.parameters import Payload, load_model
 from tests.conftest import virtual_pair
 
@@ -30,8 +32,8 @@ def handler():
     mpc = Mpc(MODEL)
     with virtual_pair() as (_, drive):
         audit: list[str] = []
-        loop = ControlLoop(drive, mpc, LoopOptions(lockstep=True))
-        yield RequestHandler(loop, mpc, MODEL, Payload(), audit.append), audit, loop
+        loop = ControlLoop(single_joint(drive), mpc, LoopOptions(clock=DriveClock()))
+        yield RequestHandler(loop, 0, MODEL, Payload(), audit.append), audit, loop
 
 
 @pytest.mark.parametrize("weights,needle", [
@@ -46,7 +48,7 @@ def test_unsafe_weights_are_refused_over_zenoh(handler, weights, needle):
     assert json.loads(audit[-1])["accepted"] is False
     while loop._requests:  # what the loop would run at its next cycle
         loop._requests.popleft()()
-    assert handler.mpc.settings.weights == OcpSettings().weights  # unchanged
+    assert handler.joint.settings.weights == OcpSettings().weights  # unchanged
 
 
 def test_safe_changes_are_accepted_and_a_pair_unsafe_together_is_not_applied(handler):
@@ -55,7 +57,7 @@ def test_safe_changes_are_accepted_and_a_pair_unsafe_together_is_not_applied(han
     assert handler.set_weights(body(b'{"position_barrier": 50}'))["ok"]  # each safe alone
     while loop._requests:
         loop._requests.popleft()()
-    weights = handler.mpc.settings.weights
+    weights = handler.joint.settings.weights
     assert weights.position == 1000 and weights.position_barrier == 100  # the second held back
     assert handler.set_weights(body(b'{"position": 10000, "position_barrier": 1000}'))["ok"]
 

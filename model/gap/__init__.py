@@ -10,6 +10,7 @@ data-driven correction for it), `instruments` (the motor side and the torque sen
 its own), `report` (the result and its JSON report). `find_gap` runs them in that order.
 """
 
+from model.defaults import HORIZON
 from model.gap.candidates import Problem, improved_parameters, solve
 from model.gap.discrimination import discriminate
 from model.gap.evidence import (
@@ -29,7 +30,6 @@ from model.parameters import ActuatorModel
 __all__ = ["HORIZON", "GapError", "GapResult", "build_report", "find_gap",
            "improved_provenance", "summary"]
 
-HORIZON = 0.5  # s of open-loop simulation before restarting from the measured state
 MISFIT = 0.25  # model torque error above 25 % of the measured torque: wrong model
 
 

@@ -379,7 +379,10 @@ class SlaveFirmware:
             return  # the mailbox runs from PRE-OP on
         self._deferred = []  # an emergency the request itself causes follows its answer
         try:
-            self._outbox.extend(self.mailbox.handle(message))
+            # the answer goes before emergencies still queued: a master waiting for it may
+            # not survive another message first (SOEM 2.0's ecx_mbxreceive reads on into the
+            # buffer it released for the emergency, and crashes)
+            self._outbox.extendleft(reversed(self.mailbox.handle(message)))
         finally:
             deferred, self._deferred = self._deferred, None
             self._outbox.extend(deferred)
@@ -420,8 +423,20 @@ class SlaveFirmware:
             self.delay_next_frame = TPDO_DELAY
         elif fault is Fault.TPDO_TWICE:
             self.repeat_next_frame = True
+        elif fault is Fault.LEAVES_OP:
+            self.leave_op_on_error(ec.AL_SYNCHRONIZATION_ERROR)
         else:
             log.warning("fault %s has no EtherCAT equivalent here", fault.name.lower())
+
+    def leave_op_on_error(self, code: int) -> None:
+        """The application leaves OP on its own, as a drive does on an error of its own (a
+        sync error): SAFE-OP with the error indicator and `code`, its drive reacting as to a
+        lost master. The ESC still moves the process data (a master sees a whole working
+        counter); only the AL status tells."""
+        if self.state == ec.AlState.OP or self._op_requested:
+            self._op_requested = False
+            self.esc.set_al_status(ec.AlState.SAFE_OP | ec.AL_ERROR, code)
+            self._leave_op(f"left OP: AL status code {ec.al_status_name(code)}")
 
     def reboot(self) -> None:
         """Power glitch: ESC registers back to reset values (INIT, no station address), the

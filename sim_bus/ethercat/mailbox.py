@@ -1,5 +1,6 @@
 """The slave's mailbox (ETG.1000.4) with CoE (ETG.1000.6): SDO upload and download, expedited,
-normal and segmented, aborts with CiA 301 codes, and emergencies.
+normal and segmented, aborts with CiA 301 codes, emergencies, and the SDO Information service
+(object list, object and entry descriptions) through which tools browse the dictionary.
 
 Pure protocol logic: a whole mailbox message in, the messages to send back out; the objects
 behind it are an `ObjectAccess` (bytes in their dictionary encoding), so the same server
@@ -12,6 +13,7 @@ from typing import Protocol
 from protocol import cia301
 from protocol import ethercat as ec
 
+_U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
 _EMERGENCY = struct.Struct("<HB5s")  # error code, error register, manufacturer data
 _MAILBOX_ERROR = struct.Struct("<HH")  # service, detail
@@ -33,6 +35,15 @@ class ObjectAccess(Protocol):
 
     def download(self, index: int, subindex: int, data: bytes) -> None:
         """Store a value given in its dictionary encoding; SdoAbort otherwise."""
+
+    def object_list(self, kind: int) -> list[int]:
+        """The indices of list `kind` (`protocol.ethercat.OD_LIST_*`, 1-5), ascending."""
+
+    def object_description(self, index: int) -> tuple[int, int, int, str]:
+        """(data type, highest sub-index, object code, name); SdoAbort otherwise."""
+
+    def entry_description(self, index: int, subindex: int) -> tuple[int, int, int, str]:
+        """(data type, bit length, object access bits, name); SdoAbort otherwise."""
 
 
 class CoeMailbox:
@@ -69,6 +80,8 @@ class CoeMailbox:
         if len(body) < ec.COE_HEADER.size:
             return [self._error(ec.MAILBOX_ERROR_SIZE_TOO_SHORT)]
         (coe,) = ec.COE_HEADER.unpack_from(body, 0)
+        if coe >> ec.COE_SERVICE_SHIFT == ec.COE_SDO_INFORMATION:
+            return self._sdo_information(bytes(body[ec.COE_HEADER.size:]))
         if coe >> ec.COE_SERVICE_SHIFT != ec.COE_SDO_REQUEST:
             return [self._error(ec.MAILBOX_ERROR_SERVICE_NOT_SUPPORTED)]
         if len(body) < ec.COE_HEADER.size + ec.SDO_HEADER_SIZE:
@@ -205,3 +218,72 @@ class CoeMailbox:
         body = bytes([ec.SDO_SCS_DOWNLOAD_SEGMENT | toggle])
         return self._message(ec.COE_SDO_RESPONSE << ec.COE_SERVICE_SHIFT,
                              body + bytes(ec.SDO_SEGMENT_MIN_DATA))
+
+    # --- SDO Information (ETG.1000.6 5.6.3) -------------------------------------------------
+
+    def _sdo_information(self, info: bytes) -> list[bytes]:
+        """A Get OD List, Get Object Description or Get Entry Description request: its
+        response (the list in as many fragments as the mailbox needs), or an SDO Information
+        error carrying the abort code. Never a mailbox error for a request it understands:
+        SOEM 2.0's ecx_mbxreceive retries its read into a buffer it has just released after
+        a mailbox error reply and crashes (slaveinfo -map did against this slave)."""
+        header = ec.SDO_INFO_HEADER.size
+        if len(info) < header:
+            return [self._error(ec.MAILBOX_ERROR_SIZE_TOO_SHORT)]
+        opcode = info[0] & ec.SDO_INFO_OPCODE_MASK
+        data = info[header:]
+        try:
+            if opcode == ec.SDO_INFO_GET_OD_LIST_REQUEST:
+                return self._od_list(data)
+            if opcode == ec.SDO_INFO_GET_OBJECT_DESCRIPTION_REQUEST:
+                if len(data) < _U16.size:
+                    raise SdoAbort(cia301.SDO_ABORT_LENGTH_MISMATCH)
+                (index,) = _U16.unpack_from(data, 0)
+                data_type, highest, code, name = self.objects.object_description(index)
+                body = ec.OBJECT_DESCRIPTION.pack(index, data_type, highest, code)
+                return [self._info(ec.SDO_INFO_GET_OBJECT_DESCRIPTION_RESPONSE,
+                                   self._with_name(body, name))]
+            if opcode == ec.SDO_INFO_GET_ENTRY_DESCRIPTION_REQUEST:
+                if len(data) < ec.ENTRY_DESCRIPTION_REQUEST.size:
+                    raise SdoAbort(cia301.SDO_ABORT_LENGTH_MISMATCH)
+                index, subindex, value_info = ec.ENTRY_DESCRIPTION_REQUEST.unpack_from(data, 0)
+                data_type, bits, access, name = self.objects.entry_description(index, subindex)
+                # unit, default, minimum and maximum are not given: the reply says so, and a
+                # master that asked for none (SOEM) finds the name right after the access
+                body = ec.ENTRY_DESCRIPTION.pack(index, subindex,
+                                                 value_info & ~ec.ENTRY_VALUE_INFO_OPTIONAL,
+                                                 data_type, bits, access)
+                return [self._info(ec.SDO_INFO_GET_ENTRY_DESCRIPTION_RESPONSE,
+                                   self._with_name(body, name))]
+            raise SdoAbort(cia301.SDO_ABORT_COMMAND)
+        except SdoAbort as abort:
+            return [self._info(ec.SDO_INFO_ERROR, _U32.pack(abort.code))]
+
+    def _od_list(self, data: bytes) -> list[bytes]:
+        if len(data) < _U16.size:
+            raise SdoAbort(cia301.SDO_ABORT_LENGTH_MISMATCH)
+        (kind,) = _U16.unpack_from(data, 0)
+        if kind == ec.OD_LIST_LENGTHS:
+            values = [len(self.objects.object_list(k)) for k in ec.OD_LISTS]
+        elif kind in ec.OD_LISTS:
+            values = self.objects.object_list(kind)
+        else:
+            raise SdoAbort(cia301.SDO_ABORT_VALUE_RANGE)
+        payload = _U16.pack(kind) + struct.pack(f"<{len(values)}H", *values)
+        # whole 16-bit indices per fragment; the list type only in the first
+        room = (self.size - ec.MAILBOX_HEADER_SIZE - ec.COE_HEADER.size
+                - ec.SDO_INFO_HEADER.size) & ~1
+        chunks = [payload[k:k + room] for k in range(0, len(payload), room)]
+        return [self._info(ec.SDO_INFO_GET_OD_LIST_RESPONSE, chunk, len(chunks) - 1 - k)
+                for k, chunk in enumerate(chunks)]
+
+    def _with_name(self, body: bytes, name: str) -> bytes:
+        """`body` and as much of the name (ASCII) as the mailbox holds (no fragments: SOEM
+        reads a description from one message)."""
+        room = self.size - ec.MAILBOX_HEADER_SIZE - ec.COE_HEADER.size - ec.SDO_INFO_HEADER.size
+        return body + name.encode("ascii", "replace")[:max(0, room - len(body))]
+
+    def _info(self, opcode: int, data: bytes, fragments_left: int = 0) -> bytes:
+        flags = ec.SDO_INFO_INCOMPLETE if fragments_left else 0
+        body = ec.SDO_INFO_HEADER.pack(opcode | flags, 0, fragments_left) + data
+        return self._message(ec.COE_SDO_INFORMATION << ec.COE_SERVICE_SHIFT, body)

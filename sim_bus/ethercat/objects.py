@@ -8,9 +8,15 @@ EtherCAT communication objects the ESI defines, with EtherCAT's rules on top.
   PRE-OP only, sub-index 0 first set to 0, only objects the ESI's PDOs carry, an RxPDO only
   objects the master may write, a TxPDO only readable ones.
 - CANopen PDO communication parameters (COB-IDs, transmission types) do not exist on EtherCAT.
+
+The same objects answer the SDO Information service (`object_list`, `object_description`,
+`entry_description`), so what a tool browses is what an SDO reaches: the EDS's names, types
+and access, PDO-mappable only where the ESI's PDOs carry the object.
 """
 
 import struct
+
+from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 
 from protocol import cia301
 from protocol import ethercat as ec
@@ -25,6 +31,13 @@ _U16 = struct.Struct("<H")
 _MASTER_WRITES = frozenset(("rw", "wo", "rww"))
 _MASTER_READS = frozenset(("rw", "ro", "const", "rwr"))
 _CANOPEN_PDO_COMMUNICATION = (range(0x1400, 0x1600), range(0x1800, 0x1A00))
+_UNSIGNED8, _UNSIGNED16 = 0x0005, 0x0006  # CiA 301 data types
+# CiA 301 complex data types of the standard records, for their object descriptions
+_RECORD_TYPES = ((range(ec.RXPDO_MAPPING_FIRST, ec.TXPDO_MAPPING_LAST + 1), 0x0021),
+                 (range(0x1018, 0x1019), 0x0023))
+_ACCESS = {"ro": ec.ENTRY_ACCESS_READ, "const": ec.ENTRY_ACCESS_READ,
+           "wo": ec.ENTRY_ACCESS_WRITE}
+_WRITE_PRE_OP = 0x0008  # object access: written in PRE-OP only
 
 
 class CoeObjects:
@@ -43,6 +56,15 @@ class CoeObjects:
         self._entries: dict[int, list[int]] = {}
         self._counts: dict[int, int] = {}
         self.fixed = frozenset(p.index for p in esi.rxpdos + esi.txpdos if p.fixed)
+        self._rx_objects = frozenset((e.index, e.subindex) for p in esi.rxpdos for e in p.entries)
+        self._tx_objects = frozenset((e.index, e.subindex) for p in esi.txpdos for e in p.entries)
+        # the EtherCAT communication objects this class holds itself: name, entry type, count
+        self._own = {ec.SM_COMMUNICATION_TYPE: ("Sync manager type", _UNSIGNED8,
+                                                len(self.sm_types)),
+                     ec.RXPDO_ASSIGN: ("RxPDO assign", _UNSIGNED16,
+                                       len(self.assignable[ec.RXPDO_ASSIGN])),
+                     ec.TXPDO_ASSIGN: ("TxPDO assign", _UNSIGNED16,
+                                       len(self.assignable[ec.TXPDO_ASSIGN]))}
         self.reset()
 
     def reset(self) -> None:
@@ -108,8 +130,73 @@ class CoeObjects:
         except DeviceAccessError as exc:
             raise SdoAbort(exc.abort_code) from None
 
+    # --- SDO Information ------------------------------------------------------------------
+
+    def object_list(self, kind: int) -> list[int]:
+        dictionary = self.device.dictionary
+        every = sorted({*self._own, *(index for index in dictionary
+                                      if not _canopen_communication(index))})
+        if kind == ec.OD_LIST_ALL:
+            return every
+        if kind in (ec.OD_LIST_RXPDO_MAPPABLE, ec.OD_LIST_TXPDO_MAPPABLE):
+            carried = self._rx_objects if kind == ec.OD_LIST_RXPDO_MAPPABLE else self._tx_objects
+            return sorted({index for index, _ in carried if index in every})
+        return []  # nothing is stored for backup or settings here
+
+    def object_description(self, index: int) -> tuple[int, int, int, str]:
+        if index in self._own:
+            name, data_type, count = self._own[index]
+            return data_type, count, ec.OBJECT_CODE_ARRAY, name
+        obj = self._object(index)
+        if isinstance(obj, ODVariable):
+            return obj.data_type, 0, ec.OBJECT_CODE_VAR, obj.name
+        highest = max(obj.subindices)
+        if isinstance(obj, ODArray):
+            entry = obj.subindices.get(1, obj.subindices[highest])
+            return entry.data_type, highest, ec.OBJECT_CODE_ARRAY, obj.name
+        data_type = next((kind for span, kind in _RECORD_TYPES if index in span), 0)
+        return data_type, highest, ec.OBJECT_CODE_RECORD, obj.name
+
+    def entry_description(self, index: int, subindex: int) -> tuple[int, int, int, str]:
+        if index in self._own:
+            name, data_type, count = self._own[index]
+            if subindex > count:
+                raise SdoAbort(cia301.SDO_ABORT_NO_SUBINDEX)
+            write = 0 if index == ec.SM_COMMUNICATION_TYPE else _WRITE_PRE_OP
+            if subindex == 0:
+                return _UNSIGNED8, 8, ec.ENTRY_ACCESS_READ | write, "Number of entries"
+            bits = 8 if data_type == _UNSIGNED8 else 16
+            return data_type, bits, ec.ENTRY_ACCESS_READ | write, f"{name} {subindex}"
+        obj = self._object(index)
+        var = obj if isinstance(obj, ODVariable) and subindex == 0 else (
+            None if isinstance(obj, ODVariable) else obj.subindices.get(subindex))
+        if var is None:
+            raise SdoAbort(cia301.SDO_ABORT_NO_SUBINDEX)
+        access = _ACCESS.get(var.access_type, ec.ENTRY_ACCESS_READ | ec.ENTRY_ACCESS_WRITE)
+        if access & ec.ENTRY_ACCESS_WRITE and (_is_rx_mapping(index) or _is_tx_mapping(index)):
+            access = access & ~ec.ENTRY_ACCESS_WRITE | _WRITE_PRE_OP
+        if (index, subindex) in self._rx_objects:
+            access |= ec.ENTRY_ACCESS_RXPDO
+        if (index, subindex) in self._tx_objects:
+            access |= ec.ENTRY_ACCESS_TXPDO
+        if var.data_type in ODVariable.STRUCT_TYPES:
+            bits = len(var)
+        else:  # a string or domain: as long as what it holds
+            try:
+                bits = 8 * len(self.device.read_bytes(index, subindex))
+            except DeviceAccessError:
+                bits = 0
+        return var.data_type, bits, access, var.name
+
+    def _object(self, index: int) -> ODVariable | ODArray | ODRecord:
+        self._check_exists(index)
+        obj = self.device.dictionary.get(index)
+        if obj is None:
+            raise SdoAbort(cia301.SDO_ABORT_NOT_IN_DICTIONARY)
+        return obj
+
     def _check_exists(self, index: int) -> None:
-        if any(index in span for span in _CANOPEN_PDO_COMMUNICATION):
+        if _canopen_communication(index):
             raise SdoAbort(cia301.SDO_ABORT_NOT_IN_DICTIONARY)
 
     def _assign(self, index: int, subindex: int, data: bytes) -> None:
@@ -171,3 +258,7 @@ def _is_rx_mapping(index: int) -> bool:
 
 def _is_tx_mapping(index: int) -> bool:
     return ec.TXPDO_MAPPING_FIRST <= index <= ec.TXPDO_MAPPING_LAST
+
+
+def _canopen_communication(index: int) -> bool:
+    return any(index in span for span in _CANOPEN_PDO_COMMUNICATION)
