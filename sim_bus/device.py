@@ -23,6 +23,7 @@ import math
 import threading
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import NamedTuple
 
 from canopen.objectdictionary import datatypes
 
@@ -73,6 +74,39 @@ _MOTOR_CURRENT_ACTUAL = (objects.MOTOR_CURRENT_ACTUAL, 0)
 _CURRENT_ACTUAL = (objects.CURRENT_ACTUAL, 0)
 _TORQUE_ACTUAL = (objects.TORQUE_ACTUAL, 0)
 _STATUSWORDS = {state: cia402.statusword_for(state) for state in State}
+# a line's batch (`line_terms`): what the command is, the readings each cycle samples (in
+# this order) and the objects it writes back, echo and statusword first
+COMMAND_NONE, COMMAND_CURRENT, COMMAND_TORQUE = range(3)
+NEVER = 1 << 62  # the cycle of a fault that is not scheduled
+LIVE_READINGS = (_POSITION_ACTUAL, _VELOCITY_ACTUAL, _MOTOR_CURRENT_ACTUAL,
+                 _JOINT_TORQUE_SENSOR, _CURRENT_ACTUAL, _TORQUE_ACTUAL)
+LINE_KEYS = (_SYNC_ECHO, _STATUSWORD) + LIVE_READINGS
+
+
+class LineTerms(NamedTuple):
+    """A drive's terms for a line's batch (`Cia402Device.line_terms`)."""
+
+    steady: bool  # no quick stop to finish, no sensor fault pending
+    commanded: bool  # the state is the one the controlword led to (a repeat does nothing)
+    controlword: int
+    kind: int  # COMMAND_*: what the target means in this state and mode
+    braked: bool
+    faulted: bool  # in FAULT: the position window is not watched
+    statusword: int
+    next_due: int  # cycle of the next scheduled fault
+    cycle_count: int
+    period: float  # s
+    max_current: float  # A
+    trip_current: float  # A
+    window: tuple[float, float]  # rad
+    increments_per_rad: float
+    rated_current: float  # A
+    rated_torque: float  # N.m
+    drive_gain: float  # N.m/A
+    target_current: float  # A
+    target_torque_permille: int
+    ranges: tuple  # (low, high) of each LIVE_READINGS object
+    readings: tuple  # each LIVE_READINGS object's value now
 _WRITABLE = frozenset(("rw", "wo", "rww", "rwr"))
 _READABLE = frozenset(("rw", "ro", "const", "rww", "rwr"))
 
@@ -148,6 +182,9 @@ class Cia402Device:
         self._once: set[Fault] = set()  # faults that act on the next sample
         self.injected: list[tuple[int, Fault]] = []  # (cycle, fault) as they happened
         self.cycle_count = 0
+        # counts every change a line's batch (`sim_bus.line_physics`) derives its terms from:
+        # state, configuration, an object written, a fault scheduled or injected
+        self.revision = 0
         self.master_loss: str | None = None  # why the master was declared lost, until reset
         self._alone: tuple[float, int] | None = None  # see `run_alone`
         self._values: dict[tuple[int, int], int] = {}
@@ -192,6 +229,7 @@ class Cia402Device:
         return self._state not in _POWERED and self.plant.velocity == 0.0
 
     def _set_state(self, state: State) -> None:
+        self.revision += 1
         self._state = state
         self._statusword = _STATUSWORDS[state]  # sampled every cycle, changes with the state
 
@@ -242,6 +280,7 @@ class Cia402Device:
 
     def _configure(self) -> None:
         """Cache what the cycle needs from the dictionary (after a reset or a write to it)."""
+        self.revision += 1
         v = self._values
         self.rated_current = v.get((objects.RATED_CURRENT, 0), 0) / objects.MILLI  # A
         self.rated_torque = v.get((objects.RATED_TORQUE, 0), 0) / objects.MILLI  # N.m
@@ -332,6 +371,7 @@ class Cia402Device:
                                     f"0x{var.index:04X}:{var.subindex:02X} is read-only")
 
     def _act(self, index: int, subindex: int, value: int) -> None:
+        self.revision += 1
         if index == objects.CONTROLWORD:
             self._apply_controlword(value)
         elif index == objects.TARGET_CURRENT:
@@ -523,6 +563,47 @@ class Cia402Device:
                 if Fault.TORQUE_SENSOR_SATURATED in once:
                     self._values[_JOINT_TORQUE_SENSOR] = cia301.INT32_MAX
 
+    # --- a line's batch (sim_bus.line_physics) ----------------------------------------------
+
+    def line_terms(self) -> "LineTerms":
+        """What a line's batch needs to run this drive's next cycles in its place, as of now
+        (valid until `revision` changes): the cycle of `cycle()` without its events. The
+        batch leaves a cycle to `cycle()` when the controlword would act, the command would
+        trip, the joint leaves its window, a quick stop is to finish, or a fault is due."""
+        state = self._state
+        if state is not State.OPERATION_ENABLED or self._mode not in (
+                objects.MODE_CYCLIC_SYNC_CURRENT, objects.MODE_CYCLIC_SYNC_TORQUE):
+            kind = COMMAND_NONE
+        else:
+            kind = (COMMAND_CURRENT if self._mode == objects.MODE_CYCLIC_SYNC_CURRENT
+                    else COMMAND_TORQUE)
+        r = self._reading_range
+        v = self._values
+        return LineTerms(
+            steady=state is not State.QUICK_STOP_ACTIVE and not self._once,
+            commanded=state is self._commanded_state, controlword=self._controlword,
+            kind=kind, braked=self.brake_engaged, faulted=state is State.FAULT,
+            statusword=self._statusword,
+            next_due=self._schedule[0][0] if self._schedule else NEVER,
+            cycle_count=self.cycle_count, period=self._period, max_current=self.max_current,
+            trip_current=self.trip_current, window=self.position_window,
+            increments_per_rad=self.increments_per_rad, rated_current=self.rated_current,
+            rated_torque=self.rated_torque, drive_gain=self.drive_gain,
+            target_current=self._target_current,
+            target_torque_permille=self._target_torque_permille,
+            ranges=tuple(r[key] for key in LIVE_READINGS),
+            readings=tuple(v.get(key, 0) for key in LIVE_READINGS))
+
+    def cycled_by_line(self, keys: tuple, values: list, applied_current: float,
+                       target_current: float, target_torque_permille: int) -> None:
+        """A line's batch ran this drive's cycle: its objects `keys` (`LINE_KEYS` and the
+        outputs it took) now hold `values`, as `cycle()` would have left them."""
+        self._values.update(zip(keys, values, strict=True))
+        self.applied_current = applied_current
+        self._target_current = target_current
+        self._target_torque_permille = target_torque_permille
+        self.cycle_count += 1
+
     def _sample(self, m) -> None:
         """The sensors' reading and the statusword, in the dictionary's units, as the input
         process data carries them: latched here, so a fault due later in the same cycle shows
@@ -553,6 +634,7 @@ class Cia402Device:
         """Inject `fault` when the drive's time (cycles x period) reaches `seconds`; a time of
         0 fires at the first cycle, and several faults due in one cycle all fire."""
         with self._lock:
+            self.revision += 1
             self._schedule.append((int(round(seconds / self._period)), fault))
             self._schedule.sort(key=lambda item: item[0])
 
@@ -560,6 +642,7 @@ class Cia402Device:
         """Inject `fault` now: the device acts out its own (sensor glitches on the next
         sample, over-current trip), the fault handlers the communication's."""
         with self._lock:
+            self.revision += 1
             self.injected.append((self.cycle_count, fault))
             if fault is Fault.OVERCURRENT_TRIP:
                 self._fault(cia301.EMCY_OVERCURRENT, cia301.ERROR_REGISTER_CURRENT)
