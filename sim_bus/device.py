@@ -181,7 +181,11 @@ class Cia402Device:
         self._schedule: list[tuple[int, Fault]] = []  # (cycle, fault), due when cycle is reached
         self._once: set[Fault] = set()  # faults that act on the next sample
         self.injected: list[tuple[int, Fault]] = []  # (cycle, fault) as they happened
-        self.cycle_count = 0
+        self._cycle_count = 0
+        self._applied_current = 0.0
+        # a line whose batch may hold this drive's latest cycles (`sim_bus.line_physics`):
+        # they are written back here before anything reads or changes the drive
+        self._line = None
         # counts every change a line's batch (`sim_bus.line_physics`) derives its terms from:
         # state, configuration, an object written, a fault scheduled or injected
         self.revision = 0
@@ -228,6 +232,28 @@ class Cia402Device:
         """Power stage off and the joint standing still: nothing changes without a master."""
         return self._state not in _POWERED and self.plant.velocity == 0.0
 
+    @property
+    def cycle_count(self) -> int:
+        """Cycles run since power-on."""
+        self._settle()
+        return self._cycle_count
+
+    @property
+    def applied_current(self) -> float:
+        """A, the current the last cycle applied."""
+        self._settle()
+        return self._applied_current
+
+    @applied_current.setter
+    def applied_current(self, current: float) -> None:
+        self._applied_current = current
+
+    def _settle(self) -> None:
+        """The cycles a line's batch ran for this drive, written back (see `_line`)."""
+        line = self._line
+        if line is not None and line.pending:
+            line.flush()
+
     def _set_state(self, state: State) -> None:
         self.revision += 1
         self._state = state
@@ -237,6 +263,7 @@ class Cia402Device:
 
     def reset_application(self) -> None:
         """Power-on values for every object, power stage off (CANopen NMT reset node)."""
+        self._settle()
         with self._lock:
             for key, var in self._variables.items():
                 self._values[key] = power_on_value(var)
@@ -258,6 +285,7 @@ class Cia402Device:
     def reset_communication(self) -> None:
         """Power-on values for the communication objects (0x1000..0x1FFF). The power stage
         goes off too: a master that resets the drive never inherits it enabled."""
+        self._settle()
         with self._lock:
             for key, var in self._variables.items():
                 if key[0] < 0x2000:
@@ -317,6 +345,7 @@ class Cia402Device:
 
     def read(self, index: int, subindex: int = 0) -> int:
         """The object's value (live objects as of the last cycle or state change)."""
+        self._settle()
         var = self._variable(index, subindex)
         if var.access_type not in _READABLE:
             raise DeviceAccessError(cia301.SDO_ABORT_READ_WRITE_ONLY,
@@ -332,6 +361,7 @@ class Cia402Device:
 
     def write_bytes(self, index: int, subindex: int, data: bytes) -> None:
         """`write` from an SDO download's bytes (length checked against the data type)."""
+        self._settle()
         var = self._variable(index, subindex)
         if isinstance(self._values[(index, subindex)], int) and len(data) * 8 != len(var):
             raise DeviceAccessError(cia301.SDO_ABORT_LENGTH_MISMATCH,
@@ -347,6 +377,7 @@ class Cia402Device:
     def write(self, index: int, subindex: int, value: int) -> None:
         """Validate and act on a write (controlword, mode, targets, configuration, fault
         injection); DeviceAccessError with the abort code when refused."""
+        self._settle()
         var = self._variable(index, subindex)
         self._check_writable(var)
         bits = len(var)
@@ -417,6 +448,7 @@ class Cia402Device:
     def write_outputs(self, keys: tuple[tuple[int, int], ...], values: tuple[int, ...]) -> None:
         """Act on a received output PDO's values (already in their types' ranges: the PDO
         codec made them), without the per-object checks of an SDO write."""
+        self._settle()
         with self._lock:
             for (index, subindex), value in zip(keys, values, strict=True):
                 self._act(index, subindex, value)
@@ -425,6 +457,7 @@ class Cia402Device:
     def values(self) -> Mapping[tuple[int, int], int]:
         """Every object's value by (index, subindex), live objects as sampled by the last
         cycle: what an input PDO carries (read-only; `read` for checked access)."""
+        self._settle()
         return self._values
 
     # --- CiA 402 ----------------------------------------------------------------------------
@@ -474,6 +507,7 @@ class Cia402Device:
         """The bus declared the master gone (consumer heartbeat timeout, SYNC/RPDO silence,
         an EtherCAT watchdog): emergency `code`, then the abort connection reaction 0x6007
         (quick stop by default). Once per loss: a reset re-arms it."""
+        self._settle()
         with self._lock:
             if self.master_loss is not None:
                 return
@@ -508,6 +542,7 @@ class Cia402Device:
         joint moves as it would, without anyone sending a SYNC or a frame. Cycles the bus
         drives (a new master's) take precedence: while they come nothing runs here. Lock-step
         never calls this: its drive time is the bus's cycles only."""
+        self._settle()
         if self.master_loss is None and self._alone is None:
             return  # the every-frame case, without the lock
         with self._lock:
@@ -540,21 +575,22 @@ class Cia402Device:
         """One communication cycle: latch the command, advance the physics one period, sample
         the sensors, fire the faults due. `counter` is the cycle's number as the bus gives it
         (the SYNC counter byte), echoed in 0x2004 where the drive has it."""
+        self._settle()
         with self._lock:
             self._values[_SYNC_ECHO] = counter
             command = self._commanded_current()
             if abs(command) > self.trip_current:
                 self._fault(cia301.EMCY_OVERCURRENT, cia301.ERROR_REGISTER_CURRENT)
                 command = 0.0
-            self.applied_current = max(-self.max_current, min(self.max_current, command))
-            self.plant.advance(self.applied_current, self._period, self.brake_engaged)
-            self.cycle_count += 1
+            self._applied_current = max(-self.max_current, min(self.max_current, command))
+            self.plant.advance(self._applied_current, self._period, self.brake_engaged)
+            self._cycle_count += 1
             low, high = self.position_window
             if self._state is not State.FAULT and not low <= self.plant.position <= high:
                 self._fault(cia301.EMCY_POSITION_LIMIT, cia301.ERROR_REGISTER_GENERIC)
             self._finish_quick_stop()
             self._sample(self.plant.measure())
-            while self._schedule and self._schedule[0][0] <= self.cycle_count:
+            while self._schedule and self._schedule[0][0] <= self._cycle_count:
                 self.inject(self._schedule.pop(0)[1])
             if self._once:
                 once, self._once = self._once, set()
@@ -570,6 +606,7 @@ class Cia402Device:
         (valid until `revision` changes): the cycle of `cycle()` without its events. The
         batch leaves a cycle to `cycle()` when the controlword would act, the command would
         trip, the joint leaves its window, a quick stop is to finish, or a fault is due."""
+        self._settle()
         state = self._state
         if state is not State.OPERATION_ENABLED or self._mode not in (
                 objects.MODE_CYCLIC_SYNC_CURRENT, objects.MODE_CYCLIC_SYNC_TORQUE):
@@ -585,7 +622,7 @@ class Cia402Device:
             kind=kind, braked=self.brake_engaged, faulted=state is State.FAULT,
             statusword=self._statusword,
             next_due=self._schedule[0][0] if self._schedule else NEVER,
-            cycle_count=self.cycle_count, period=self._period, max_current=self.max_current,
+            cycle_count=self._cycle_count, period=self._period, max_current=self.max_current,
             trip_current=self.trip_current, window=self.position_window,
             increments_per_rad=self.increments_per_rad, rated_current=self.rated_current,
             rated_torque=self.rated_torque, drive_gain=self.drive_gain,
@@ -594,15 +631,17 @@ class Cia402Device:
             ranges=tuple(r[key] for key in LIVE_READINGS),
             readings=tuple(v.get(key, 0) for key in LIVE_READINGS))
 
-    def cycled_by_line(self, keys: tuple, values: list, applied_current: float,
-                       target_current: float, target_torque_permille: int) -> None:
-        """A line's batch ran this drive's cycle: its objects `keys` (`LINE_KEYS` and the
-        outputs it took) now hold `values`, as `cycle()` would have left them."""
+    def cycled_by_line(self, keys: tuple, values: list, cycle_count: int,
+                       applied_current: float, target_current: float,
+                       target_torque_permille: int) -> None:
+        """A line's batch ran this drive's cycles up to `cycle_count`: its objects `keys`
+        (`LINE_KEYS` and the outputs it took) hold `values`, as `cycle()` would have left
+        them."""
         self._values.update(zip(keys, values, strict=True))
-        self.applied_current = applied_current
+        self._cycle_count = cycle_count
+        self._applied_current = applied_current
         self._target_current = target_current
         self._target_torque_permille = target_torque_permille
-        self.cycle_count += 1
 
     def _sample(self, m) -> None:
         """The sensors' reading and the statusword, in the dictionary's units, as the input
@@ -641,6 +680,7 @@ class Cia402Device:
     def inject(self, fault: Fault) -> None:
         """Inject `fault` now: the device acts out its own (sensor glitches on the next
         sample, over-current trip), the fault handlers the communication's."""
+        self._settle()
         with self._lock:
             self.revision += 1
             self.injected.append((self.cycle_count, fault))

@@ -64,25 +64,38 @@ def _saturate(value: float, low: int, high: int) -> int:
 
 
 @numba.njit(cache=True, error_model="numpy")
-def advance_line(rows: np.ndarray, terms: np.ndarray, flags: np.ndarray, ranges: np.ndarray,
+def advance_line(rows: np.ndarray, controlwords: np.ndarray, torque_out: np.ndarray,
+                 current_out: np.ndarray, counter: int, steady: np.ndarray,
+                 controlword: np.ndarray, next_due: np.ndarray, cycles: np.ndarray,
+                 terms: np.ndarray, flags: np.ndarray, ranges: np.ndarray,
                  torque_targets: np.ndarray, current_targets: np.ndarray,
                  state: np.ndarray, packed: np.ndarray, packed_braked: np.ndarray,
                  draws: np.ndarray, cursor: np.ndarray, values: np.ndarray,
-                 applied: np.ndarray, substeps: int) -> np.ndarray:
+                 applied: np.ndarray, outputs: np.ndarray, substeps: int) -> np.ndarray:
     """One cycle of each drive in `rows`, as `Cia402Device.cycle()` runs it when nothing but
-    the physics happens: the command latched (in its mode, clamped at the drive's maximum),
-    the plant advanced one period, the sensors sampled. A drive whose command would trip or
-    whose joint would leave its window is left untouched (False in the result): its device
-    runs that cycle itself. `values` gets the readings, `applied` the current."""
+    the physics happens: the outputs taken (`controlwords`, and the targets where
+    `torque_out` / `current_out` have a row per drive), the command latched in its mode and
+    clamped at the drive's maximum, the plant advanced one period, the sensors sampled. A
+    drive whose cycle has more to it (not `steady`, a new controlword, a fault due, its noise
+    draws to renew, a command that trips, a joint leaving its window) is left untouched
+    (False in the result): its device runs that cycle itself. `values` gets the readings,
+    `applied` the current, `outputs` (controlword, torque target, current target) what the
+    drive took."""
     done = np.zeros(rows.shape[0], dtype=np.bool_)
     for n in range(rows.shape[0]):
         j = rows[n]
+        if (not steady[j] or controlwords[j] != controlword[j]
+                or next_due[j] <= cycles[j] + 1 or cursor[j] > NOISE_BATCH - 2):
+            continue
+        torque = torque_out[j] if torque_out.shape[0] else torque_targets[j]
+        current_target = (current_out[j] / _MILLI if current_out.shape[0]
+                          else current_targets[j])
         t = terms[j]
         kind = flags[j, I_KIND]
         if kind == COMMAND_CURRENT:
-            command = current_targets[j]
+            command = current_target
         elif kind == COMMAND_TORQUE:
-            command = torque_targets[j] / _MILLI * t[T_RATED_TORQUE] / t[T_DRIVE_GAIN]
+            command = torque / _MILLI * t[T_RATED_TORQUE] / t[T_DRIVE_GAIN]
         else:
             command = 0.0
         if abs(command) > t[T_TRIP]:
@@ -97,6 +110,13 @@ def advance_line(rows: np.ndarray, terms: np.ndarray, flags: np.ndarray, ranges:
         if not flags[j, I_FAULTED] and not t[T_WINDOW_LOW] <= q <= t[T_WINDOW_HIGH]:
             continue
         done[n] = True
+        torque_targets[j], current_targets[j] = torque, current_target
+        outputs[j, 0] = controlwords[j]
+        if torque_out.shape[0]:
+            outputs[j, 1] = torque_out[j]
+        if current_out.shape[0]:
+            outputs[j, 2] = current_out[j]
+        cycles[j] += 1
         x = state[j]
         x[POSITION], x[VELOCITY], x[DRY], x[DRY_LEVEL], x[JOINT_TORQUE] = q, qd, dry, level, joint
         x[CURRENT] = current
@@ -108,6 +128,7 @@ def advance_line(rows: np.ndarray, terms: np.ndarray, flags: np.ndarray, ranges:
         reading = joint / t[T_SENSOR_GAIN] + t[T_NOISE_TORQUE] * draws[j, k + 1]
         per_rad = t[T_PER_RAD]
         v, r = values[j], ranges[j]
+        v[V_ECHO] = counter
         v[V_READINGS] = _saturate(q * per_rad, r[0, 0], r[0, 1])
         v[V_READINGS + 1] = _saturate(qd * per_rad, r[1, 0], r[1, 1])
         v[V_READINGS + 2] = _saturate(measured * _MILLI, r[2, 0], r[2, 1])
@@ -120,9 +141,18 @@ def advance_line(rows: np.ndarray, terms: np.ndarray, flags: np.ndarray, ranges:
     return done
 
 
+_NONE = np.zeros(0, dtype=np.int64)  # an output the layout does not carry
+_TORQUE_KEY = (objects.TARGET_TORQUE, 0)
+_CURRENT_KEY = (objects.TARGET_CURRENT, 0)
+
+
 class DriveLine:
     """The drives of one line; `cycle` runs a cycle of those given, in one compiled call for
-    every steady one, and says which ran (the others' cycles are their devices' to run)."""
+    every steady one, and says which ran (the others' cycles are their devices' to run).
+
+    What a batch cycle leaves in a device (its objects, cycle count, applied current,
+    targets) is written back when anything next reads or changes that device (`flush`, from
+    `Cia402Device._settle`), not every cycle: in a run nobody looks between two cycles."""
 
     def __init__(self, devices: Sequence[Cia402Device]):
         self.devices = list(devices)
@@ -136,6 +166,7 @@ class DriveLine:
         for j, device in enumerate(self.devices):
             device.plant.adopt(self.state[j], self.packed[j], self.packed_braked[j],
                                self.draws[j], self.cursor[j:j + 1])
+            device._line = self
         self.terms = np.zeros((count, N_TERMS))
         self.flags = np.zeros((count, N_FLAGS), dtype=np.int64)
         self.ranges = np.zeros((count, len(LINE_KEYS) - 2, 2), dtype=np.int64)
@@ -143,17 +174,39 @@ class DriveLine:
         self.applied = np.zeros(count)
         self.torque_targets = np.zeros(count)  # per mille of rated torque
         self.current_targets = np.zeros(count)  # A
+        self.outputs = np.zeros((count, 3), dtype=np.int64)  # controlword, targets as taken
         # what decides, per drive, whether its next cycle is the batch's
-        self._steady = np.zeros(count, dtype=bool)  # and the controlword acts no change
+        self._steady = np.zeros(count, dtype=np.bool_)  # terms steady, controlword repeated
         self._controlword = np.zeros(count, dtype=np.int64)
         self._next_due = np.zeros(count, dtype=np.int64)
         self._cycles = np.zeros(count, dtype=np.int64)
         self._drifting: list[int] = []
         # the devices' revisions the terms are from (-1: read them before the next cycle)
         self._revisions = [-1] * count
+        self._rows = np.arange(count)
+        # drives whose last cycles ran here and are not written back yet; their output keys
+        self.pending = False
+        self._unwritten = np.zeros(count, dtype=np.bool_)
+        self._output_keys: tuple = ()
 
     def __len__(self) -> int:
         return len(self.devices)
+
+    def flush(self) -> None:
+        """Write what the batch's cycles left into the devices they ran for."""
+        self.pending = False
+        rows = np.flatnonzero(self._unwritten)
+        self._unwritten[:] = False
+        keys = LINE_KEYS + self._output_keys
+        columns = [0] + [1 + (key == _CURRENT_KEY) for key in self._output_keys[1:]]
+        written = np.concatenate((self.values[rows], self.outputs[rows][:, columns]),
+                                 axis=1).tolist()
+        cycles, applied = self._cycles[rows].tolist(), self.applied[rows].tolist()
+        current = self.current_targets[rows].tolist()
+        torque = self.torque_targets[rows].astype(np.int64).tolist()
+        for n, j in enumerate(rows.tolist()):
+            self.devices[j].cycled_by_line(keys, written[n], cycles[n], applied[n],
+                                           current[n], torque[n])
 
     def _read_terms(self, j: int) -> None:
         device = self.devices[j]
@@ -179,59 +232,47 @@ class DriveLine:
         elif not plant.drifts and j in self._drifting:
             self._drifting.remove(j)
 
+    def refresh(self) -> bool:
+        """Read again the terms of every drive that changed (or may have been cycled
+        elsewhere) since they were read; whether any had."""
+        revisions = [d.revision + d.plant.revision for d in self.devices]
+        if revisions == self._revisions:
+            return False
+        for j, (now, then) in enumerate(zip(revisions, self._revisions, strict=True)):
+            if now != then:
+                self._read_terms(j)
+        # reading them settled the devices, whose revisions stay as they were
+        self._revisions = revisions
+        return True
+
     def cycle(self, rows: np.ndarray, controlwords: np.ndarray, outputs: tuple,
               output_values: list, counter: int = 0) -> np.ndarray:
-        """One cycle of the drives `rows` (indices, in line order) under these outputs (one
-        row each in line order: `controlwords` and, for the objects `outputs` other than the
-        controlword, `output_values` as columns (torque target per mille, current target
-        mA). The rows whose cycle ran here (bool over `rows`); every drive not among them
-        may have been cycled another way, so its terms are read again before its next."""
+        """One cycle of the drives `rows` (indices, in line order) under these outputs, a
+        row per drive of the line: `controlwords` and, for the objects `outputs` other than
+        the controlword (target torque and current), `output_values`. The rows whose cycle
+        ran here (bool over `rows`); every drive not among them may have been cycled
+        another way, so its terms are read again before its next."""
+        self.refresh()
         devices = self.devices
-        revisions = [d.revision + d.plant.revision for d in devices]
-        if revisions != self._revisions:
-            for j, (now, then) in enumerate(zip(revisions, self._revisions, strict=True)):
-                if now != then:
-                    self._read_terms(j)
-            self._revisions = revisions
         for j in self._drifting:
             devices[j].plant.renew_parameters()
-        torque_key, current_key = (objects.TARGET_TORQUE, 0), (objects.TARGET_CURRENT, 0)
-        for key, column in zip(outputs[1:], output_values, strict=True):
-            if key == torque_key:
-                self.torque_targets[rows] = column[rows]
-            elif key == current_key:
-                self.current_targets[rows] = column[rows] / objects.MILLI
-        refill = self.cursor[rows] == NOISE_BATCH
-        if refill.any():
-            for j in rows[refill]:
-                devices[j].plant.refill_draws()
-        steady = (self._steady[rows] & (controlwords[rows] == self._controlword[rows])
-                  & (self._next_due[rows] > self._cycles[rows] + 1)
-                  & (self.cursor[rows] <= NOISE_BATCH - 2))
-        batch = rows[steady]
-        done = np.zeros(len(rows), dtype=bool)
-        ran = advance_line(batch, self.terms, self.flags, self.ranges, self.torque_targets,
-                           self.current_targets, self.state, self.packed, self.packed_braked,
-                           self.draws, self.cursor, self.values, self.applied,
-                           dynamics.SUBSTEPS)
-        done[np.flatnonzero(steady)[ran]] = True
-        cycled = batch[ran]
-        self._cycles[cycled] += 1
-        values = self.values
-        values[cycled, V_ECHO] = counter
-        keys = LINE_KEYS + outputs
-        written = np.concatenate(
-            (values[cycled], controlwords[cycled, None],
-             *(column[cycled, None] for column in output_values)), axis=1).tolist()
-        applied = self.applied[cycled].tolist()
-        torque = self.torque_targets[cycled].tolist()
-        current = self.current_targets[cycled].tolist()
-        for n, j in enumerate(cycled.tolist()):
-            devices[j].cycled_by_line(keys, written[n], applied[n], current[n],
-                                      int(torque[n]))
-        # whatever did not run here may have run elsewhere: its terms are read again
-        stale = np.ones(len(devices), dtype=bool)
-        stale[cycled] = False
-        for j in np.flatnonzero(stale).tolist():
-            self._revisions[j] = -1
+        if outputs != self._output_keys:
+            if self.pending:
+                self.flush()
+            self._output_keys = outputs
+        columns = dict(zip(outputs[1:], output_values, strict=True))
+        done = advance_line(rows, controlwords, columns.get(_TORQUE_KEY, _NONE),
+                            columns.get(_CURRENT_KEY, _NONE), counter, self._steady,
+                            self._controlword, self._next_due, self._cycles, self.terms,
+                            self.flags, self.ranges, self.torque_targets,
+                            self.current_targets, self.state, self.packed,
+                            self.packed_braked, self.draws, self.cursor, self.values,
+                            self.applied, self.outputs, dynamics.SUBSTEPS)
+        cycled = rows[done]
+        self._unwritten[cycled] = True
+        self.pending = True
+        if len(cycled) < len(devices):  # the others may run elsewhere: read them again
+            revisions = self._revisions
+            for j in np.setdiff1d(self._rows, cycled, assume_unique=True).tolist():
+                revisions[j] = -1
         return done

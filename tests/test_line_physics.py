@@ -4,7 +4,8 @@ the other through the batch (which leaves the cycles it does not run to the devi
 linked line does), must agree to 1e-12 on every position, velocity, current and reading and
 exactly on every statusword, state and emergency, through enabling, a fault from leaving the
 position window and its reset, scheduled faults (over-current trip, encoder glitch, torque
-sensor saturation), a quick stop, a mode change and a payload change."""
+sensor saturation), a quick stop, a mode change and a payload change, whether looked at every
+cycle or after a hundred."""
 
 import math
 
@@ -88,6 +89,8 @@ def test_the_batch_runs_the_devices_cycles_exactly():
         for j in np.flatnonzero(~done):  # what the slave's firmware does without a batch
             batched[j].write_outputs(OUTPUTS, tuple(int(v) for v in outputs[j]))
             batched[j].cycle()
+        if 1300 <= k < 1700 and k % 100:
+            continue  # unobserved, the batch's cycles pile up before they are written back
         for j in range(JOINTS):
             expected, got = reference[j], batched[j]
             assert np.allclose(got.plant.state, expected.plant.state, rtol=0, atol=1e-12), (k, j)
