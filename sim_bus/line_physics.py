@@ -246,13 +246,15 @@ class DriveLine:
         return True
 
     def cycle(self, rows: np.ndarray, controlwords: np.ndarray, outputs: tuple,
-              output_values: list, counter: int = 0) -> np.ndarray:
+              output_values: list, counter: int = 0, refresh: bool = True) -> np.ndarray:
         """One cycle of the drives `rows` (indices, in line order) under these outputs, a
         row per drive of the line: `controlwords` and, for the objects `outputs` other than
         the controlword (target torque and current), `output_values`. The rows whose cycle
         ran here (bool over `rows`); every drive not among them may have been cycled
-        another way, so its terms are read again before its next."""
-        self.refresh()
+        another way, so its terms are read again before its next. `refresh` False: the
+        caller has just called `refresh`."""
+        if refresh:
+            self.refresh()
         devices = self.devices
         for j in self._drifting:
             devices[j].plant.renew_parameters()

@@ -279,6 +279,9 @@ class LinkedImage:
         self._checked: list = [None] * len(slaves)
         self._plain = [False] * len(slaves)
         self._watchdog = [False] * len(slaves)
+        # per slave, what a batched cycle writes: (ESC memory, SM2 start, SM3 start,
+        # ESC whose watchdog the outputs retrigger or None, firmware, slave)
+        self._plan: list[tuple] = []
 
     @classmethod
     def of(cls, slaves: list[LinkedSlave], segment: Segment,
@@ -323,6 +326,10 @@ class LinkedImage:
                 slave._firmware.steady_keys() == keys
                 and (plain[k] if checked[k] is slave._esc._sms else self._check(k))
                 for k, slave in enumerate(slaves)]
+            self._plan = [(slave._esc.view, slave._outputs[0], slave._inputs[0],
+                           slave._esc if self._watchdog[k] and slave._esc._watchdog_period
+                           else None, slave._firmware, slave)
+                          for k, slave in enumerate(slaves)]
             self._seen = self._changes[0]
         steady = self._steady
         data = b"".join([slave.output for slave in slaves])
@@ -332,26 +339,29 @@ class LinkedImage:
         rows = self._rows[steady]
         out_keys = self.keys[0]
         done = line.cycle(rows, outputs["f0"].astype(np.int64), out_keys,
-                          [outputs[f"f{k}"].astype(np.int64) for k in range(1, len(out_keys))])
+                          [outputs[f"f{k}"].astype(np.int64) for k in range(1, len(out_keys))],
+                          refresh=False)
         batched = rows[done]
+        every = len(batched) == len(slaves)
         inputs, values = self._inputs, line.values
         for field, column in self._in_fields:
-            inputs[field][batched] = values[batched, column]
+            if every:
+                inputs[field] = values[:, column]
+            else:
+                inputs[field][batched] = values[batched, column]
         image = inputs.tobytes()
         out_size, in_size = self._out_size, self._in_size
-        count = 0
+        plan = self._plan
         for k in batched.tolist():
-            slave = slaves[k]
-            view = slave._esc.view
-            out_start, in_start = slave._outputs[0], slave._inputs[0]
+            view, out_start, in_start, watchdog, firmware, slave = plan[k]
             view[out_start:out_start + out_size] = slave.output
-            if self._watchdog[k]:
-                slave._esc._trigger_watchdog()
-            slave.input = image[k * in_size:(k + 1) * in_size]
-            view[in_start:in_start + in_size] = slave.input
-            slave._firmware.cycles += 1
-            count += WORKING_COUNTER_PER_SLAVE
-        if len(batched) < len(slaves):  # slave by slave, which may change them: look again
+            if watchdog is not None:
+                watchdog._trigger_watchdog()
+            slave.input = data = image[k * in_size:(k + 1) * in_size]
+            view[in_start:in_start + in_size] = data
+            firmware.cycles += 1
+        count = WORKING_COUNTER_PER_SLAVE * len(batched)
+        if not every:  # slave by slave, which may change them: look again
             left = np.ones(len(slaves), dtype=bool)
             left[batched] = False
             count += sum(slaves[k]._exchange() for k in np.flatnonzero(left).tolist())
