@@ -248,6 +248,11 @@ class Cia402Device:
     def applied_current(self, current: float) -> None:
         self._applied_current = current
 
+    def join_line(self, line) -> None:
+        """`line` (a `sim_bus.line_physics.DriveLine`) may run this drive's cycles from now on;
+        its plant lives in the line's rows."""
+        self._line = line
+
     def _settle(self) -> None:
         """The cycles a line's batch ran for this drive, written back (see `_line`)."""
         line = self._line

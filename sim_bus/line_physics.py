@@ -166,7 +166,7 @@ class DriveLine:
         for j, device in enumerate(self.devices):
             device.plant.adopt(self.state[j], self.packed[j], self.packed_braked[j],
                                self.draws[j], self.cursor[j:j + 1])
-            device._line = self
+            device.join_line(self)
         self.terms = np.zeros((count, N_TERMS))
         self.flags = np.zeros((count, N_FLAGS), dtype=np.int64)
         self.ranges = np.zeros((count, len(LINE_KEYS) - 2, 2), dtype=np.int64)
