@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 
+from driver.interface import SAMPLE_JOINT_TORQUE
 from model.parameters import Payload, load_model
 from protocol import objects
 from sim_bus.device import LINE_KEYS
@@ -104,3 +105,56 @@ def test_the_batch_runs_the_devices_cycles_exactly():
     assert reference[2].state.name == "OPERATION_ENABLED"
     assert reference[1].injected and reference[2].injected
     assert CYCLES * JOINTS - 100 < ran < CYCLES * JOINTS - 10, ran
+
+
+def _three_elbows_on_a_line():
+    from pathlib import Path
+
+    from robot.description import JointSpec, RobotSpec, default_reference
+    from robot.wiring import open_robot
+
+    model = load_model()
+    spec = RobotSpec(
+        name="line3", period_us=1000,
+        joints=tuple(JointSpec(f"joint_{k}", "ethercat:line0", k, model, None, {},
+                               default_reference(model.limits)) for k in range(3)),
+        bitrates={}, source=Path("<three elbows on one line>"))
+    connection = open_robot(spec, sim=True, lockstep=True, seed=0, period=1e-3,
+                            response_timeout=1.0,
+                            faults=[("joint_1", Fault.TORQUE_SENSOR_SATURATED, 0.1)])
+    connection.group.start()
+    return connection
+
+
+def test_the_linked_line_in_a_batch_is_the_line_slave_by_slave():
+    """The same robot linked twice, one line cycling its slaves in the batch and the other
+    slave by slave through their ESCs and firmware: the master sees the same samples, the
+    slaves' sync manager buffers and cycle counts are the same, through a sensor fault."""
+    batched, single = _three_elbows_on_a_line(), _three_elbows_on_a_line()
+    try:
+        single.group.drives[0].transport.line.master._image = None
+        masters = [c.group.drives[0].transport.line.master for c in (batched, single)]
+        assert masters[0]._image is not None
+        saturated = in_batch = 0
+        for k in range(300):
+            currents = np.array([0.5 * math.sin(k / 40 + j) for j in range(3)])
+            tables = []
+            for connection in (batched, single):
+                tables.append(connection.group.sync())
+                connection.group.warnings()
+                connection.group.command_currents(currents)
+            np.testing.assert_array_equal(tables[0], tables[1], err_msg=f"cycle {k}")
+            saturated += int(np.isnan(tables[0][:, SAMPLE_JOINT_TORQUE]).sum())
+            in_batch += masters[0]._image._seen != -1  # the last exchange was all batched
+        assert saturated == 1 and batched.devices["joint_1"].injected
+        assert in_batch > 280, in_batch
+        for a, b in zip(*(m.slaves for m in masters), strict=True):
+            assert a.input == b.input and a._firmware.cycles == b._firmware.cycles
+            for start, length in (a._outputs, a._inputs):
+                assert a._esc.memory[start:start + length] == b._esc.memory[start:start + length]
+        assert [d.cycle_count for d in batched.devices.values()] == [
+            d.cycle_count for d in single.devices.values()]
+        assert masters[0]._wkc == masters[1]._wkc == 9
+    finally:
+        batched.close()
+        single.close()
