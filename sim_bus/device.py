@@ -248,10 +248,17 @@ class Cia402Device:
     def applied_current(self, current: float) -> None:
         self._applied_current = current
 
+    def _changed(self) -> None:
+        """Something a line's batch derives its terms from changed (see `revision`)."""
+        self.revision += 1
+        if self._line is not None:
+            self._line.changed = True
+
     def join_line(self, line) -> None:
         """`line` (a `sim_bus.line_physics.DriveLine`) may run this drive's cycles from now on;
         its plant lives in the line's rows."""
         self._line = line
+        self.plant.on_change = lambda: setattr(line, "changed", True)
 
     def _settle(self) -> None:
         """The cycles a line's batch ran for this drive, written back (see `_line`)."""
@@ -260,7 +267,7 @@ class Cia402Device:
             line.flush()
 
     def _set_state(self, state: State) -> None:
-        self.revision += 1
+        self._changed()
         self._state = state
         self._statusword = _STATUSWORDS[state]  # sampled every cycle, changes with the state
 
@@ -313,7 +320,7 @@ class Cia402Device:
 
     def _configure(self) -> None:
         """Cache what the cycle needs from the dictionary (after a reset or a write to it)."""
-        self.revision += 1
+        self._changed()
         v = self._values
         self.rated_current = v.get((objects.RATED_CURRENT, 0), 0) / objects.MILLI  # A
         self.rated_torque = v.get((objects.RATED_TORQUE, 0), 0) / objects.MILLI  # N.m
@@ -407,7 +414,7 @@ class Cia402Device:
                                     f"0x{var.index:04X}:{var.subindex:02X} is read-only")
 
     def _act(self, index: int, subindex: int, value: int) -> None:
-        self.revision += 1
+        self._changed()
         if index == objects.CONTROLWORD:
             self._apply_controlword(value)
         elif index == objects.TARGET_CURRENT:
@@ -678,7 +685,7 @@ class Cia402Device:
         """Inject `fault` when the drive's time (cycles x period) reaches `seconds`; a time of
         0 fires at the first cycle, and several faults due in one cycle all fire."""
         with self._lock:
-            self.revision += 1
+            self._changed()
             self._schedule.append((int(round(seconds / self._period)), fault))
             self._schedule.sort(key=lambda item: item[0])
 
@@ -687,7 +694,7 @@ class Cia402Device:
         sample, over-current trip), the fault handlers the communication's."""
         self._settle()
         with self._lock:
-            self.revision += 1
+            self._changed()
             self.injected.append((self.cycle_count, fault))
             if fault is Fault.OVERCURRENT_TRIP:
                 self._fault(cia301.EMCY_OVERCURRENT, cia301.ERROR_REGISTER_CURRENT)

@@ -181,8 +181,10 @@ class DriveLine:
         self._next_due = np.zeros(count, dtype=np.int64)
         self._cycles = np.zeros(count, dtype=np.int64)
         self._drifting: list[int] = []
-        # the devices' revisions the terms are from (-1: read them before the next cycle)
+        # the devices' revisions the terms are from (-1: read them before the next cycle),
+        # and whether any may have changed since (set by the devices and their plants)
         self._revisions = [-1] * count
+        self.changed = True
         self._rows = np.arange(count)
         # drives whose last cycles ran here and are not written back yet; their output keys
         self.pending = False
@@ -235,6 +237,9 @@ class DriveLine:
     def refresh(self) -> bool:
         """Read again the terms of every drive that changed (or may have been cycled
         elsewhere) since they were read; whether any had."""
+        if not self.changed:
+            return False
+        self.changed = False
         revisions = [d.revision + d.plant.revision for d in self.devices]
         if revisions == self._revisions:
             return False
@@ -277,4 +282,5 @@ class DriveLine:
             revisions = self._revisions
             for j in np.setdiff1d(self._rows, cycled, assume_unique=True).tolist():
                 revisions[j] = -1
+            self.changed = True
         return done

@@ -2,6 +2,7 @@
 brake, seen through realistic sensors (noisy current and torque readings; the encoder's
 quantisation is the drive's unit conversion, `sim_bus.device`)."""
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -64,6 +65,7 @@ class Plant:
         self.draws = np.zeros(NOISE_BATCH)
         self.cursor = np.full(1, NOISE_BATCH, dtype=np.int64)  # empty: drawn at first use
         self.revision = 0  # counts parameter changes (a line re-reads what derives from them)
+        self.on_change: Callable[[], None] | None = None  # told of each (a line's)
         self.set_payload(payload)
         self.state[POSITION] = (dynamics.rest_position(self._packed) if initial_position
                                 is None else initial_position)
@@ -110,6 +112,8 @@ class Plant:
         self._drifts = dynamics.drifts(self._packed_start)
         self._set_packed(self.time)
         self.revision += 1
+        if self.on_change is not None:
+            self.on_change()
 
     def _set_packed(self, elapsed: float) -> None:
         """The parameters at `elapsed` s since power-on (effects that drift over time, such

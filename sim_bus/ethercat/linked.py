@@ -23,8 +23,10 @@ import struct
 import time
 from collections.abc import Callable
 
+import numba
 import numpy as np
 import pysoem
+from numba.typed import List
 
 from protocol import ethercat as ec
 from protocol import objects as cia_objects
@@ -279,9 +281,12 @@ class LinkedImage:
         self._checked: list = [None] * len(slaves)
         self._plain = [False] * len(slaves)
         self._watchdog = [False] * len(slaves)
-        # per slave, what a batched cycle writes: (ESC memory, SM2 start, SM3 start,
-        # ESC whose watchdog the outputs retrigger or None, firmware, slave)
-        self._plan: list[tuple] = []
+        # per slave, where a batched cycle writes: the ESC's memory (a view), the SM2 and
+        # SM3 buffers' starts; the ESCs whose watchdog the outputs retrigger
+        self._memories = List([np.frombuffer(slave._esc.memory, np.uint8) for slave in slaves])
+        self._starts = np.zeros((len(slaves), 2), dtype=np.int64)
+        self._watchdogs: list[int] = []
+        self._firmwares = [slave._firmware for slave in slaves]
 
     @classmethod
     def of(cls, slaves: list[LinkedSlave], segment: Segment,
@@ -326,10 +331,9 @@ class LinkedImage:
                 slave._firmware.steady_keys() == keys
                 and (plain[k] if checked[k] is slave._esc._sms else self._check(k))
                 for k, slave in enumerate(slaves)]
-            self._plan = [(slave._esc.view, slave._outputs[0], slave._inputs[0],
-                           slave._esc if self._watchdog[k] and slave._esc._watchdog_period
-                           else None, slave._firmware, slave)
-                          for k, slave in enumerate(slaves)]
+            self._starts[:] = [(slave._outputs[0], slave._inputs[0]) for slave in slaves]
+            self._watchdogs = [k for k, slave in enumerate(slaves)
+                               if self._watchdog[k] and slave._esc._watchdog_period]
             self._seen = self._changes[0]
         steady = self._steady
         data = b"".join([slave.output for slave in slaves])
@@ -350,16 +354,18 @@ class LinkedImage:
             else:
                 inputs[field][batched] = values[batched, column]
         image = inputs.tobytes()
-        out_size, in_size = self._out_size, self._in_size
-        plan = self._plan
+        _into_buffers(batched, self._memories, self._starts,
+                      np.frombuffer(data, np.uint8).reshape(len(slaves), self._out_size),
+                      inputs.view(np.uint8).reshape(len(slaves), self._in_size))
+        if self._watchdogs:
+            ran = set(batched.tolist())
+            for k in self._watchdogs:
+                if k in ran:
+                    slaves[k]._esc._trigger_watchdog()
+        in_size, firmwares = self._in_size, self._firmwares
         for k in batched.tolist():
-            view, out_start, in_start, watchdog, firmware, slave = plan[k]
-            view[out_start:out_start + out_size] = slave.output
-            if watchdog is not None:
-                watchdog._trigger_watchdog()
-            slave.input = data = image[k * in_size:(k + 1) * in_size]
-            view[in_start:in_start + in_size] = data
-            firmware.cycles += 1
+            slaves[k].input = image[k * in_size:(k + 1) * in_size]
+            firmwares[k].cycles += 1
         count = WORKING_COUNTER_PER_SLAVE * len(batched)
         if not every:  # slave by slave, which may change them: look again
             left = np.ones(len(slaves), dtype=bool)
@@ -367,3 +373,16 @@ class LinkedImage:
             count += sum(slaves[k]._exchange() for k in np.flatnonzero(left).tolist())
             self._seen = -1
         return count
+
+
+@numba.njit(cache=True)
+def _into_buffers(rows: np.ndarray, memories, starts: np.ndarray, outputs: np.ndarray,
+                  inputs: np.ndarray) -> None:
+    """Each batched slave's outputs into its SM2 buffer and inputs into its SM3 buffer (what
+    the master's write and the firmware's sample leave there), a row of each image per
+    slave."""
+    out_size, in_size = outputs.shape[1], inputs.shape[1]
+    for k in rows:
+        memory = memories[k]
+        memory[starts[k, 0]:starts[k, 0] + out_size] = outputs[k]
+        memory[starts[k, 1]:starts[k, 1] + in_size] = inputs[k]
