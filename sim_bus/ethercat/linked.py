@@ -14,9 +14,10 @@ veth (`sim_bus.ethercat.netns`), against SOEM and KickCAT.
 
 The cycle runs as a batch (`LinkedImage`): the whole output image decoded at once, every
 slave in OP whose cycle is steady advanced in one compiled call (`sim_bus.line_physics`),
-the input image encoded at once and each slave's sync manager buffers written with a slice;
-a slave whose cycle has more to it (a state change, a fault, a slave not in OP) takes the
-ESC's and firmware's own path, so the line behaves exactly as slave by slave.
+the input image encoded at once and every slave's SM2/SM3 buffers written in one compiled
+call; a slave whose cycle has more to it (a state change, a fault, a slave not in OP) takes
+the ESC's and firmware's own path, so the line behaves exactly as slave by slave
+(tests/test_line_physics.py compares the two).
 """
 
 import struct
