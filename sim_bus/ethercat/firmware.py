@@ -247,6 +247,16 @@ class SlaveFirmware:
         if self._in_keys:
             self._pack_inputs(memory, self._in_start, *self._input_values(device.values))
 
+    def steady_keys(self) -> tuple[tuple, tuple] | None:
+        """(output objects, input objects) of the process data while a completed output
+        buffer does nothing here but run the drive's cycle (OP, no OP transition pending):
+        what a line linked in one process (`sim_bus.ethercat.linked`) may then run for this
+        slave in its batch, counting the cycle in `cycles`. None otherwise."""
+        if self._op_requested or self.esc.memory[ec.REG_AL_STATUS] & ec.AL_STATE_MASK != (
+                ec.AlState.OP):
+            return None
+        return self._out_keys, self._in_keys
+
     def _write_inputs(self) -> None:
         if self._in_keys:
             self._pack_inputs(self.esc.memory, self._in_start,
