@@ -282,6 +282,8 @@ def _run(args: argparse.Namespace, setup: _Setup, stop: threading.Event,
         with collector_off_the_cycle():
             group.start()
             print(f"actuatord: {setup.started(connection)}", flush=True)
+            for clock in group.clocks:  # EtherCAT lines on distributed clocks
+                print(f"actuatord: {clock.describe()}", flush=True)
             report = loop.run()
         if report.exit_code != 0:
             failure = report.reason
@@ -312,6 +314,8 @@ def _run(args: argparse.Namespace, setup: _Setup, stop: threading.Event,
     if failure is not None:
         (usage_error if report.exit_code == 2 else job_error)(PROG, failure)
     print(f"actuatord: {report.summary()}", flush=True)
+    for clock in group.clocks:
+        print(f"actuatord: {clock.summary()}", flush=True)
     _write_report(args, report)
     rms = loop.tracking_rms()
     print(f"actuatord: RMS tracking error after {TRACKING_SETTLE:g} s (mrad): " + ", ".join(

@@ -100,8 +100,9 @@ def _two_processes(cycles: int) -> dict:
             "cycles": cycles}
 
 
-def _ethercat(cycles: int) -> list[dict] | None:
-    """measure_line on a private veth for each line length in ETHERCAT_LINES, the slaves in
+def _ethercat(cycles: int, sync: str, lines: tuple[int, ...] = ETHERCAT_LINES,
+              period: float = 1e-3) -> list[dict] | None:
+    """measure_line on a private veth for each line length in `lines`, the slaves in
     their own process (as sim-bus runs them); None, after one line on stderr saying why, when
     this host cannot make the link (no root, no namespaces, no raw sockets)."""
     from driver.ethercat_bench import measure_line
@@ -116,11 +117,12 @@ def _ethercat(cycles: int) -> list[dict] | None:
         return None
     results = []
     with link:
-        for slaves in ETHERCAT_LINES:
+        for slaves in lines:
             _stage(f"EtherCAT line of {slaves} virtual slave{'s' * (slaves > 1)} over a veth, "
-                   f"{cycles} frames lock-step and {cycles} at 1 kHz ...")
+                   f"{cycles} frames lock-step and {cycles} at {1 / period:g} Hz ...")
             with SlaveProcess(link, slaves, load_model()), link.entered():
-                results.append(measure_line(link.master_port, slaves, cycles))
+                results.append(measure_line(link.master_port, slaves, cycles, period,
+                                            sync=sync))
     return results
 
 
@@ -148,6 +150,15 @@ def main(argv: list[str] | None = None) -> int:
     which = parser.add_mutually_exclusive_group()
     which.add_argument("--no-ethercat", action="store_true", help="the CAN figures only")
     which.add_argument("--ethercat-only", action="store_true", help="the EtherCAT figures only")
+    parser.add_argument("--sync", choices=("free_run", "dc"), default="free_run",
+                        help="the EtherCAT lines' synchronization: free run (SM-synchronous) "
+                             "or distributed clocks (SYNC0 every 1 ms, the master following "
+                             "the reference clock; default: %(default)s)")
+    parser.add_argument("--slaves", type=int_range(1, 64), metavar="N",
+                        help="one EtherCAT line of N slaves instead of the lines of "
+                             f"{' and '.join(map(str, ETHERCAT_LINES))}")
+    parser.add_argument("--period-us", type=int_range(100, 100_000), default=1000,
+                        help="the EtherCAT lines' real-time period (us, default: %(default)s)")
     add_logging_argument(parser)
     args = parser.parse_args(argv)
     configure_logging(parser.prog, args.log_level)
@@ -179,7 +190,9 @@ def main(argv: list[str] | None = None) -> int:
                    "cycles ...")
             result["udp_multicast_two_processes"] = _two_processes(args.cycles)
         if not args.no_ethercat:
-            lines = _ethercat(args.cycles)
+            lines = _ethercat(args.cycles, args.sync,
+                              ETHERCAT_LINES if args.slaves is None else (args.slaves,),
+                              args.period_us * 1e-6)
             if lines is None and args.ethercat_only:
                 return 1  # the one thing asked for cannot be measured here (said why)
             if lines is not None:

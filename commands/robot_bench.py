@@ -47,7 +47,8 @@ def run(robot_path: str, duration: float, starts: int) -> dict:
         for start in range(1, starts + 1):
             stage(f"start {start}/{starts}: {len(robot.joints)} joints of {robot.name}, "
                   f"{duration:g} s in real time")
-            runs.append(_one_start(pair, path, duration, Path(folder) / f"run{start}.json"))
+            runs.append(_one_start(pair, path, duration, Path(folder) / f"run{start}.json",
+                                   robot.period_us))
     cycles = round(duration * 1e6 / robot.period_us)
     return {
         "robot": robot.name, "joints": len(robot.joints), "duration_s": duration,
@@ -61,7 +62,8 @@ def run(robot_path: str, duration: float, starts: int) -> dict:
     }
 
 
-def _one_start(pair: NamespacePair | None, path: Path, duration: float, report: Path) -> dict:
+def _one_start(pair: NamespacePair | None, path: Path, duration: float, report: Path,
+               period_us: int) -> dict:
     """One start: the drives' process until ready, actuatord for `duration`, the drives
     stopped; actuatord's figures (its --report) with whether it started."""
     def inside(side: str, argv: list[str]) -> list[str]:
@@ -83,6 +85,8 @@ def _one_start(pair: NamespacePair | None, path: Path, duration: float, report: 
         master = subprocess.run(
             inside("master", [sys.executable, "-m", "commands.actuatord", "--robot", str(path),
                               "--duration", f"{duration:g}", "--no-multicast-scouting",
+                              # the MPC steps as the robot cycles (the default dt is 1 ms)
+                              "--period-us", str(period_us), "--dt", f"{period_us * 1e-6:g}",
                               "--report", str(report)]),
             capture_output=True, text=True, timeout=duration * 20 + START_TIMEOUT)
     finally:
@@ -95,6 +99,11 @@ def _one_start(pair: NamespacePair | None, path: Path, duration: float, report: 
     out = {"started": " enabled;" in master.stdout}
     if report.exists():
         out.update(json.loads(report.read_text()))
+    # an EtherCAT line on distributed clocks: its delays at start, its offset at the end
+    clocks = [line.removeprefix("actuatord: ") for line in master.stdout.splitlines()
+              if "distributed clocks" in line or "reference-clock offset" in line]
+    if clocks:
+        out["clocks"] = clocks
     errors = [line for line in master.stderr.splitlines() if ": error: " in line]
     if errors:
         out["error"] = errors[0]

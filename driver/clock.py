@@ -154,13 +154,14 @@ class CycleClock:
         self._last_wake: float | None = None
         self.wake_lateness = 0.0
 
-    def wait(self) -> int:
+    def wait(self, trim: float = 0.0) -> int:
         """Return at the next deadline; a deadline already more than a period past is skipped
         and counted as missed. Returns the deadlines this call skipped (what came before it,
         the previous cycle or the host, overran); `wake_lateness` is how late this wake-up
-        came after its deadline (s)."""
+        came after its deadline (s). `trim` (s) moves this deadline: an EtherCAT line on
+        distributed clocks keeps the cycle on its reference clock."""
         clock, period = self.clock, self.period
-        self._deadline += period
+        self._deadline += period + trim
         now = clock.now()
         late = 0
         if now > self._deadline + period:

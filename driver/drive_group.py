@@ -17,6 +17,7 @@ import canopen
 import numpy as np
 
 from driver.cia402_drive import Cia402Drive
+from driver.ethercat_dc import DcLine
 from driver.interface import (
     SAMPLE_JOINT_TORQUE,
     SAMPLE_MOTOR_CURRENT,
@@ -91,6 +92,11 @@ class Segment:
         """What the segment's drives reported since the last call, each naming its joint."""
         return [f"joint {joint}: {warning}" for joint, drive in self.joints
                 for warning in drive.warnings()]
+
+    def clock(self) -> DcLine | None:
+        """The segment's distributed clocks, when it runs on them (an EtherCAT line in DC
+        mode): what the cycle's clock follows."""
+        return None
 
     def close(self) -> None:
         """Release what the segment owns beyond its drives (nothing here)."""
@@ -167,6 +173,7 @@ class EthercatLine(Segment):
         transports = [drive.transport for drive in drives]
         self._drives, self._transports = drives, transports
         self._line = transports[0].line
+        self._line.settle()
         self._slaves = [transport.slave for transport in transports]
         inputs = {transport._in_codec.dtype for transport in transports}
         outputs = {transport._out_codec.dtype for transport in transports}
@@ -189,6 +196,9 @@ class EthercatLine(Segment):
         self._previous: np.ndarray | None = None
         self._outputs = np.zeros(len(drives), self._out_dtype)
         self._warnings: list[str] = []
+
+    def clock(self) -> DcLine | None:
+        return self.joints[0][1].transport.line.dc
 
     def warnings(self) -> list[str]:
         """The line's own (saturated sensors, found on the arrays), then any a drive kept
@@ -247,13 +257,15 @@ class EthercatLine(Segment):
             table[:, SAMPLE_JOINT_TORQUE] = np.nan
         previous, self._previous = self._previous, table[:, SAMPLE_POSITION]
         if previous is not None:
-            jumped = np.abs(table[:, SAMPLE_POSITION] - previous) > self._max_step
+            # on distributed clocks the drives move on at SYNC0 while the master is late
+            cycles = 1 if self._line.dc is None else self._line.dc.elapsed_periods
+            jumped = np.abs(table[:, SAMPLE_POSITION] - previous) > self._max_step * cycles
             if jumped.any():
                 j = int(np.argmax(jumped))
                 drive = self._drives[j]
                 try:
                     drive.guard.check_step(float(previous[j]), float(table[j, SAMPLE_POSITION]),
-                                           drive.name)
+                                           drive.name, cycles)
                 except EncoderGlitch as error:
                     drive._fault = error
                     raise JointFailure(self.joints[j][0], error) from error
@@ -319,6 +331,7 @@ class DriveGroup:
         # and commands need no reordering, a cycle no indexing
         self._whole = len(self.segments) == 1 and self._in_order
         self.period = self.drives[0].period
+        self.clocks: list[DcLine] = []
         self._closed = False
 
     def __len__(self) -> int:
@@ -337,6 +350,9 @@ class DriveGroup:
                     raise segment_of[name].failed(name, exc) from exc
         for segment in self.segments:
             segment.started()
+        # the distributed clocks of the lines that run on them (made as the lines went to OP)
+        self.clocks = [clock for segment in self.segments
+                       if (clock := segment.clock()) is not None]
 
     def sync(self) -> np.ndarray:
         """One cycle: trigger every segment, then every joint's sample, a row per joint in
@@ -362,6 +378,11 @@ class DriveGroup:
 
     def warnings(self) -> list[str]:
         return [warning for segment in self.segments for warning in segment.warnings()]
+
+    def clock_trim(self) -> float:
+        """s to add to the next period of the cycle's clock: the first DC line's reference
+        clock leads (two lines' clocks cannot both), 0 without one."""
+        return self.clocks[0].take_trim() if self.clocks else 0.0
 
     def quick_stop_all(self) -> list[tuple[str, str]]:
         """Quick-stop every drive (best effort each: a dead one does not spare the others),

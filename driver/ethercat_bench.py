@@ -5,11 +5,12 @@ the line makes every STATE_CHECK_FRAMES cycles (median and p99). Measured agains
 line is on the interface (`sim_bus.ethercat.netns` makes a virtual one); `bus-bench` prints
 the figures."""
 
+import os
 import time
 
 import numpy as np
 
-from driver.clock import CycleClock
+from driver.clock import CycleClock, clock_for, prefer_real_time
 from driver.ethercat_master import STATE_CHECK_FRAMES
 from driver.ethercat_transport import EthercatTransport, open_ethercat_transports
 from protocol import objects
@@ -41,38 +42,56 @@ def _cycle(transports: list[EthercatTransport], outputs: tuple[int, ...]) -> Non
 
 
 def measure_line(interface: str, slaves: int, cycles: int = 5000,
-                 period: float = 1e-3) -> dict:
+                 period: float = 1e-3, sync: str = "free_run") -> dict:
     """{'slaves', 'lockstep_cycles_per_s', 'round_trip_median_us', 'round_trip_p99_us',
     'missed_cycles', 'state_check_median_us', 'state_check_p99_us'} for the first `slaves`
-    slaves on `interface` (the line must be there)."""
-    transports = open_ethercat_transports(interface, range(slaves), lockstep=True)
+    slaves on `interface` (the line must be there).
+    `sync` "dc": the line on distributed clocks, the real-time cycles following the reference
+    clock, with the propagation delays measured and the master-to-reference-clock offset
+    ('dc_delays_ns', 'dc_offset' median/p99/max in us after settling); no lock-step figure
+    then: slaves on SYNC0 want a frame every period of wall time, which lock-step does not
+    promise; and the measurement runs at real-time priority, as the control loop does
+    (`driver.clock.prefer_real_time`; given back after)."""
+    dc = sync == "dc"
+    refused = prefer_real_time() if dc else "free run"
+    transports = open_ethercat_transports(interface, range(slaves), lockstep=not dc,
+                                          sync=sync)
     try:
         _bring_up(transports, period)
         outputs = (0, 0)  # controlword 0: the drives stay disabled, the frames are real
         for _ in range(100):
             _cycle(transports, outputs)
-        start = time.perf_counter()
-        for _ in range(cycles):
-            _cycle(transports, outputs)
-        rate = cycles / (time.perf_counter() - start)
+        rate = None
+        if not dc:
+            start = time.perf_counter()
+            for _ in range(cycles):
+                _cycle(transports, outputs)
+            rate = round(cycles / (time.perf_counter() - start))
         line = transports[0].line
-        clock = CycleClock(period, lockstep=False)
+        clock = CycleClock(period, clock_for(lockstep=False))
         round_trips = np.empty(cycles)
         for k in range(cycles):
-            clock.wait()
+            clock.wait(line.clock_trim())
             t0 = time.perf_counter()
             _cycle(transports, outputs)
             round_trips[k] = time.perf_counter() - t0
             clock.check_overrun()
+        figures = {} if line.dc is None else {
+            "dc_delays_ns": line.dc.delays_ns,
+            "dc_offset": {"median_us": round(line.dc.offsets_ns.percentile(50) / 1e3, 1),
+                          "p99_us": round(line.dc.offsets_ns.percentile(99) / 1e3, 1),
+                          "max_us": round(line.dc.offsets_ns.max / 1e3, 1),
+                          "cycles": line.dc.offsets_ns.count}}
         checks = np.empty(cycles // STATE_CHECK_FRAMES)
         for k in range(len(checks)):
             t0 = time.perf_counter()
             line.check_states()
             checks[k] = time.perf_counter() - t0
         return {
+            **figures,
             "slaves": slaves,
             "frames": line.frames,
-            "lockstep_cycles_per_s": round(rate),
+            "lockstep_cycles_per_s": rate,
             "round_trip_median_us": round(float(np.median(round_trips)) * 1e6, 1),
             "round_trip_p99_us": round(float(np.percentile(round_trips, 99)) * 1e6, 1),
             "period_us": round(period * 1e6),
@@ -81,6 +100,8 @@ def measure_line(interface: str, slaves: int, cycles: int = 5000,
             "state_check_p99_us": round(float(np.percentile(checks, 99)) * 1e6, 1),
         }
     finally:
+        if refused is None:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         for transport in transports:
             transport.stop()
             transport.close()

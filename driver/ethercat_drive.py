@@ -38,18 +38,19 @@ def open_ethercat_drives(interface: str, joints: Sequence[JointOnLine], *,
                          esi: str | Path | EsiDevice | None = None,
                          eds: str | Path | None = None, response_timeout: float | None = None,
                          watchdog: float | None = None,
-                         open_master: Callable[[], Any] = pysoem.Master) -> list[Cia402Drive]:
+                         open_master: Callable[[], Any] = pysoem.Master,
+                         sync: str = "free_run") -> list[Cia402Drive]:
     """The joints' drives on the line at `interface`, not started. Start every one before the
     first `sync` of any: the line goes to OP when the last is mapped, and the first `sync` of
     a cycle sends that cycle's frame for all of them (call each drive's `sync` once a cycle,
     then command each). `lockstep`: the slaves' watchdog is off and a cycle may take any wall
-    time; `watchdog` (s) sets it in real time (default the ESC's 100 ms); `open_master`: see
-    `driver.ethercat_master.EthercatMaster`."""
+    time; `watchdog` (s) sets it in real time (default the ESC's 100 ms); `open_master` and
+    `sync` ("free_run" or "dc"): see `driver.ethercat_master.EthercatMaster`."""
     transports = open_ethercat_transports(
         interface, [j.position for j in joints], lockstep=lockstep, esi=esi,
         eds=[j.eds if j.eds is not None else eds for j in joints],
         response_timeout=response_timeout, watchdog=watchdog, open_master=open_master,
-        names=[j.name for j in joints])
+        names=[j.name for j in joints], sync=sync)
     drives = []
     try:
         for joint, transport in zip(joints, transports, strict=True):

@@ -30,6 +30,7 @@ from typing import Any
 
 import pysoem
 
+from driver.ethercat_dc import DcLine
 from driver.interface import DriveError, DriveLost, ProfileError
 from protocol import ethercat as ec
 from protocol.esi import EsiDevice
@@ -43,6 +44,11 @@ REALTIME_RESPONSE_TIMEOUT = 0.1  # s: the slaves' default process data watchdog
 DEFAULT_WATCHDOG = 0.1  # s: the ESC's reset value (ETG.1000.4: 1000 x 100 us)
 KEEP_ALIVE = 0.02  # s: a fifth of the ESC's default watchdog
 SCAN_RETRY = 0.1  # s between two scans of a line that did not answer right
+SYNC_MODES = ("free_run", "dc")
+DEFAULT_DC_PERIOD = 1e-3  # s: SYNC0 period when no transport said (start sets it)
+DC_OP_TIMEOUT = 1.0  # s for the slaves to take OP at a SYNC0 (the first comes 100 ms after set-up)
+DC_OP_CHECK_FRAMES = 8  # DC: frames between two reads of the slaves' states on the way to OP
+DC_SETTLE_FRAMES = 2  # DC: frames before the first cycle (see `settle`)
 # cycles between two reads of the slaves' AL status: a slave out of OP is named within 10 ms
 # at 1 kHz, at the cost of one broadcast read in ten cycles (counted in cycles, so lock-step
 # finds it in the same cycle every run)
@@ -73,12 +79,22 @@ class EthercatMaster:
 
     `open_master` makes the pysoem master (by default SOEM on the interface; a line of
     virtual slaves in this process for `--sim`: `sim_bus.ethercat.linked.LinkedMaster`).
+
+    `sync`: "free_run" (SM-synchronous: each slave runs its cycle as the frame's outputs
+    arrive) or "dc" (distributed clocks: delays and offsets set up, SYNC0 every period, the
+    drift compensated by every frame and this master's wake-up following the reference clock;
+    `driver.ethercat_dc`). The period comes from the transports' `start`.
     """
 
     def __init__(self, interface: str, esi: EsiDevice, *, lockstep: bool = False,
                  response_timeout: float | None = None, watchdog: float | None = None,
-                 open_master: Callable[[], Any] = pysoem.Master):
+                 open_master: Callable[[], Any] = pysoem.Master, sync: str = "free_run"):
+        if sync not in SYNC_MODES:
+            raise ValueError(f"EtherCAT sync {sync!r}: expected one of {', '.join(SYNC_MODES)}")
         self.interface = interface
+        self.sync = sync
+        self.period: float | None = None  # s, set by the transports' start
+        self.dc: DcLine | None = None
         self._open_master = open_master
         self.esi = esi
         self.lockstep = lockstep
@@ -102,6 +118,7 @@ class EthercatMaster:
         # one user of SOEM at a time: the cycle, CoE accesses and the keeper
         self.lock = threading.RLock()
         self._keeper_stop: threading.Event | None = None
+        self._sent_at = 0.0  # time.monotonic() the last process data frame went out
 
     # --- bring-up ----------------------------------------------------------------------------
 
@@ -205,8 +222,15 @@ class EthercatMaster:
             stage()
         self._require_state(pysoem.SAFEOP_STATE, "SAFE_OP")
         self._expected_wkc = master.expected_wkc
+        if self.sync == "dc":
+            self.dc = DcLine(self.interface, self.period or DEFAULT_DC_PERIOD)
+            self.dc.configure(master, self.slaves)
+            log.info("%s", self.dc.describe())
         master.state = pysoem.OP_STATE
         master.write_state()
+        if self.dc is not None:
+            self._dc_to_operational()
+            return
         for _ in range(OP_FRAMES):
             master.send_processdata()
             master.receive_processdata(self.response_timeout_us)
@@ -216,6 +240,60 @@ class EthercatMaster:
                 self._start_keeper()
                 return
         self._require_state(pysoem.OP_STATE, "OP")
+
+    def _dc_to_operational(self) -> None:
+        """DC: a frame every period until every slave took OP at a SYNC0 with outputs in its
+        window (the first SYNC0 comes 100 ms after the set-up), the frames already placed in
+        the reference clock's cycle. In lock-step a frame is a period of drive time."""
+        master = self.master
+        period = self.dc.period_ns * 1e-9
+        deadline = time.monotonic() + DC_OP_TIMEOUT
+        wake, frames = time.perf_counter(), 0
+        for _ in range(int(DC_OP_TIMEOUT / period)):
+            self._sent_at = time.monotonic()
+            master.send_processdata()
+            master.receive_processdata(self.response_timeout_us)
+            self.dc.observe(master.dc_time, self._sent_at)
+            # one read every few frames (state_check would sleep a millisecond when not there
+            # yet, and a long line's states take a few round trips: a frame a period is what
+            # SYNC0 needs)
+            frames += 1
+            if frames % DC_OP_CHECK_FRAMES == 0 and master.read_state() == pysoem.OP_STATE:
+                self.operational = True
+                self._last_frame = time.monotonic()
+                self._start_keeper()
+                return
+            if not self.lockstep:
+                if time.monotonic() > deadline:
+                    break
+                wake += period + self.dc.take_trim()
+                time.sleep(max(0.0, wake - time.perf_counter()))
+        self._require_state(pysoem.OP_STATE, "OP")
+
+    def settle(self) -> None:
+        """Before the first cycle, once the drives are enabled. DC: the slaves take outputs
+        and sample inputs at SYNC0, so the enable sequence (acyclic) reaches them with the
+        next frame and shows in the inputs of the one after: those frames go first (not
+        counted as cycles), so the first cycle's sample shows the enabled drives."""
+        if self.dc is None:
+            return
+        with self.lock:
+            for _ in range(DC_SETTLE_FRAMES):
+                self._frame()
+                if not self.lockstep:
+                    time.sleep(self.dc.period_ns * 1e-9)
+
+    def pass_image(self) -> None:
+        """DC: a frame now, then a period for the slaves' SYNC0 to take its outputs and sample
+        the inputs the next one reads (`driver.ethercat_transport` steers through the
+        process data this way)."""
+        with self.lock:
+            self._frame()
+        time.sleep(self.dc.period_ns * 1e-9)
+
+    def clock_trim(self) -> float:
+        """s to add to the next period of the cycle's clock (DC: follow the reference)."""
+        return self.dc.take_trim() if self.dc is not None else 0.0
 
     def request_state(self, state: int) -> None:
         """Ask every slave for `state` and wait for it (DriveError naming the refusals)."""
@@ -256,11 +334,14 @@ class EthercatMaster:
     # --- the cycle ---------------------------------------------------------------------------
 
     def cycle(self) -> None:
-        """Send the one frame of this cycle and check its working counter; every
-        STATE_CHECK_FRAMES cycles, every slave's AL status too."""
+        """Send the one frame of this cycle and check its working counter (DC: and the
+        master's offset from the reference clock); every STATE_CHECK_FRAMES cycles, every
+        slave's AL status too."""
         with self.lock:
             self.frames += 1
             self._frame()
+            if self.dc is not None:
+                self.dc.observe(self.master.dc_time, self._sent_at)
             if self.frames % STATE_CHECK_FRAMES == 0:
                 self._check_states()
 
@@ -299,7 +380,8 @@ class EthercatMaster:
         if self.lockstep or self._keeper_stop is not None:
             return
         stop = self._keeper_stop = threading.Event()
-        threading.Thread(target=self._keep, args=(stop,), daemon=True,
+        threading.Thread(target=self._keep if self.dc is None else self._keep_windows,
+                         args=(stop,), daemon=True,
                          name=f"ethercat-keeper-{self.interface}").start()
 
     def _keep(self, stop: threading.Event) -> None:
@@ -314,13 +396,38 @@ class EthercatMaster:
                 except pysoem.NetworkInterfaceNotOpenError:
                     return  # the interface went away under it: the next cycle says so
 
+    def _keep_windows(self, stop: threading.Event) -> None:
+        """DC: SYNC0 wants outputs in every window, also while the cycle is busy elsewhere
+        (the cold solve, an enable sequence). Once a period, at KEEPER_PHASE of the reference
+        clock's cycle (the cycle's own frame goes at its start), a frame goes when none went
+        since the last SYNC0 (`keep_alive`); a CoE access sends one the same way before it
+        goes, as it holds the line for its round trip."""
+        while True:
+            _, wake = self.dc.window(time.monotonic())
+            if stop.wait(max(0.0, wake - time.monotonic())):
+                return
+            with self.lock:
+                if stop.is_set():
+                    return
+                try:
+                    self.keep_alive()
+                except DriveError:
+                    return  # kept in self.failure: the next cycle raises it, naming the slave
+                except pysoem.NetworkInterfaceNotOpenError:
+                    return
+
     def keep_alive(self) -> None:
-        """Real time, while OP: a frame when none went out for KEEP_ALIVE s, so an acyclic
-        sequence between cycles (enabling the drive by CoE) does not starve the slaves'
-        watchdog. Lock-step needs none (the watchdog is off) and gets none (a frame is a
-        cycle of the drive's time there)."""
-        if (self.lockstep or not self.operational or self.failure is not None
-                or time.monotonic() - self._last_frame < KEEP_ALIVE):
+        """Real time, while OP: a frame when none went out for KEEP_ALIVE s (DC: since the
+        last SYNC0), so an acyclic sequence between cycles (enabling the drive by CoE) does
+        not starve the slaves' watchdog (DC: their SYNC0 windows). Lock-step needs none (the
+        watchdog is off) and gets none (a frame is a cycle of the drive's time there)."""
+        if self.lockstep or not self.operational or self.failure is not None:
+            return
+        now = time.monotonic()
+        if self.dc is not None:
+            if self._sent_at >= self.dc.window(now)[0]:
+                return
+        elif now - self._last_frame < KEEP_ALIVE:
             return
         self._frame()
 
@@ -328,6 +435,7 @@ class EthercatMaster:
         if self.failure is not None:
             raise self.failure
         master = self.master
+        self._sent_at = time.monotonic()
         master.send_processdata()
         wkc = master.receive_processdata(self.response_timeout_us)
         self._last_frame = time.monotonic()
@@ -396,6 +504,7 @@ class EthercatMaster:
             self.master = None
             self.slaves = []
             self.operational = self.mapped = False
+            self.dc = None
 
 
 def _why_not_open(interface: str, exc: Exception) -> str:

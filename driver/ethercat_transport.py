@@ -93,8 +93,23 @@ class EthercatTransport(Transport):
                     self.name, state.value)
         self.write(objects.CONTROLWORD, 0, cia402.Command.DISABLE_VOLTAGE.value)
 
+    def _through_image(self) -> bool:
+        """Real time on distributed clocks, from OP on: objects the process data carries are
+        read and written through it, not by CoE. A CoE access holds the line for its round
+        trip, and the enable sequence's dozens of them (32 drives) left SYNC0 windows without
+        outputs until the slaves dropped out with 0x001A; a cyclic master steers CiA 402
+        through the PDOs anyway."""
+        line = self.line
+        return line.dc is not None and line.operational and not line.lockstep and self._mapped
+
     def read(self, index: int, subindex: int = 0) -> int:
         var = self._variable(index, subindex)
+        if self._through_image():
+            for k, obj in enumerate(self._inputs):
+                if (obj.index, obj.subindex) == (index, subindex):
+                    self.line.pass_image()  # inputs sampled at a SYNC0 after the last write
+                    with self.line.lock:
+                        return self._in_codec.struct.unpack(self.slave.input)[k]
         try:
             data = self._mailbox(self.slave.sdo_read, index, subindex)
         except pysoem.SdoError as exc:
@@ -105,12 +120,8 @@ class EthercatTransport(Transport):
 
     def write(self, index: int, subindex: int, value: int) -> None:
         var = self._variable(index, subindex)
-        try:
-            self._mailbox(self.slave.sdo_write, index, subindex, var.encode_raw(value))
-        except pysoem.SdoError as exc:
-            raise SdoRefused(f"{self.name}: CoE write 0x{index:04X}:{subindex:02X} = {value} "
-                             f"aborted: {cia301.sdo_abort_name(exc.abort_code)}",
-                             exc.abort_code) from None
+        # an object the outputs carry is staged first: a frame that goes while the CoE write
+        # waits for its answer (the line's keeper) must not take the old value back to it
         for k, obj in enumerate(self._outputs):
             if (obj.index, obj.subindex) == (index, subindex):
                 if self.line.mapped and self._mapped:
@@ -120,6 +131,16 @@ class EthercatTransport(Transport):
                         self._staged[:] = self._out_codec.struct.unpack(self.slave.output)
                 self._staged[k] = value  # the next frame carries it too
                 self._stage()
+        if self._through_image() and any((o.index, o.subindex) == (index, subindex)
+                                         for o in self._outputs):
+            self.line.pass_image()  # staged above: a frame takes it, SYNC0 applies it
+            return
+        try:
+            self._mailbox(self.slave.sdo_write, index, subindex, var.encode_raw(value))
+        except pysoem.SdoError as exc:
+            raise SdoRefused(f"{self.name}: CoE write 0x{index:04X}:{subindex:02X} = {value} "
+                             f"aborted: {cia301.sdo_abort_name(exc.abort_code)}",
+                             exc.abort_code) from None
 
     def _mailbox(self, access, index: int, subindex: int, *data: bytes):
         """One CoE SDO access, tried again when the mailbox exchange itself got no answer (a
@@ -196,6 +217,7 @@ class EthercatTransport(Transport):
         transport to start takes the line there; the first exchange at the latest)."""
         if has(self.dictionary, objects.CYCLE_PERIOD_US):
             self.write(objects.CYCLE_PERIOD_US, 0, int(round(period * 1e6)))
+        self.line.period = period  # DC: the SYNC0 cycle
         if self.line.all_ready():
             self.line.go_operational()
 
@@ -269,19 +291,19 @@ def open_ethercat_transports(interface: str, positions: Sequence[int], *,
                              response_timeout: float | None = None,
                              watchdog: float | None = None,
                              open_master: Callable[[], Any] = pysoem.Master,
-                             names: Sequence[str | None] | None = None
-                             ) -> list[EthercatTransport]:
+                             names: Sequence[str | None] | None = None,
+                             sync: str = "free_run") -> list[EthercatTransport]:
     """One transport per slave position on the line at `interface`, sharing its master (one
     frame per cycle for all of them). `esi` defaults to the shipped elbow drive ESI; `eds` is
     every slave's EDS, or a list with one per position (drives of different joints differ);
     `names` the joint of each position, named with its slave in every report.
-    `open_master`: see `driver.ethercat_master.EthercatMaster`."""
+    `open_master`, `sync`: see `driver.ethercat_master.EthercatMaster`."""
     if not isinstance(esi, EsiDevice):
         esi = load_esi(esi if esi is not None else shipped_esi_path())
     if eds is None or isinstance(eds, str | Path):
         eds = [eds] * len(positions)
     line = EthercatMaster(interface, esi, lockstep=lockstep, response_timeout=response_timeout,
-                          watchdog=watchdog, open_master=open_master)
+                          watchdog=watchdog, open_master=open_master, sync=sync)
     for position, name in zip(positions, names or (), strict=False):
         if name:
             line.names[position] = name

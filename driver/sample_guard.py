@@ -23,12 +23,16 @@ class SampleGuard:
     def max_position_step(self) -> float:
         return GLITCH_FACTOR * self.velocity_limit * self.period
 
-    def check_step(self, previous: float, position: float, name: str) -> None:
-        """EncoderGlitch if the position jumped further than the joint can move."""
+    def check_step(self, previous: float, position: float, name: str, cycles: int = 1) -> None:
+        """EncoderGlitch if the position jumped further than the joint can move in `cycles`
+        periods (more than one when the drive's own clock ran on between the two samples:
+        distributed clocks while the master was late)."""
         step = position - previous
-        if abs(step) > self.max_position_step:
-            raise EncoderGlitch(f"{name}: position jumped {step:+.4f} rad in one cycle (at most "
-                                f"{self.max_position_step:.4f} rad is motion): encoder glitch")
+        if abs(step) > self.max_position_step * cycles:
+            within = "in one cycle" if cycles == 1 else f"in {cycles} cycles"
+            raise EncoderGlitch(f"{name}: position jumped {step:+.4f} rad {within} (at most "
+                                f"{self.max_position_step * cycles:.4f} rad is motion): "
+                                "encoder glitch")
 
     @staticmethod
     def saturated(reading: int) -> bool:

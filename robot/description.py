@@ -14,6 +14,10 @@ refused with the load figure and the fastest period that would fit.
     [buses."udp_multicast:239.0.1.1:43210"]
     bitrate = 1000000                      # bit/s (default: 1 Mbit/s, classic CAN's ceiling)
 
+    [buses."ethercat:eth1"]
+    sync = "dc"                            # "dc": distributed clocks, SYNC0 every period;
+                                           # "free_run" (default): SM-synchronous
+
     [[joints]]
     name = "arm_left_4_joint"
     bus = "udp_multicast:239.0.1.1:43210"  # vcan0, socketcan:can1, ethercat:eth1, ...
@@ -43,7 +47,7 @@ joint's own (which win for the same object):
 
 import math
 import tomllib
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from importlib.resources import files
 from pathlib import Path
 
@@ -64,6 +68,12 @@ from protocol.input_files import (
 
 DEFAULT_BITRATE = bus_load.CAN_CLASSIC_MAX_BITRATE
 DEFAULT_HEARTBEAT_MS = 100  # the drives' and the master's heartbeat (driver default)
+# an EtherCAT line's synchronization: free run (each slave cycles as its outputs arrive) by
+# default, because it asks nothing of the drives (a drive without distributed clocks, or one
+# whose ESI has no DC op mode, runs it) and keeps what every robot file meant before `sync`
+# existed; "dc" is what CST drives such as TALOS's run on, named in the file where wanted
+ETHERCAT_SYNC_MODES = ("free_run", "dc")
+DEFAULT_ETHERCAT_SYNC = "free_run"
 MAX_JOINTS = 64  # TALOS has 32; a file with more is more likely a mistake than a robot
 # default reference: the paper's 0.2 Hz over the middle half of the joint's range
 DEFAULT_REFERENCE_FREQUENCY = 0.2  # Hz
@@ -98,6 +108,11 @@ class RobotSpec:
     joints: tuple[JointSpec, ...]
     bitrates: dict[str, int]  # CAN bus spec -> bit/s
     source: Path
+    syncs: dict[str, str] = field(default_factory=dict)  # EtherCAT bus spec -> sync mode
+
+    def sync(self, bus: str) -> str:
+        """An EtherCAT line's synchronization ("free_run" or "dc")."""
+        return self.syncs.get(bus, DEFAULT_ETHERCAT_SYNC)
 
     def buses(self) -> dict[str, list[JointSpec]]:
         """Joints grouped by bus, in file order."""
@@ -172,7 +187,7 @@ def load_robot(path: str | Path) -> RobotSpec:
             100 <= period_us <= 100_000):
         raise RobotFileError(f"{path}: [robot].period_us: expected an integer 100..100000, "
                              f"got {period_us!r}")
-    bitrates = _bitrates(path, _table(path, "[buses]", doc.get("buses", {})))
+    bitrates, syncs = _bus_settings(path, _table(path, "[buses]", doc.get("buses", {})))
     drive_types = _drive_types(path, _table(path, "[drive_types]", doc.get("drive_types", {})))
     entries = doc["joints"]
     if not isinstance(entries, list) or not entries:
@@ -190,10 +205,10 @@ def load_robot(path: str | Path) -> RobotSpec:
     for kind in drive_types:
         if kind not in used:
             raise RobotFileError(f"{path}: [drive_types.{kind}]: no joint is of this type")
-    for bus in bitrates:
+    for bus in (*bitrates, *syncs):
         if bus not in {j.bus for j in joints}:
             raise RobotFileError(f"{path}: [buses.\"{bus}\"]: no joint is on this bus")
-    spec = RobotSpec(name, period_us, tuple(joints), bitrates, path)
+    spec = RobotSpec(name, period_us, tuple(joints), bitrates, path, syncs)
     for load in spec.bus_loads():
         if not load.fits:
             raise RobotFileError(
@@ -386,18 +401,30 @@ def _weights(path: Path, where: str, table: dict) -> dict[str, float]:
     return out
 
 
-def _bitrates(path: Path, table: dict) -> dict[str, int]:
-    out = {}
+def _bus_settings(path: Path, table: dict) -> tuple[dict[str, int], dict[str, str]]:
+    """[buses."SPEC"]: a CAN bus's bitrate, an EtherCAT line's sync mode."""
+    bitrates, syncs = {}, {}
     for bus, settings in table.items():
         where = f"[buses.\"{bus}\"]"
         settings = _table(path, where, settings)
-        _keys(path, where, settings, {"bitrate"}, set())
         if is_ethercat(bus):
-            raise RobotFileError(f"{path}: {where}: an EtherCAT segment has no bitrate to set")
+            if "bitrate" in settings:
+                raise RobotFileError(f"{path}: {where}: an EtherCAT segment has no bitrate to "
+                                     "set")
+            _keys(path, where, settings, {"sync"}, set())
+            if "sync" in settings:
+                sync = settings["sync"]
+                if sync not in ETHERCAT_SYNC_MODES:
+                    raise RobotFileError(f"{path}: {where}.sync: expected one of "
+                                         f"{', '.join(map(repr, ETHERCAT_SYNC_MODES))}, got "
+                                         f"{sync!r}")
+                syncs[bus] = sync
+            continue
+        _keys(path, where, settings, {"bitrate"}, set())
         if "bitrate" in settings:
-            out[bus] = _integer(path, f"{where}.bitrate", settings["bitrate"], 10_000,
-                                bus_load.CAN_CLASSIC_MAX_BITRATE)
-    return out
+            bitrates[bus] = _integer(path, f"{where}.bitrate", settings["bitrate"], 10_000,
+                                     bus_load.CAN_CLASSIC_MAX_BITRATE)
+    return bitrates, syncs
 
 
 def _unique(path: Path, joints: list[JointSpec]) -> None:

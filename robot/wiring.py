@@ -229,7 +229,7 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
                 options = {}
                 if sim:  # the line's slaves in this process, linked to the master's image
                     options["open_master"] = _linked_line(
-                        robot, on_line, seed, faults, devices)
+                        robot, on_line, seed, faults, devices, lockstep)
                 segments.append(EthercatLine(bus, []))
                 drives = _open_on_line(bus, parse_bus_spec(bus)["channel"], [
                     JointOnLine(j.address, j.model.limits.velocity_max,
@@ -237,7 +237,7 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
                                 j.model.limits.current_max, j.name, j.startup)
                     for j in on_line],
                     period=period, lockstep=lockstep, response_timeout=response_timeout,
-                    **options)
+                    sync=robot.sync(bus), **options)
                 segments[-1].joints = [(j.name, drive)
                                        for j, drive in zip(on_line, drives, strict=True)]
                 continue
@@ -285,7 +285,7 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
 
 def _linked_line(robot: RobotSpec, on_line: list, seed: int,
                  faults: list[tuple[str, Fault, float]],
-                 devices: dict[str, Cia402Device]) -> Callable[[], object]:
+                 devices: dict[str, Cia402Device], lockstep: bool) -> Callable[[], object]:
     """`--sim` for an EtherCAT line: a virtual drive per joint (commissioned for its model,
     its noise seeded `seed` + the joint's index, its scheduled faults), in slave order, as a
     line of slaves in this process; what makes the master that drives them
@@ -306,7 +306,7 @@ def _linked_line(robot: RobotSpec, on_line: list, seed: int,
         devices[joint.name] = device
         line.append(device)
     segment = VirtualLine(line)
-    return lambda: LinkedMaster(segment)
+    return lambda: LinkedMaster(segment, lockstep)
 
 
 def open_joint(robot: RobotSpec, joint: JointSpec, sim_model: ActuatorModel,

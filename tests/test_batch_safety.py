@@ -88,6 +88,9 @@ class _TwoJoints:
     def warnings(self) -> list[str]:
         return []
 
+    def clock_trim(self) -> float:
+        return 0.0
+
 
 def test_a_joint_screened_out_of_the_batch_is_held_and_named_the_others_ticked():
     from controller.loop import ControlLoop, LoopOptions

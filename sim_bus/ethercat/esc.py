@@ -16,6 +16,8 @@ import struct
 from typing import Protocol
 
 from protocol import ethercat as ec
+from sim_bus.ethercat import dc
+from sim_bus.ethercat.dc import DistributedClock
 
 ESC_TYPE_ET1100 = 0x11  # the register layout and behaviour followed here
 RAM_END = 0x3000  # ET1100: 8 KiB process RAM from 0x1000
@@ -52,6 +54,9 @@ class Firmware(Protocol):
     def frame_passed(self, esc: "Esc") -> None:
         """A frame went through (the firmware's chance to post a queued mailbox message)."""
 
+    def sync0(self, esc: "Esc") -> None:
+        """The distributed clock's SYNC0 fired (cyclic operation with SYNC0 active)."""
+
 
 def _writable_masks() -> bytes:
     """Which bits of each register the master may write (ET1100 'ECAT write access')."""
@@ -81,7 +86,18 @@ def _writable_masks() -> bytes:
         base = ec.REG_SM0 + n * ec.SM_SIZE
         allow(base, 5)  # start, length, control (only while disabled, see _write_registers)
         allow(base + ec.SM_OFFSET_ACTIVATE, 1)
-    allow(0x0900, 0x100)  # distributed clocks (kept as plain registers: no DC feature)
+    # distributed clocks (sim_bus.ethercat.dc): the latch trigger, compare value, offset,
+    # delay, speed counter start and filter depths, cyclic unit, activation, start time and
+    # the SYNC0/SYNC1 cycle times
+    allow(dc.REG_RECEIVE_TIME_PORT0, 4)
+    allow(dc.REG_SYSTEM_TIME, 8)
+    allow(dc.REG_SYSTEM_TIME_OFFSET, 8)
+    allow(dc.REG_SYSTEM_TIME_DELAY, 4)
+    allow(dc.REG_SPEED_COUNTER_START, 2)
+    allow(0x0934, 2)  # system time difference / speed counter filter depths
+    allow(dc.REG_CYCLIC_UNIT_CONTROL, 2)
+    allow(dc.REG_START_TIME, 8)
+    allow(dc.REG_SYNC0_CYCLE_TIME, 8)
     allow(0x0F00, 4)  # digital outputs
     return bytes(masks)
 
@@ -112,6 +128,7 @@ class Esc:
         self._watchdog_period = 0.0
         self._watchdog_deadline: float | None = None
         self._last_in_line = True
+        self.dc = DistributedClock(self.memory)
         self.power_on()
 
     # --- power-on ----------------------------------------------------------------------------
@@ -125,7 +142,8 @@ class Esc:
         m[ec.REG_SMS_SUPPORTED] = SM_COUNT
         m[ec.REG_RAM_SIZE] = (RAM_END - ec.PROCESS_RAM_START) // 1024
         m[ec.REG_PORT_DESCRIPTOR] = PORT_DESCRIPTOR_MII_01
-        _U16.pack_into(m, ec.REG_FEATURES, 0)  # no DC, all read/write commands supported
+        # distributed clocks with a 64-bit system time; all read/write commands supported
+        _U16.pack_into(m, ec.REG_FEATURES, dc.FEATURE_DC | dc.FEATURE_DC_64BIT)
         _U16.pack_into(m, ec.REG_AL_STATUS, ec.AlState.INIT)
         _U16.pack_into(m, ec.REG_WATCHDOG_DIVIDER, ec.WATCHDOG_DIVIDER_DEFAULT)
         _U16.pack_into(m, ec.REG_WATCHDOG_TIME_PDI, ec.WATCHDOG_TIME_DEFAULT)
@@ -137,6 +155,7 @@ class Esc:
         self._plan = ([], [])
         self._watchdog_deadline = None
         self._update_watchdog_period()
+        self.dc.reset()
 
     def _reload_configuration(self) -> None:
         """ESC configuration area of the EEPROM into the registers (power-on, reload command);
@@ -247,6 +266,17 @@ class Esc:
 
     def stop_watchdog(self) -> None:
         self._watchdog_deadline = None
+
+    # --- SYNC0 -------------------------------------------------------------------------------
+
+    def fire_sync0(self, t: float) -> bool:
+        """Run the SYNC0 due at `t` (host time, or drive time in lock-step), if any: the
+        firmware's synchronous cycle. True when one fired."""
+        if not self.present or not self.dc.take_sync0(t):
+            return False
+        self.now = t
+        self.firmware.sync0(self)
+        return True
 
     # --- one frame ---------------------------------------------------------------------------
 
@@ -375,6 +405,11 @@ class Esc:
         emptied = self._check_sync_managers(address, end, writing=False)
         if emptied is False:
             return False
+        if address < dc.DC_END and end > dc.REG_RECEIVE_TIME_PORT0:
+            self.dc.before_read(address, end, self.now)
+            out[offset:offset + length] = self.view[address:end]
+            self.dc.after_read(address, end)
+            return True
         out[offset:offset + length] = self.view[address:end]
         if emptied is not None:
             self.clear_mailbox(emptied)
@@ -385,6 +420,8 @@ class Esc:
         end = address + length
         if end > ec.ADDRESS_SPACE or self._check_sync_managers(address, end, False) is False:
             return False
+        if address < dc.DC_END and end > dc.REG_RECEIVE_TIME_PORT0:
+            self.dc.before_read(address, end, self.now)
         memory = self.memory
         for k in range(length):
             frame[offset + k] |= memory[address + k]
@@ -463,6 +500,8 @@ class Esc:
             self._update_watchdog_period()
         if address < ec.REG_EEPROM_CONTROL + 2 and end > ec.REG_EEPROM_CONTROL:
             self._eeprom_command()
+        if address < dc.DC_END and end > dc.REG_RECEIVE_TIME_PORT0:
+            self.dc.written(address, end, bytes(source), self.now)
         if address < ec.REG_AL_CONTROL + 2 and end > ec.REG_AL_CONTROL:
             memory[ec.REG_AL_EVENT_REQUEST] |= AL_CONTROL_CHANGED
             self.firmware.al_control(self, _U16.unpack_from(memory, ec.REG_AL_CONTROL)[0])

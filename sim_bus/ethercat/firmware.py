@@ -7,9 +7,19 @@ valid, outputs ignored); OP at the first output buffer after the request (output
 A refused request leaves the state, raises the error indicator and names the AL status
 code; the master acknowledges it with bit 4 of AL control.
 
-SM-synchronous cycle: every completed output buffer (a frame writing SM2) runs one device
-cycle, exactly as a SYNC does on CAN: outputs latched (in OP), physics advanced one period,
-inputs sampled into SM3, all before the frame leaves this slave.
+SM-synchronous cycle (free run): every completed output buffer (a frame writing SM2) runs one
+device cycle, exactly as a SYNC does on CAN: outputs latched (in OP), physics advanced one
+period, inputs sampled into SM3, all before the frame leaves this slave.
+
+DC-synchronous cycle: when the master has activated SYNC0 (`sim_bus.ethercat.dc`) by the time
+it requests OP, the device cycle runs on SYNC0 instead: the outputs that completed in the
+window since the last SYNC0 are latched, the physics advances, the inputs are sampled for the
+next frame to read. As a drive built on the ETG slave stack counts them (SM event missed
+counter 0x1C32:0B against the sync error counter limit 0x10F1:02), a SYNC0 without fresh
+outputs adds SYNC_ERROR_WEIGHT to a counter and one with them takes 1 off; past
+SYNC_ERROR_LIMIT the slave drops to SAFE-OP with AL status code 0x001A (synchronization
+error), and a SYNC0 that stops coming in OP gives 0x002C (fatal sync error); either way the
+drive reacts as to a lost master (abort connection option 0x6007: quick stop by default).
 """
 
 import logging
@@ -27,6 +37,12 @@ from sim_bus.ethercat.objects import CoeObjects
 from sim_bus.faults import TPDO_DELAY, Fault
 
 log = logging.getLogger(__name__)
+
+# DC-synchronous operation (assumed figures of the virtual drive, stated here)
+SYNC_ERROR_WEIGHT = 3  # added per SYNC0 without fresh outputs; 1 taken off per good one
+SYNC_ERROR_LIMIT = 9  # tolerates three SYNC0 windows missed in a row, not four
+OUTPUT_MARGIN = 20e-6  # s: outputs must be complete this long before SYNC0 (copy time)
+SYNC0_LOSS_CYCLES = 3  # cycle times without SYNC0 in OP: the sync is lost
 
 _VALID_REQUESTS = frozenset(s.value for s in ec.AlState if s is not ec.AlState.NONE)
 
@@ -57,6 +73,11 @@ class SlaveFirmware:
         self._out_start = self._in_start = 0
         self._input_values = None  # the device's value table -> the inputs, in PDO order
         self.cycles = 0
+        self._dc = False  # the device cycle runs on SYNC0 (decided at the OP request)
+        self._fresh = False  # outputs completed in the window before the next SYNC0
+        self._sync_errors = 0
+        self._last_sync0: float | None = None
+        self.missed_sync0 = 0  # SYNC0 events in OP without fresh outputs
         self.refused_outputs = 0  # output values the device refused (out of its range)
         self.delay_next_frame = 0.0  # s, fault injection: hold the frame this long
         self.repeat_next_frame = False  # fault injection: send the frame twice
@@ -99,8 +120,10 @@ class SlaveFirmware:
         if refusal:
             esc.set_al_status(current | ec.AL_ERROR, refusal)
             return
-        if requested == ec.AlState.OP and not self._outputs_seen:
-            self._op_requested = True  # OP at the first output buffer (valid outputs)
+        if requested == ec.AlState.OP and (self._dc or not self._outputs_seen):
+            # OP at the first output buffer (valid outputs); in DC mode at the first SYNC0
+            # that has them
+            self._op_requested = True
             esc.set_al_status(current | error, code)
             return
         esc.set_al_status(requested | error, code)
@@ -128,6 +151,28 @@ class SlaveFirmware:
         # OP
         if current != ec.AlState.SAFE_OP:
             return ec.AL_INVALID_STATE_CHANGE
+        self.esc.set_sync_manager_active(self.outputs_sm, True)  # off after a sync error
+        return self._choose_synchronization()
+
+    def _choose_synchronization(self) -> int:
+        """SAFE-OP -> OP: SYNC0 active means DC-synchronous, with a cycle time that must be
+        the drive's period (0x1006) and a first SYNC0 still to come; else free run."""
+        clock = self.esc.dc
+        self._dc = clock.sync0_active
+        if not self._dc:
+            return 0
+        if abs(clock.cycle_time * 1e-9 - self.device.period) > 1e-7:
+            log.warning("SYNC0 cycle time %d ns, the drive's period is %.0f us",
+                        clock.cycle_time, self.device.period * 1e6)
+            self._dc = False
+            return ec.AL_DC_INVALID_SYNC_CYCLE_TIME
+        if clock.next_sync0 is None:
+            log.warning("SYNC0 activated with a start time already past")
+            self._dc = False
+            return ec.AL_INVALID_DC_SYNC_CONFIGURATION
+        self._fresh = False
+        self._sync_errors = 0
+        self._last_sync0 = None
         return 0
 
     def _enter_init(self) -> None:
@@ -218,7 +263,7 @@ class SlaveFirmware:
         esc.set_sync_manager_active(self.outputs_sm, False)
         esc.set_sync_manager_active(self.inputs_sm, False)
         esc.stop_watchdog()
-        self._op_requested = self._outputs_seen = False
+        self._op_requested = self._outputs_seen = self._dc = False
 
     def _leave_op(self, reason: str) -> None:
         """Outputs stop being applied; a drive left powered reacts as to a lost master
@@ -230,6 +275,9 @@ class SlaveFirmware:
 
     def outputs_received(self, esc: Esc) -> None:
         self._outputs_seen = True
+        if self._dc:
+            self._outputs_for_sync0(esc)
+            return
         memory = esc.memory
         if self._op_requested:
             self._op_requested = False
@@ -251,11 +299,74 @@ class SlaveFirmware:
         """(output objects, input objects) of the process data while a completed output
         buffer does nothing here but run the drive's cycle (OP, no OP transition pending):
         what a line linked in one process (`sim_bus.ethercat.linked`) may then run for this
-        slave in its batch, counting the cycle in `cycles`. None otherwise."""
-        if self._op_requested or self.esc.memory[ec.REG_AL_STATUS] & ec.AL_STATE_MASK != (
-                ec.AlState.OP):
+        slave in its batch, counting the cycle in `cycles`. None otherwise, and in DC mode,
+        where the cycle runs on SYNC0 (`sync0`), not on the buffer."""
+        if self._dc or self._op_requested or self.esc.memory[
+                ec.REG_AL_STATUS] & ec.AL_STATE_MASK != ec.AlState.OP:
             return None
         return self._out_keys, self._in_keys
+
+    def _outputs_for_sync0(self, esc: Esc) -> None:
+        """DC mode: the buffer waits for SYNC0; one completed inside OUTPUT_MARGIN of it is
+        late and misses that SYNC0 (the one after takes the next frame's). In OP, SYNC0 must
+        keep coming."""
+        clock = esc.dc
+        now = esc.now
+        if esc.al_status & ec.AL_STATE_MASK == ec.AlState.OP:
+            last = self._last_sync0
+            if clock.next_sync0 is None or last is not None and (
+                    now - last > SYNC0_LOSS_CYCLES * clock.cycle_time * 1e-9):
+                self._sync_lost(esc, ec.AL_FATAL_SYNC_ERROR, "no SYNC0 for "
+                                f"{(now - (last or now)) * 1e3:.1f} ms")
+                return
+        upcoming = clock.next_sync0_host_time(now)
+        if upcoming is None or upcoming - now >= OUTPUT_MARGIN:
+            self._fresh = True
+
+    def sync0(self, esc: Esc) -> None:
+        """DC mode: latch the outputs of the window, advance the physics, sample the inputs."""
+        if not self._dc:
+            return  # SYNC0 pulses a free-running slave does not use
+        self._last_sync0 = esc.now
+        fresh, self._fresh = self._fresh, False
+        memory = esc.memory
+        state = memory[ec.REG_AL_STATUS] & ec.AL_STATE_MASK
+        if self._op_requested and fresh:
+            self._op_requested = False
+            memory[ec.REG_AL_STATUS] = ec.AlState.OP | memory[ec.REG_AL_STATUS] & ec.AL_ERROR
+            state = ec.AlState.OP
+        elif state == ec.AlState.OP:
+            if fresh:
+                self._sync_errors = max(0, self._sync_errors - 1)
+            else:
+                self.missed_sync0 += 1
+                self._sync_errors += SYNC_ERROR_WEIGHT
+                if self._sync_errors > SYNC_ERROR_LIMIT:
+                    self._sync_lost(esc, ec.AL_SYNC_ERROR, "outputs missed their SYNC0 window "
+                                    f"{self.missed_sync0} times")
+                    state = ec.AlState.SAFE_OP
+        device = self.device
+        if state == ec.AlState.OP and fresh and self._out_keys:
+            try:
+                device.write_outputs(self._out_keys, self._unpack_outputs(memory,
+                                                                          self._out_start))
+            except DeviceAccessError as exc:
+                self.refused_outputs += 1
+                log.debug("outputs refused: %s", exc)
+        device.cycle()
+        self.cycles += 1
+        self._write_inputs()
+
+    def _sync_lost(self, esc: Esc, code: int, reason: str) -> None:
+        """OP -> SAFE-OP with the error indicator and `code`, the output sync manager off (the
+        master's writes are refused, so its working counter shows the slave gone); the drive
+        stops as it does for a lost master."""
+        self._op_requested = False
+        esc.set_al_status(ec.AlState.SAFE_OP | ec.AL_ERROR, code)
+        esc.set_sync_manager_active(self.outputs_sm, False)
+        log.warning("slave 0x%04X: %s (%s)", esc.station_address, reason,
+                    ec.al_status_name(code))
+        self.device.master_lost(f"EtherCAT DC: {reason}", ec.EMCY_ESM_TRANSITION)
 
     def _write_inputs(self) -> None:
         if self._in_keys:

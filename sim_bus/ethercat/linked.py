@@ -36,6 +36,7 @@ from protocol.pdo import PdoLayout
 from sim_bus.device import LINE_KEYS
 from sim_bus.ethercat.esc import Esc
 from sim_bus.ethercat.firmware import SlaveFirmware
+from sim_bus.ethercat.linked_dc import LinkedClock
 from sim_bus.ethercat.mailbox import SdoAbort
 from sim_bus.ethercat.segment import Segment
 
@@ -47,8 +48,10 @@ WORKING_COUNTER_PER_SLAVE = 3  # an output write counts 2, an input read 1 (LRW)
 class LinkedSlave:
     """One slave as pysoem shows it to a master: identity, state, process data bytes, CoE."""
 
-    def __init__(self, position: int, esc: Esc, firmware: SlaveFirmware, changes: list[int]):
+    def __init__(self, position: int, esc: Esc, firmware: SlaveFirmware, changes: list[int],
+                 clock: LinkedClock):
         self.position = position
+        self._clock = clock
         self._esc, self._firmware = esc, firmware
         self._changes = changes  # the line's count of accesses other than process data
         esi = firmware.esi
@@ -68,6 +71,19 @@ class LinkedSlave:
     def _write(self, address: int, data: bytes) -> bool:
         self._changes[0] += 1
         return self._esc._write(address, memoryview(data))
+
+    def _fprd(self, address: int, size: int, timeout_us: int = 0) -> bytes:
+        """A register read, as pysoem's `_fprd` (FPRD) gives it."""
+        out = bytearray(size)
+        self._esc.now = self._clock.now() + self._esc.dc.hop
+        if not self._esc._read(address, size, memoryview(out), 0):
+            raise pysoem.WkcError(f"FPRD 0x{address:04X} refused")
+        return bytes(out)
+
+    def dc_sync(self, act: bool, sync0_cycle_time: int, sync0_shift_time: int = 0) -> None:
+        """SYNC0 on (or off) with this cycle time and shift, ns (SOEM's ecx_dcsync0)."""
+        self._changes[0] += 1  # a register write: the line's batch looks at its slaves again
+        self._clock.dc_sync(self._esc, act, sync0_cycle_time, sync0_shift_time)
 
     def _read_state(self) -> None:
         memory = self._esc.memory
@@ -167,8 +183,11 @@ class LinkedMaster:
     """`pysoem.Master`'s calls, served by `segment` in this process (`open` takes no
     interface: the segment is the line)."""
 
-    def __init__(self, segment: Segment):
+    def __init__(self, segment: Segment, lockstep: bool = False):
         self._segment = segment
+        # the line's time for its distributed clocks (drive time in lock-step)
+        self._clock = LinkedClock(segment.escs, lockstep)
+        self.dc_time = 0  # ns, the reference clock's time the last frame read
         self.slaves: list[LinkedSlave] = []
         self.state = 0
         self.expected_wkc = 0
@@ -190,7 +209,8 @@ class LinkedMaster:
         SII gives them, PRE-OP requested: SOEM's config_init. The number of slaves."""
         segment = self._segment
         with segment.lock:
-            self.slaves = [LinkedSlave(k, esc, firmware, self._changes) for k, (esc, firmware)
+            self.slaves = [LinkedSlave(k, esc, firmware, self._changes, self._clock)
+                           for k, (esc, firmware)
                            in enumerate(zip(segment.escs, segment.firmwares, strict=True))]
             for slave in self.slaves:
                 slave.state = ec.AlState.INIT
@@ -217,6 +237,12 @@ class LinkedMaster:
                 slave.write_state()
         return size
 
+    def config_dc(self) -> bool:
+        """Propagation delays and offsets of every slave with DC (SOEM's config_dc); True
+        when there is one."""
+        with self._segment.lock:
+            return self._clock.config_dc()
+
     def write_state(self) -> None:
         with self._segment.lock:
             for slave in self.slaves:
@@ -241,10 +267,14 @@ class LinkedMaster:
         out; the working counter is kept for `receive_processdata`."""
         start = time.perf_counter()
         with self._segment.lock:
+            dc_time = self._clock.before_frame()
+            if dc_time is not None:
+                self.dc_time = dc_time
             image = self._image
             self._wkc = (image.exchange() if image is not None
                          else sum(slave._exchange() for slave in self.slaves))
             self._segment.frames += 1
+            self._clock.after_frame()
         self.slave_seconds.append(time.perf_counter() - start)
 
     def receive_processdata(self, timeout_us: int = 0) -> int:

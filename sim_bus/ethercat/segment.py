@@ -5,10 +5,17 @@ the ports of real slave controllers, and goes back out of the same interface wit
 addresses, data and working counters the slaves left in it. Anything an ESC would not process
 (other EtherTypes, broken lengths) is dropped and counted in the first slave's invalid frame
 counter (0x0300) instead of being answered, as a frame with a broken checksum would be.
+
+Distributed clocks (`sim_bus.ethercat.dc`): each slave's clock drifts its own stated amount
+against the host's monotonic clock, a frame reaches slave k `k` hops after the first, and the
+loop wakes for the slaves' SYNC0 events as well as for frames. A frame's time is the kernel's
+receive timestamp, so SYNC0 events and frames are handled in the order they happened even when
+this process wakes late.
 """
 
 import logging
 import socket
+import struct
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -27,6 +34,8 @@ log = logging.getLogger(__name__)
 
 POLL = 0.01  # s: how often the loop looks at the stop event and the watchdogs when idle
 FRAME_BUFFER = 2048  # a maximum Ethernet frame fits
+SO_TIMESTAMPNS = 35  # <asm-generic/socket.h>: receive timestamps (CLOCK_REALTIME, timespec)
+_TIMESPEC = struct.Struct("@qq")
 
 
 class Segment:
@@ -39,6 +48,7 @@ class Segment:
         for position, firmware in enumerate(self.firmwares):
             esc = Esc(build_sii(self.esi, serial=position + 1), firmware)
             esc.set_link(last=position == len(self.firmwares) - 1)
+            esc.dc.place(position, len(self.firmwares))
             firmware.attach(esc)
             self.escs.append(esc)
         self.lock = threading.Lock()  # one frame at a time; Python callers take it too
@@ -56,6 +66,25 @@ class Segment:
             self.dropped += 1
         return answered
 
+    def next_sync0(self, now: float) -> float | None:
+        """The host time of the next SYNC0 of any slave, or None."""
+        times = [t for esc in self.escs if esc.present
+                 and (t := esc.dc.next_sync0_host_time(now)) is not None]
+        return min(times, default=None)
+
+    def run_sync0(self, now: float) -> int:
+        """Every SYNC0 due by `now`, each at its own time (a late wake-up catches up, each
+        slave's events in order; slaves do not depend on each other). The number fired."""
+        fired = 0
+        with self.lock:
+            for esc in self.escs:
+                while esc.present:
+                    t = esc.dc.next_sync0_host_time(now)
+                    if t is None or t > now or not esc.fire_sync0(t):
+                        break
+                    fired += 1
+        return fired
+
     def check_watchdogs(self, now: float) -> None:
         """The ESCs' process data watchdogs, and the drives' own time once their master is
         gone (`Cia402Device.run_alone`): wall-clock jobs of the real-time loop."""
@@ -66,7 +95,8 @@ class Segment:
 
     def report(self) -> list[dict]:
         """Each slave's end state, in line order: EtherCAT state and AL status code, the
-        drive's CiA 402 state, brake, master loss, device cycles run and joint position."""
+        drive's CiA 402 state, brake, master loss, device cycles run, SYNC0 windows its
+        outputs missed (DC) and joint position."""
         with self.lock:
             return [{
                 "al_status": esc.al_status,
@@ -76,6 +106,7 @@ class Segment:
                 "brake_engaged": firmware.device.brake_engaged,
                 "master_loss": firmware.device.master_loss,
                 "cycles": firmware.cycles,
+                "missed_sync0": firmware.missed_sync0,
                 "position": firmware.device.plant.position,
             } for esc, firmware in zip(self.escs, self.firmwares, strict=True)]
 
@@ -101,7 +132,7 @@ def pass_frame(escs: Sequence[Esc], frame: bytearray, length: int, now: float) -
         return False
     view = memoryview(frame)
     for esc in escs:
-        esc.now = now
+        esc.now = now + esc.dc.hop  # the frame reaches slave k k hops after the first
         esc.process(frame, view, spans)
     frame[ec.SOURCE_MAC_OFFSET] |= ec.SOURCE_MAC_PROCESSED_BIT
     return True
@@ -113,6 +144,7 @@ def open_socket(interface: str) -> socket.socket:
     sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ec.ETHERTYPE))
     try:
         sock.bind((interface, ec.ETHERTYPE))
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
     except OSError:
         sock.close()
         raise
@@ -122,17 +154,22 @@ def open_socket(interface: str) -> socket.socket:
 def run(sock: socket.socket, segment: Segment, stop: threading.Event) -> None:
     """Answer frames until `stop` is set. A frame the slaves cannot handle is logged and
     dropped; the loop itself never ends on a frame."""
-    sock.settimeout(POLL)
     buffer = bytearray(FRAME_BUFFER)
     view = memoryview(buffer)
     clock = time.monotonic
     while not stop.is_set():
-        try:
-            length = sock.recv_into(buffer)
-        except TimeoutError:
-            segment.check_watchdogs(clock())
-            continue
         now = clock()
+        sync0 = segment.next_sync0(now)
+        sock.settimeout(POLL if sync0 is None else min(POLL, max(0.0, sync0 - now)))
+        try:
+            length, ancillary, _, _ = sock.recvmsg_into([buffer], _TIMESPEC.size + 32)
+        except (TimeoutError, BlockingIOError):  # a timeout of 0 makes a non-blocking call
+            now = clock()
+            segment.run_sync0(now)
+            segment.check_watchdogs(now)
+            continue
+        now = _arrival(ancillary, clock)
+        segment.run_sync0(now)  # the SYNC0 events that came before this frame
         try:
             answer = segment.process(buffer, length, now)
         except Exception:  # a slave's bug must not take the whole line down
@@ -146,6 +183,17 @@ def run(sock: socket.socket, segment: Segment, stop: threading.Event) -> None:
             if twice:
                 sock.send(view[:length])
         segment.check_watchdogs(now)
+
+
+def _arrival(ancillary: list, clock: Callable[[], float]) -> float:
+    """When the frame arrived, on `clock`: the kernel's timestamp (taken as the frame came
+    in, however late this process woke), or now when there is none."""
+    now = clock()
+    for level, kind, data in ancillary:
+        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(data) >= _TIMESPEC.size:
+            seconds, nanoseconds = _TIMESPEC.unpack_from(data)
+            return min(now, now - time.time() + seconds + nanoseconds * 1e-9)
+    return now
 
 
 def serve(interface: str, devices: Sequence[Cia402Device], stop: threading.Event,

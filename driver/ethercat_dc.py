@@ -1,0 +1,119 @@
+"""The master's side of distributed clocks on one EtherCAT line (`driver.ethercat_master` in DC
+mode): what SOEM's examples do around `ec_configdc`, in one place.
+
+Start-up, with the slaves in SAFE-OP: `config_dc` measures the propagation delays and writes
+every slave's offset and delay (pysoem's `config_dc`, i.e. SOEM's ecx_configdc; the linked
+line does the same register writes), the delays are read back (0x0928) to be reported, and
+SYNC0 is activated on every slave with the line's period and SYNC0_SHIFT of it
+(`dc_sync`: the first SYNC0 100 ms later, SOEM's SyncDelay).
+
+Every cycle: the frame carries the reference clock's system time (SOEM adds an FRMW on 0x0910
+to the process data frame, which also feeds every other slave's time control loop: the drift
+compensation), `dc_time` after the exchange. `observe` takes the master's offset from the
+reference clock's cycle, the phase at which its frame passed the reference clock, and a PI on
+it moves the master's next wake-up (`take_trim`), as SOEM's ec_sync does in its examples (the
+first frame's offset is taken whole, so the master starts in phase): the
+master's cycle follows the reference clock instead of its own crystal, so the frames keep
+their place before SYNC0 however the two clocks drift.
+"""
+
+import struct
+
+from driver.clock import RingStats
+from driver.interface import DriveError
+
+SYNC0_SHIFT = 0.5  # share of the period from the frame's phase to SYNC0: the outputs' window
+MASTER_PHASE = 0.0  # the master's frame at this share of the reference clock's cycle
+# the PI of SOEM's ec_sync example: a hundredth of the offset, plus an integral of its sign
+PROPORTIONAL = 0.01
+INTEGRAL_STEP = 0.05  # ns of trim per cycle the offset kept its sign
+KEEPER_PHASE = 0.2  # share of the cycle at which the keeper looks for a frame in the window
+SETTLE_TIME = 2.0  # s: offsets count for the figures from then on
+REG_SYSTEM_TIME_DELAY = 0x0928
+_U32 = struct.Struct("<I")
+
+
+class DcLine:
+    """DC of one line: its delays, its SYNC0 and the master's offset from the reference."""
+
+    def __init__(self, name: str, period: float, shift: float | None = None):
+        self.name = name
+        self.period_ns = int(round(period * 1e9))
+        self.shift_ns = int(round((SYNC0_SHIFT * period if shift is None else shift) * 1e9))
+        self.delays_ns: list[int] = []
+        self.offsets_ns = RingStats()  # |offset| after settling
+        self.cycles = 0
+        self.last_offset_ns = 0
+        self._integral = 0
+        self._trim = 0.0
+        self._anchor: tuple[float, int] | None = None  # (host time, reference time) of a frame
+        self.elapsed_periods = 1  # SYNC0 periods between the last two cycles' frames
+
+    def configure(self, master, slaves) -> None:
+        """Delays and offsets measured and written, SYNC0 activated on every slave."""
+        try:
+            found = master.config_dc()
+        except Exception as exc:  # pysoem raises its own kinds for a failed register access
+            raise DriveError(f"EtherCAT {self.name}: distributed clocks set-up failed: "
+                             f"{exc!r}") from None
+        if not found:
+            raise DriveError(f"EtherCAT {self.name}: no slave has distributed clocks, the "
+                             "line cannot run in DC mode (use sync = \"free_run\")")
+        # what config_dc wrote, read back (pysoem's register read; it keeps SOEM's pdelay
+        # to itself)
+        self.delays_ns = [_U32.unpack(slave._fprd(REG_SYSTEM_TIME_DELAY, 4))[0]
+                          for slave in slaves]
+        for slave in slaves:
+            slave.dc_sync(True, self.period_ns, self.shift_ns)
+
+    def describe(self) -> str:
+        """One line for the start-up report."""
+        return (f"{self.name}: distributed clocks, SYNC0 every {self.period_ns / 1e3:g} us "
+                f"shifted {self.shift_ns / 1e3:g} us, reference clock slave 0, propagation "
+                f"delays (ns) " + " ".join(str(d) for d in self.delays_ns))
+
+    def observe(self, dc_time: int, sent_at: float) -> None:
+        """The reference clock's time as the cycle's frame read it (`sent_at`: the host's
+        monotonic time it went out): the master's offset from its place in the cycle, and the
+        trim of the next wake-up."""
+        period = self.period_ns
+        if self._anchor is not None:
+            self.elapsed_periods = max(1, -(-(dc_time - self._anchor[1]) // period))
+        self._anchor = (sent_at, dc_time)
+        offset = (dc_time - int(MASTER_PHASE * period)) % period
+        if offset > period // 2:
+            offset -= period
+        self.last_offset_ns = offset
+        self.cycles += 1
+        if self.cycles == 1:  # the first frame: straight to the phase, then follow it
+            self._trim = -offset * 1e-9
+            return
+        self._integral += (offset > 0) - (offset < 0)
+        self._trim = -(offset * PROPORTIONAL + self._integral * INTEGRAL_STEP) * 1e-9
+        if self.cycles * period > SETTLE_TIME * 1e9:
+            self.offsets_ns.add(abs(offset))
+
+    def window(self, now: float) -> tuple[float, float]:
+        """Host times (monotonic) of the last SYNC0 before `now` (the start of the window the
+        next SYNC0 takes its outputs from) and of the next KEEPER_PHASE instant after `now`."""
+        sent_at, dc_time = self._anchor
+        period = self.period_ns
+        reference = dc_time + int((now - sent_at) * 1e9)  # drift: ppm over a few periods
+        since_sync0 = (reference - self.shift_ns) % period
+        to_keeper = (int(KEEPER_PHASE * period) - reference) % period or period
+        return now - since_sync0 * 1e-9, now + to_keeper * 1e-9
+
+    def take_trim(self) -> float:
+        """s to add to the next period of the master's clock (then 0 until the next frame)."""
+        trim, self._trim = self._trim, 0.0
+        return trim
+
+    def summary(self) -> str:
+        if not self.offsets_ns.count:
+            return (f"{self.name}: master-to-reference-clock offset not settled yet "
+                    f"({self.cycles} cycles, last {self.last_offset_ns / 1e3:.1f} us)")
+        return (f"{self.name}: master-to-reference-clock offset after settling "
+                f"({self.offsets_ns.count} cycles): median "
+                f"{self.offsets_ns.percentile(50) / 1e3:.1f} us, p99 "
+                f"{self.offsets_ns.percentile(99) / 1e3:.1f} us, max "
+                f"{self.offsets_ns.max / 1e3:.1f} us")

@@ -1,0 +1,276 @@
+"""Distributed clocks: the virtual slaves' DC registers answer SOEM's ec_configdc and
+ec_dcsync0 sequence frame by frame, the project's master runs a line on SYNC0 (linked, lock-step,
+and over a veth against pysoem's own config_dc), and a slave that misses its SYNC0 window is
+named with its AL status code while every drive ends safe."""
+
+import struct
+import time
+
+import pysoem
+import pytest
+
+from driver.drive_group import DriveGroup, EthercatLine
+from driver.ethercat_dc import DcLine
+from driver.ethercat_drive import JointOnLine, open_ethercat_drives
+from driver.ethercat_transport import open_ethercat_transports
+from driver.interface import DriveError, DriveLost
+from model.parameters import load_model
+from protocol import ethercat as ec
+from protocol import objects
+from sim_bus.device import Cia402Device
+from sim_bus.ethercat import dc
+from sim_bus.ethercat.linked import LinkedMaster
+from sim_bus.ethercat.netns import SlaveProcess
+from sim_bus.ethercat.segment import Segment, pass_frame
+
+Cmd = ec.Command
+MODEL = load_model()
+PERIOD_NS = 1_000_000
+SHIFT_NS = 500_000
+SYNC_DELAY_NS = 100_000_000  # SOEM's SyncDelay
+
+
+def line(count: int) -> Segment:
+    return Segment([Cia402Device(MODEL) for _ in range(count)])
+
+
+def exchange(segment, *datagrams, now):
+    """(command, address, data) datagrams in one frame through the line at host time `now`;
+    (data, working counter) of each."""
+    frame = bytearray(ec.encode_frame([(c, k, a, d) for k, (c, a, d) in enumerate(datagrams)]))
+    assert pass_frame(segment.escs, frame, len(frame), now)
+    return [ec.datagram_result(frame, s) for s in ec.datagram_spans(frame)]
+
+
+def station(k: int, register: int) -> int:
+    return (0x1001 + k) | register << 16
+
+
+def test_dc_registers_answer_the_soem_configdc_sequence_frame_by_frame():
+    """Datagram by datagram what SOEM's ecx_configdc and ecx_dcsync0 send, then the FRMW of
+    every cycle: the receive times give the line's forwarding delays, the offsets and the time
+    control loop bring every slave's system time onto the reference clock's (drifting apart
+    by up to 50 ppm), and SYNC0 fires on all slaves at the same instant."""
+    segment = line(3)
+    t = 10.0
+    for k in range(3):
+        [(_, wkc)] = exchange(segment, (Cmd.APWR, (-k & 0xFFFF) | ec.REG_STATION_ADDRESS << 16,
+                                        struct.pack("<H", 0x1001 + k)), now=t)
+        assert wkc == 1
+    [(features, wkc)] = exchange(segment, (Cmd.BRD, ec.REG_FEATURES << 16, bytes(2)), now=t)
+    assert wkc == 3 and struct.unpack("<H", features)[0] & dc.FEATURE_DC
+    # ecx_configdc: latch, then per slave: receive times, offset, delay
+    t += 0.001
+    [(_, wkc)] = exchange(segment, (Cmd.BWR, dc.REG_RECEIVE_TIME_PORT0 << 16, bytes(4)), now=t)
+    assert wkc == 3
+    master_time = 800_000_000_000_000_000
+    spans, delays = [], []
+    for k in range(3):
+        [(times, _), (latched, _)] = exchange(
+            segment, (Cmd.FPRD, station(k, dc.REG_RECEIVE_TIME_PORT0), bytes(16)),
+            (Cmd.FPRD, station(k, dc.REG_RECEIVE_TIME_UNIT), bytes(8)), now=t + 1e-4)
+        port0, port1, _, _ = struct.unpack("<4I", times)
+        assert struct.unpack("<Q", latched)[0] & 0xFFFFFFFF == port0
+        offset = (master_time - struct.unpack("<Q", latched)[0]) % 2**64
+        exchange(segment, (Cmd.FPWR, station(k, dc.REG_SYSTEM_TIME_OFFSET),
+                           struct.pack("<Q", offset)), now=t + 1e-4)
+        spans.append((port1 - port0) % 2**32 if k < 2 else 0)
+        delays.append(0 if k == 0 else delays[-1] + (spans[k - 1] - spans[k]) // 2)
+        exchange(segment, (Cmd.FPWR, station(k, dc.REG_SYSTEM_TIME_DELAY),
+                           struct.pack("<I", delays[-1])), now=t + 1e-4)
+    # the frame takes HOP_DELAY through each slave each way; each clock runs at its own rate
+    hop = dc.HOP_DELAY * 1e9
+    assert [abs(d - k * hop) <= k * hop * 1e-4 + 2 for k, d in enumerate(delays)] == [True] * 3
+    # a second of cycles with the reference clock's time spread by FRMW
+    for _ in range(1000):
+        t += 0.001
+        [(reference, wkc)] = exchange(segment, (Cmd.FRMW, station(0, dc.REG_SYSTEM_TIME),
+                                                bytes(8)), now=t)
+        assert wkc == 3  # read by the reference clock, written to the two others
+    [(first, _), (second, _), (third, _)] = exchange(
+        segment, *[(Cmd.FPRD, station(k, dc.REG_SYSTEM_TIME), bytes(8)) for k in range(3)],
+        now=t + 0.001)
+    times = [struct.unpack("<Q", r)[0] for r in (first, second, third)]
+    # read as the frame passed each slave: later by its delay, the same clock otherwise
+    assert [abs(times[k] - delays[k] - times[0]) <= 20 for k in range(3)] == [True] * 3
+    [(difference, _)] = exchange(segment, (Cmd.FPRD, station(2, dc.REG_SYSTEM_TIME_DIFFERENCE),
+                                           bytes(4)), now=t + 0.001)
+    assert struct.unpack("<I", difference)[0] & 0x7FFFFFFF <= 20
+    # ecx_dcsync0 on every slave: off, read the time, start a whole cycle past SyncDelay
+    t += 0.002
+    start = None
+    for k in range(3):
+        exchange(segment, (Cmd.FPWR, station(k, dc.REG_SYNC_ACTIVATION), b"\x00"),
+                 (Cmd.FPWR, station(k, dc.REG_CYCLIC_UNIT_CONTROL), b"\x00"), now=t)
+        [(now, _)] = exchange(segment, (Cmd.FPRD, station(k, dc.REG_SYSTEM_TIME), bytes(8)),
+                              now=t)
+        start = (struct.unpack("<Q", now)[0] + SYNC_DELAY_NS) // PERIOD_NS * PERIOD_NS + (
+            PERIOD_NS + SHIFT_NS)
+        exchange(segment, (Cmd.FPWR, station(k, dc.REG_START_TIME), struct.pack("<Q", start)),
+                 (Cmd.FPWR, station(k, dc.REG_SYNC0_CYCLE_TIME), struct.pack("<I", PERIOD_NS)),
+                 (Cmd.FPWR, station(k, dc.REG_SYNC_ACTIVATION), b"\x03"), now=t)
+    firsts = [esc.dc.next_sync0_host_time(t) for esc in segment.escs]
+    assert max(firsts) - min(firsts) < 50e-9  # the same instant on every slave
+    assert 0.1 < firsts[0] - t < 0.1 + 0.002
+    assert segment.run_sync0(firsts[0] - 1e-6) == 0
+    assert segment.run_sync0(firsts[0] + 0.0105) == 3 * 11
+    [(status, _), (next_sync0, _)] = exchange(
+        segment, (Cmd.FPRD, station(1, dc.REG_SYNC0_STATUS), bytes(1)),
+        (Cmd.FPRD, station(1, dc.REG_START_TIME), bytes(8)), now=firsts[0] + 0.0106)
+    assert status == b"\x01"  # a SYNC0 came (and reading acknowledged it)
+    assert struct.unpack("<Q", next_sync0)[0] == start + 11 * PERIOD_NS
+
+
+def joint(position: int) -> JointOnLine:
+    return JointOnLine(position, MODEL.limits.velocity_max, MODEL.parameters.drive_gain)
+
+
+def dc_group(count: int, lockstep: bool = True):
+    segment = line(count)
+    drives = open_ethercat_drives("linked", [joint(k) for k in range(count)],
+                                  lockstep=lockstep, sync="dc",
+                                  open_master=lambda: LinkedMaster(segment, lockstep))
+    names = [f"joint{k}" for k in range(count)]
+    group = DriveGroup(names, [EthercatLine("ethercat:linked",
+                                            list(zip(names, drives, strict=True)))])
+    return segment, drives, group
+
+
+def test_a_linked_line_runs_on_sync0_in_lock_step():
+    """The master's DC set-up on the linked line (SOEM's register writes), every slave in OP
+    on SYNC0, one SYNC0 a cycle of drive time, the master on the reference clock's phase."""
+    segment, drives, group = dc_group(3)
+    try:
+        group.start()
+        line = drives[0].transport.line
+        assert isinstance(line.dc, DcLine) and group.clocks == [line.dc]
+        assert line.dc.delays_ns == [0, 1000, 2000]
+        assert all(esc.dc.sync0_active and esc.al_status == ec.AlState.OP
+                   for esc in segment.escs)
+        before = [firmware.cycles for firmware in segment.firmwares]
+        for _ in range(100):
+            group.sync()
+            group.command_currents([0.3, 0.0, -0.3])
+        assert [f.cycles - b for f, b in zip(segment.firmwares, before, strict=True)] == [100] * 3
+        assert [f.missed_sync0 for f in segment.firmwares] == [0] * 3
+        assert [round(f.device.applied_current, 1) for f in segment.firmwares] == [0.3, 0.0,
+                                                                                  -0.3]
+        assert line.dc.last_offset_ns == 0  # lock-step: the frames are on the drive's time
+    finally:
+        group.close()
+
+
+def test_a_slave_that_misses_its_sync0_window_is_named_and_every_drive_ends_safe():
+    """Slave 1's clock jumps (its offset register overwritten): its SYNC0 now comes 10 us
+    after the frame, inside the margin its outputs need. Four late windows in a row and it
+    drops to SAFE-OP with 0x001A and quick-stops its drive; the master's next frame names it
+    by its AL status code in words, and the group's quick stop leaves every drive safe."""
+    segment, drives, group = dc_group(3)
+    try:
+        group.start()
+        for _ in range(20):
+            group.sync()
+            group.command_currents([0.2, 0.2, 0.2])
+        slave = segment.escs[1]
+        (offset,) = struct.unpack_from("<Q", slave.memory, dc.REG_SYSTEM_TIME_OFFSET)
+        jumped = (offset + SHIFT_NS - 10_000) % 2**64
+        struct.pack_into("<Q", slave.memory, dc.REG_SYSTEM_TIME_OFFSET, jumped)
+        with pytest.raises(DriveError) as failure:
+            for _ in range(10):
+                group.sync()
+                group.command_currents([0.2, 0.2, 0.2])
+        states = group.quick_stop_all()
+    finally:
+        group.close()
+    assert isinstance(failure.value.__cause__, DriveLost)  # the line's working counter
+    message = str(failure.value)
+    assert "slave 1 in SAFE_OP + ERROR, AL status code synchronization error (0x001A)" in message
+    assert "slave 0" not in message and "slave 2" not in message
+    assert segment.firmwares[1].missed_sync0 == 4
+    assert segment.firmwares[1].device.master_loss.startswith("EtherCAT DC: outputs missed")
+    assert all(state in ("quick stop active", "switch on disabled") for _, state in states)
+    assert [f.device.state.name for f in segment.firmwares] != ["OPERATION_ENABLED"] * 3
+    assert all(f.device.state.name != "OPERATION_ENABLED" for f in segment.firmwares)
+    assert all(f.device.brake_engaged for f in segment.firmwares)
+
+
+def test_sync0_that_stops_is_a_fatal_sync_error():
+    """The master switches SYNC0 off under a slave in OP: 0x002C at its next outputs."""
+    segment, drives, group = dc_group(2)
+    try:
+        group.start()
+        for _ in range(5):
+            group.sync()
+        drives[0].transport.slave._write(dc.REG_SYNC_ACTIVATION, b"\x00")
+        with pytest.raises(DriveError, match=r"slave 0 in SAFE_OP \+ ERROR, AL status code "
+                                            r"fatal sync error \(0x002C\)"):
+            for _ in range(3):
+                group.sync()
+    finally:
+        group.close()
+    assert segment.firmwares[0].device.master_loss.startswith("EtherCAT DC: no SYNC0")
+
+
+def test_a_sync0_cycle_other_than_the_drives_period_is_refused():
+    """SYNC0 every 2 ms for a drive that steps 1 ms (0x1006): OP refused with 0x0035."""
+    segment = line(1)
+    [transport] = open_ethercat_transports(
+        "linked", [0], lockstep=True, sync="dc", open_master=lambda: LinkedMaster(segment, True))
+    try:
+        transport.boot(1.0)
+        transport.map_process_data((), ())
+        transport.line.period = 2e-3
+        with pytest.raises(DriveError, match=r"OP refused: slave 0 in SAFE_OP \+ ERROR, AL "
+                                             r"status code DC invalid sync cycle time"):
+            transport.line.go_operational()
+    finally:
+        transport.close()
+
+
+@pytest.mark.root
+@pytest.mark.subprocess
+def test_pysoem_config_dc_against_the_virtual_slaves_over_a_veth(link):
+    """SOEM's own ecx_configdc and ecx_dcsync0 (pysoem) on a line in another process: the
+    delays it measured are the line's, every slave takes OP on SYNC0, the reference clock's
+    time comes back in every frame."""
+    with SlaveProcess(link, 3, MODEL) as slaves, link.entered():
+        master = pysoem.Master()
+        master.open(link.master_port)
+        try:
+            assert master.config_init() == 3
+            for slave in master.slaves:
+                slave.sdo_write(objects.CYCLE_PERIOD_US, 0, struct.pack("<I", 1000))
+            master.config_map()
+            assert master.state_check(pysoem.SAFEOP_STATE, 2_000_000) == pysoem.SAFEOP_STATE
+            assert master.config_dc()
+            delays = [struct.unpack("<I", s._fprd(dc.REG_SYSTEM_TIME_DELAY, 4))[0]
+                      for s in master.slaves]
+            assert [abs(d - k * 1000) <= 2 for k, d in enumerate(delays)] == [True] * 3
+            clock = DcLine(link.master_port, 1e-3)
+            for slave in master.slaves:
+                slave.dc_sync(True, PERIOD_NS, SHIFT_NS)
+            master.state = pysoem.OP_STATE
+            master.write_state()
+            wake, operational = time.perf_counter(), False
+            for _ in range(400):  # the first SYNC0 comes 100 ms after dc_sync
+                sent_at = time.monotonic()
+                master.send_processdata()
+                assert master.receive_processdata(10_000) in (3, 9)  # inputs; outputs in OP
+                clock.observe(master.dc_time, sent_at)
+                if master.read_state() == pysoem.OP_STATE:
+                    operational = True  # every slave took OP at a SYNC0 with outputs
+                    break
+                wake += 1e-3 + clock.take_trim()
+                time.sleep(max(0.0, wake - time.perf_counter()))
+            assert operational
+            assert abs(clock.last_offset_ns) < 500_000  # in the reference clock's cycle
+            time.sleep(0.002)
+            for slave in master.slaves:  # SYNC0 on and firing
+                assert slave._fprd(dc.REG_SYNC_ACTIVATION, 1) == b"\x03"
+                assert slave._fprd(dc.REG_SYNC0_STATUS, 1) == b"\x01"
+        finally:
+            master.state = pysoem.INIT_STATE
+            master.write_state()
+            master.close()
+        report = slaves.report()
+    assert all(r["cycles"] >= 1 for r in report)
