@@ -23,6 +23,7 @@ import math
 import threading
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import NamedTuple
 
 from canopen.objectdictionary import datatypes
 
@@ -73,6 +74,39 @@ _MOTOR_CURRENT_ACTUAL = (objects.MOTOR_CURRENT_ACTUAL, 0)
 _CURRENT_ACTUAL = (objects.CURRENT_ACTUAL, 0)
 _TORQUE_ACTUAL = (objects.TORQUE_ACTUAL, 0)
 _STATUSWORDS = {state: cia402.statusword_for(state) for state in State}
+# a line's batch (`line_terms`): what the command is, the readings each cycle samples (in
+# this order) and the objects it writes back, echo and statusword first
+COMMAND_NONE, COMMAND_CURRENT, COMMAND_TORQUE = range(3)
+NEVER = 1 << 62  # the cycle of a fault that is not scheduled
+LIVE_READINGS = (_POSITION_ACTUAL, _VELOCITY_ACTUAL, _MOTOR_CURRENT_ACTUAL,
+                 _JOINT_TORQUE_SENSOR, _CURRENT_ACTUAL, _TORQUE_ACTUAL)
+LINE_KEYS = (_SYNC_ECHO, _STATUSWORD) + LIVE_READINGS
+
+
+class LineTerms(NamedTuple):
+    """A drive's terms for a line's batch (`Cia402Device.line_terms`)."""
+
+    steady: bool  # no quick stop to finish, no sensor fault pending
+    commanded: bool  # the state is the one the controlword led to (a repeat does nothing)
+    controlword: int
+    kind: int  # COMMAND_*: what the target means in this state and mode
+    braked: bool
+    faulted: bool  # in FAULT: the position window is not watched
+    statusword: int
+    next_due: int  # cycle of the next scheduled fault
+    cycle_count: int
+    period: float  # s
+    max_current: float  # A
+    trip_current: float  # A
+    window: tuple[float, float]  # rad
+    increments_per_rad: float
+    rated_current: float  # A
+    rated_torque: float  # N.m
+    drive_gain: float  # N.m/A
+    target_current: float  # A
+    target_torque_permille: int
+    ranges: tuple  # (low, high) of each LIVE_READINGS object
+    readings: tuple  # each LIVE_READINGS object's value now
 _WRITABLE = frozenset(("rw", "wo", "rww", "rwr"))
 _READABLE = frozenset(("rw", "ro", "const", "rww", "rwr"))
 
@@ -147,7 +181,14 @@ class Cia402Device:
         self._schedule: list[tuple[int, Fault]] = []  # (cycle, fault), due when cycle is reached
         self._once: set[Fault] = set()  # faults that act on the next sample
         self.injected: list[tuple[int, Fault]] = []  # (cycle, fault) as they happened
-        self.cycle_count = 0
+        self._cycle_count = 0
+        self._applied_current = 0.0
+        # a line whose batch may hold this drive's latest cycles (`sim_bus.line_physics`):
+        # they are written back here before anything reads or changes the drive
+        self._line = None
+        # counts every change a line's batch (`sim_bus.line_physics`) derives its terms from:
+        # state, configuration, an object written, a fault scheduled or injected
+        self.revision = 0
         self.master_loss: str | None = None  # why the master was declared lost, until reset
         self._alone: tuple[float, int] | None = None  # see `run_alone`
         self._values: dict[tuple[int, int], int] = {}
@@ -191,7 +232,42 @@ class Cia402Device:
         """Power stage off and the joint standing still: nothing changes without a master."""
         return self._state not in _POWERED and self.plant.velocity == 0.0
 
+    @property
+    def cycle_count(self) -> int:
+        """Cycles run since power-on."""
+        self._settle()
+        return self._cycle_count
+
+    @property
+    def applied_current(self) -> float:
+        """A, the current the last cycle applied."""
+        self._settle()
+        return self._applied_current
+
+    @applied_current.setter
+    def applied_current(self, current: float) -> None:
+        self._applied_current = current
+
+    def _changed(self) -> None:
+        """Something a line's batch derives its terms from changed (see `revision`)."""
+        self.revision += 1
+        if self._line is not None:
+            self._line.changed = True
+
+    def join_line(self, line) -> None:
+        """`line` (a `sim_bus.line_physics.DriveLine`) may run this drive's cycles from now on;
+        its plant lives in the line's rows."""
+        self._line = line
+        self.plant.on_change = lambda: setattr(line, "changed", True)
+
+    def _settle(self) -> None:
+        """The cycles a line's batch ran for this drive, written back (see `_line`)."""
+        line = self._line
+        if line is not None and line.pending:
+            line.flush()
+
     def _set_state(self, state: State) -> None:
+        self._changed()
         self._state = state
         self._statusword = _STATUSWORDS[state]  # sampled every cycle, changes with the state
 
@@ -199,6 +275,7 @@ class Cia402Device:
 
     def reset_application(self) -> None:
         """Power-on values for every object, power stage off (CANopen NMT reset node)."""
+        self._settle()
         with self._lock:
             for key, var in self._variables.items():
                 self._values[key] = power_on_value(var)
@@ -220,6 +297,7 @@ class Cia402Device:
     def reset_communication(self) -> None:
         """Power-on values for the communication objects (0x1000..0x1FFF). The power stage
         goes off too: a master that resets the drive never inherits it enabled."""
+        self._settle()
         with self._lock:
             for key, var in self._variables.items():
                 if key[0] < 0x2000:
@@ -242,6 +320,7 @@ class Cia402Device:
 
     def _configure(self) -> None:
         """Cache what the cycle needs from the dictionary (after a reset or a write to it)."""
+        self._changed()
         v = self._values
         self.rated_current = v.get((objects.RATED_CURRENT, 0), 0) / objects.MILLI  # A
         self.rated_torque = v.get((objects.RATED_TORQUE, 0), 0) / objects.MILLI  # N.m
@@ -278,6 +357,7 @@ class Cia402Device:
 
     def read(self, index: int, subindex: int = 0) -> int:
         """The object's value (live objects as of the last cycle or state change)."""
+        self._settle()
         var = self._variable(index, subindex)
         if var.access_type not in _READABLE:
             raise DeviceAccessError(cia301.SDO_ABORT_READ_WRITE_ONLY,
@@ -293,6 +373,7 @@ class Cia402Device:
 
     def write_bytes(self, index: int, subindex: int, data: bytes) -> None:
         """`write` from an SDO download's bytes (length checked against the data type)."""
+        self._settle()
         var = self._variable(index, subindex)
         if isinstance(self._values[(index, subindex)], int) and len(data) * 8 != len(var):
             raise DeviceAccessError(cia301.SDO_ABORT_LENGTH_MISMATCH,
@@ -308,6 +389,7 @@ class Cia402Device:
     def write(self, index: int, subindex: int, value: int) -> None:
         """Validate and act on a write (controlword, mode, targets, configuration, fault
         injection); DeviceAccessError with the abort code when refused."""
+        self._settle()
         var = self._variable(index, subindex)
         self._check_writable(var)
         bits = len(var)
@@ -332,6 +414,7 @@ class Cia402Device:
                                     f"0x{var.index:04X}:{var.subindex:02X} is read-only")
 
     def _act(self, index: int, subindex: int, value: int) -> None:
+        self._changed()
         if index == objects.CONTROLWORD:
             self._apply_controlword(value)
         elif index == objects.TARGET_CURRENT:
@@ -377,6 +460,7 @@ class Cia402Device:
     def write_outputs(self, keys: tuple[tuple[int, int], ...], values: tuple[int, ...]) -> None:
         """Act on a received output PDO's values (already in their types' ranges: the PDO
         codec made them), without the per-object checks of an SDO write."""
+        self._settle()
         with self._lock:
             for (index, subindex), value in zip(keys, values, strict=True):
                 self._act(index, subindex, value)
@@ -385,6 +469,7 @@ class Cia402Device:
     def values(self) -> Mapping[tuple[int, int], int]:
         """Every object's value by (index, subindex), live objects as sampled by the last
         cycle: what an input PDO carries (read-only; `read` for checked access)."""
+        self._settle()
         return self._values
 
     # --- CiA 402 ----------------------------------------------------------------------------
@@ -434,6 +519,7 @@ class Cia402Device:
         """The bus declared the master gone (consumer heartbeat timeout, SYNC/RPDO silence,
         an EtherCAT watchdog): emergency `code`, then the abort connection reaction 0x6007
         (quick stop by default). Once per loss: a reset re-arms it."""
+        self._settle()
         with self._lock:
             if self.master_loss is not None:
                 return
@@ -468,6 +554,7 @@ class Cia402Device:
         joint moves as it would, without anyone sending a SYNC or a frame. Cycles the bus
         drives (a new master's) take precedence: while they come nothing runs here. Lock-step
         never calls this: its drive time is the bus's cycles only."""
+        self._settle()
         if self.master_loss is None and self._alone is None:
             return  # the every-frame case, without the lock
         with self._lock:
@@ -500,21 +587,22 @@ class Cia402Device:
         """One communication cycle: latch the command, advance the physics one period, sample
         the sensors, fire the faults due. `counter` is the cycle's number as the bus gives it
         (the SYNC counter byte), echoed in 0x2004 where the drive has it."""
+        self._settle()
         with self._lock:
             self._values[_SYNC_ECHO] = counter
             command = self._commanded_current()
             if abs(command) > self.trip_current:
                 self._fault(cia301.EMCY_OVERCURRENT, cia301.ERROR_REGISTER_CURRENT)
                 command = 0.0
-            self.applied_current = max(-self.max_current, min(self.max_current, command))
-            self.plant.advance(self.applied_current, self._period, self.brake_engaged)
-            self.cycle_count += 1
+            self._applied_current = max(-self.max_current, min(self.max_current, command))
+            self.plant.advance(self._applied_current, self._period, self.brake_engaged)
+            self._cycle_count += 1
             low, high = self.position_window
             if self._state is not State.FAULT and not low <= self.plant.position <= high:
                 self._fault(cia301.EMCY_POSITION_LIMIT, cia301.ERROR_REGISTER_GENERIC)
             self._finish_quick_stop()
             self._sample(self.plant.measure())
-            while self._schedule and self._schedule[0][0] <= self.cycle_count:
+            while self._schedule and self._schedule[0][0] <= self._cycle_count:
                 self.inject(self._schedule.pop(0)[1])
             if self._once:
                 once, self._once = self._once, set()
@@ -522,6 +610,50 @@ class Cia402Device:
                     self._values[_POSITION_ACTUAL] += ENCODER_JUMP
                 if Fault.TORQUE_SENSOR_SATURATED in once:
                     self._values[_JOINT_TORQUE_SENSOR] = cia301.INT32_MAX
+
+    # --- a line's batch (sim_bus.line_physics) ----------------------------------------------
+
+    def line_terms(self) -> "LineTerms":
+        """What a line's batch needs to run this drive's next cycles in its place, as of now
+        (valid until `revision` changes): the cycle of `cycle()` without its events. The
+        batch leaves a cycle to `cycle()` when the controlword would act, the command would
+        trip, the joint leaves its window, a quick stop is to finish, or a fault is due."""
+        self._settle()
+        state = self._state
+        if state is not State.OPERATION_ENABLED or self._mode not in (
+                objects.MODE_CYCLIC_SYNC_CURRENT, objects.MODE_CYCLIC_SYNC_TORQUE):
+            kind = COMMAND_NONE
+        else:
+            kind = (COMMAND_CURRENT if self._mode == objects.MODE_CYCLIC_SYNC_CURRENT
+                    else COMMAND_TORQUE)
+        r = self._reading_range
+        v = self._values
+        return LineTerms(
+            steady=state is not State.QUICK_STOP_ACTIVE and not self._once,
+            commanded=state is self._commanded_state, controlword=self._controlword,
+            kind=kind, braked=self.brake_engaged, faulted=state is State.FAULT,
+            statusword=self._statusword,
+            next_due=self._schedule[0][0] if self._schedule else NEVER,
+            cycle_count=self._cycle_count, period=self._period, max_current=self.max_current,
+            trip_current=self.trip_current, window=self.position_window,
+            increments_per_rad=self.increments_per_rad, rated_current=self.rated_current,
+            rated_torque=self.rated_torque, drive_gain=self.drive_gain,
+            target_current=self._target_current,
+            target_torque_permille=self._target_torque_permille,
+            ranges=tuple(r[key] for key in LIVE_READINGS),
+            readings=tuple(v.get(key, 0) for key in LIVE_READINGS))
+
+    def cycled_by_line(self, keys: tuple, values: list, cycle_count: int,
+                       applied_current: float, target_current: float,
+                       target_torque_permille: int) -> None:
+        """A line's batch ran this drive's cycles up to `cycle_count`: its objects `keys`
+        (`LINE_KEYS` and the outputs it took) hold `values`, as `cycle()` would have left
+        them."""
+        self._values.update(zip(keys, values, strict=True))
+        self._cycle_count = cycle_count
+        self._applied_current = applied_current
+        self._target_current = target_current
+        self._target_torque_permille = target_torque_permille
 
     def _sample(self, m) -> None:
         """The sensors' reading and the statusword, in the dictionary's units, as the input
@@ -553,13 +685,16 @@ class Cia402Device:
         """Inject `fault` when the drive's time (cycles x period) reaches `seconds`; a time of
         0 fires at the first cycle, and several faults due in one cycle all fire."""
         with self._lock:
+            self._changed()
             self._schedule.append((int(round(seconds / self._period)), fault))
             self._schedule.sort(key=lambda item: item[0])
 
     def inject(self, fault: Fault) -> None:
         """Inject `fault` now: the device acts out its own (sensor glitches on the next
         sample, over-current trip), the fault handlers the communication's."""
+        self._settle()
         with self._lock:
+            self._changed()
             self.injected.append((self.cycle_count, fault))
             if fault is Fault.OVERCURRENT_TRIP:
                 self._fault(cia301.EMCY_OVERCURRENT, cia301.ERROR_REGISTER_CURRENT)

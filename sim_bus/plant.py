@@ -2,6 +2,7 @@
 brake, seen through realistic sensors (noisy current and torque readings; the encoder's
 quantisation is the drive's unit conversion, `sim_bus.device`)."""
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -35,12 +36,21 @@ class Measurement(NamedTuple):
     joint_torque_reading: float  # N.m before the sensor gain K_j
 
 
+# columns of a plant's state row (`Plant.state`): what one period changes
+POSITION, VELOCITY, DRY, DRY_LEVEL, JOINT_TORQUE, CURRENT, TIME = range(7)
+STATE_SIZE = 7
+
+
 class Plant:
     """True state of the joint with its payload; advances only when told to (lock-step).
 
     The holding brake acts in the transmission like dry friction: engaged, it adds its holding
     torque to the dry-friction level of the model's own stick-slip integrator, so a joint at
     rest stays put while gravity needs less than that, and a moving one is stopped by it.
+
+    The state, the parameters and the sensor-noise draws live in rows of arrays (its own until
+    `adopt`): a line of drives (`sim_bus.line_physics`) advances all its plants in one
+    compiled call over those rows, and each plant still reads and advances its own.
     """
 
     def __init__(self, parameters: ActuatorParameters, payload: Payload = Payload(),
@@ -48,19 +58,52 @@ class Plant:
         self.base_parameters = parameters
         self.noise = noise
         self._rng = np.random.default_rng(noise.seed)
-        self._draws: list[float] = []
-        self._next_draw = 0
-        self.time = 0.0  # s since power-on
+        self.state = np.zeros(STATE_SIZE)
+        packed = parameters.packed()
+        self._packed, self._packed_braked = np.zeros_like(packed), np.zeros_like(packed)
+        # the noise draws and the index of the next one (a one-element array: a line's row)
+        self.draws = np.zeros(NOISE_BATCH)
+        self.cursor = np.full(1, NOISE_BATCH, dtype=np.int64)  # empty: drawn at first use
+        self.revision = 0  # counts parameter changes (a line re-reads what derives from them)
+        self.on_change: Callable[[], None] | None = None  # told of each (a line's)
         self.set_payload(payload)
-        self.position = (dynamics.rest_position(self._packed) if initial_position is None
-                         else initial_position)
-        self.velocity = 0.0
-        self._dry = 0.0
-        self._dry_level = parameters.dry_friction
-        self._current = 0.0
+        self.state[POSITION] = (dynamics.rest_position(self._packed) if initial_position
+                                is None else initial_position)
+        self.state[DRY_LEVEL] = parameters.dry_friction
         # at rest, before the first period (a drive samples its sensors at power-on)
-        self._joint_torque = float(dynamics.inverse_dynamics(self.position, 0.0, 0.0, 0.0,
-                                                             self._packed)[1])
+        self.state[JOINT_TORQUE] = dynamics.inverse_dynamics(self.position, 0.0, 0.0, 0.0,
+                                                              self._packed)[1]
+
+    @property
+    def position(self) -> float:
+        """rad."""
+        return float(self.state[POSITION])
+
+    @property
+    def velocity(self) -> float:
+        """rad/s."""
+        return float(self.state[VELOCITY])
+
+    @property
+    def time(self) -> float:
+        """s since power-on (its periods)."""
+        return float(self.state[TIME])
+
+    @property
+    def drifts(self) -> bool:
+        """Whether its parameters change with elapsed time (renewed before each period)."""
+        return self._drifts
+
+    def adopt(self, state: np.ndarray, packed: np.ndarray, packed_braked: np.ndarray,
+              draws: np.ndarray, cursor: np.ndarray) -> None:
+        """Move the state, the parameters and the noise draws into these rows (a line's,
+        views of its arrays), values kept: from now on they live there."""
+        for row, mine in ((state, self.state), (packed, self._packed),
+                          (packed_braked, self._packed_braked), (draws, self.draws),
+                          (cursor, self.cursor)):
+            row[...] = mine
+        self.state, self._packed, self._packed_braked = state, packed, packed_braked
+        self.draws, self.cursor = draws, cursor
 
     def set_payload(self, payload: Payload) -> None:
         self.payload = payload
@@ -68,13 +111,21 @@ class Plant:
         self._packed_start = self.parameters.packed()
         self._drifts = dynamics.drifts(self._packed_start)
         self._set_packed(self.time)
+        self.revision += 1
+        if self.on_change is not None:
+            self.on_change()
 
     def _set_packed(self, elapsed: float) -> None:
         """The parameters at `elapsed` s since power-on (effects that drift over time, such
-        as warm-up friction, change them), without and with the brake."""
-        self._packed = dynamics.at_elapsed(self._packed_start, elapsed)
-        self._packed_braked = self._packed.copy()
+        as warm-up friction, change them), without and with the brake, in place."""
+        self._packed[:] = dynamics.at_elapsed(self._packed_start, elapsed)
+        self._packed_braked[:] = self._packed
         self._packed_braked[dynamics.P_DRY] += BRAKE_HOLDING_TORQUE
+
+    def renew_parameters(self) -> None:
+        """The drifting parameters at this time: what `advance` does first when they drift
+        (a line calls it for its drifting plants before advancing them together)."""
+        self._set_packed(self.time)
 
     def warm_up(self) -> None:
         """Compile (or load) the integrator now, on a throwaway state: the first SYNC must be
@@ -87,27 +138,32 @@ class Plant:
         """One period under `current`. The holding brake sits in the transmission with the
         other effects, on the motor side of the torque sensor: the joint torque is the
         unbraked inverse dynamics' joint side, so the sensor does not see the brake."""
+        x = self.state
         if self._drifts:
-            self._set_packed(self.time)
-        (self.position, self.velocity, self._dry, self._dry_level,
-         self._joint_torque) = dynamics.step_sensed(
-            self.position, self.velocity, current,
-            self._packed_braked if braked else self._packed, self._packed, dt,
-            dynamics.SUBSTEPS)
-        self._current = current
-        self.time += dt
+            self._set_packed(float(x[TIME]))
+        x[POSITION], x[VELOCITY], x[DRY], x[DRY_LEVEL], x[JOINT_TORQUE] = (
+            dynamics.step_sensed(x[POSITION], x[VELOCITY], current,
+                                 self._packed_braked if braked else self._packed,
+                                 self._packed, dt, dynamics.SUBSTEPS))
+        x[CURRENT] = current
+        x[TIME] += dt
+
+    def refill_draws(self) -> None:
+        """The next batch of N(0, 1) draws from the generator (one numpy call per draw cost
+        more than the rest of a measurement); the sequence is the one scalar draws give."""
+        self._rng.standard_normal(out=self.draws)
+        self.cursor[0] = 0
 
     def _standard_normal(self) -> float:
-        """The generator's next N(0, 1) draw, taken in batches (one numpy call per draw cost
-        more than the rest of a measurement); the sequence is the one scalar draws give."""
-        if self._next_draw == len(self._draws):
-            self._draws = self._rng.standard_normal(NOISE_BATCH).tolist()
-            self._next_draw = 0
-        self._next_draw += 1
-        return self._draws[self._next_draw - 1]
+        if self.cursor[0] == NOISE_BATCH:
+            self.refill_draws()
+        k = int(self.cursor[0])
+        self.cursor[0] = k + 1
+        return float(self.draws[k])
 
     def measure(self) -> Measurement:
-        current = self._current + self.noise.current * self._standard_normal()
-        reading = (self._joint_torque / self.parameters.torque_sensor_gain
+        x = self.state
+        current = float(x[CURRENT]) + self.noise.current * self._standard_normal()
+        reading = (float(x[JOINT_TORQUE]) / self.parameters.torque_sensor_gain
                    + self.noise.joint_torque * self._standard_normal())
-        return Measurement(self.position, self.velocity, current, reading)
+        return Measurement(float(x[POSITION]), float(x[VELOCITY]), current, reading)

@@ -295,6 +295,17 @@ class SlaveFirmware:
         if self._in_keys:
             self._pack_inputs(memory, self._in_start, *self._input_values(device.values))
 
+    def steady_keys(self) -> tuple[tuple, tuple] | None:
+        """(output objects, input objects) of the process data while a completed output
+        buffer does nothing here but run the drive's cycle (OP, no OP transition pending):
+        what a line linked in one process (`sim_bus.ethercat.linked`) may then run for this
+        slave in its batch, counting the cycle in `cycles`. None otherwise, and in DC mode,
+        where the cycle runs on SYNC0 (`sync0`), not on the buffer."""
+        if self._dc or self._op_requested or self.esc.memory[
+                ec.REG_AL_STATUS] & ec.AL_STATE_MASK != ec.AlState.OP:
+            return None
+        return self._out_keys, self._in_keys
+
     def _outputs_for_sync0(self, esc: Esc) -> None:
         """DC mode: the buffer waits for SYNC0; one completed inside OUTPUT_MARGIN of it is
         late and misses that SYNC0 (the one after takes the next frame's). In OP, SYNC0 must

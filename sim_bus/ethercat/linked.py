@@ -11,16 +11,29 @@ exactly as a frame's does. What it leaves out is the wire: frames, datagrams, th
 framing (CoE SDO requests reach the slave's object layer directly, with its abort codes) and
 wall-clock watchdogs (master and slaves live and die together). Those are exercised over a
 veth (`sim_bus.ethercat.netns`), against SOEM and KickCAT.
+
+The cycle runs as a batch (`LinkedImage`): the whole output image decoded at once, every
+slave in OP whose cycle is steady advanced in one compiled call (`sim_bus.line_physics`),
+the input image encoded at once and every slave's SM2/SM3 buffers written in one compiled
+call; a slave whose cycle has more to it (a state change, a fault, a slave not in OP) takes
+the ESC's and firmware's own path, so the line behaves exactly as slave by slave
+(tests/test_line_physics.py compares the two).
 """
 
 import struct
 import time
 from collections.abc import Callable
 
+import numba
+import numpy as np
 import pysoem
+from numba.typed import List
 
 from protocol import ethercat as ec
+from protocol import objects as cia_objects
 from protocol.dictionary import mappable_object
+from protocol.pdo import PdoLayout
+from sim_bus.device import LINE_KEYS
 from sim_bus.ethercat.esc import Esc
 from sim_bus.ethercat.firmware import SlaveFirmware
 from sim_bus.ethercat.linked_dc import LinkedClock
@@ -35,10 +48,12 @@ WORKING_COUNTER_PER_SLAVE = 3  # an output write counts 2, an input read 1 (LRW)
 class LinkedSlave:
     """One slave as pysoem shows it to a master: identity, state, process data bytes, CoE."""
 
-    def __init__(self, position: int, esc: Esc, firmware: SlaveFirmware, clock: LinkedClock):
+    def __init__(self, position: int, esc: Esc, firmware: SlaveFirmware, changes: list[int],
+                 clock: LinkedClock):
         self.position = position
         self._clock = clock
         self._esc, self._firmware = esc, firmware
+        self._changes = changes  # the line's count of accesses other than process data
         esi = firmware.esi
         self.man, self.id, self.rev = esi.identity
         self.name = esi.name
@@ -49,10 +64,12 @@ class LinkedSlave:
         self._outputs: tuple[int, int] | None = None  # (SM2 start, length) once mapped
         self._inputs: tuple[int, int] | None = None
         self._input_buffer = bytearray()
+        self.layouts: tuple[PdoLayout, PdoLayout] | None = None  # (outputs, inputs) mapped
 
     # --- registers, as FPWR/FPRD would reach them -------------------------------------------
 
     def _write(self, address: int, data: bytes) -> bool:
+        self._changes[0] += 1
         return self._esc._write(address, memoryview(data))
 
     def _fprd(self, address: int, size: int, timeout_us: int = 0) -> bytes:
@@ -65,6 +82,7 @@ class LinkedSlave:
 
     def dc_sync(self, act: bool, sync0_cycle_time: int, sync0_shift_time: int = 0) -> None:
         """SYNC0 on (or off) with this cycle time and shift, ns (SOEM's ecx_dcsync0)."""
+        self._changes[0] += 1  # a register write: the line's batch looks at its slaves again
         self._clock.dc_sync(self._esc, act, sync0_cycle_time, sync0_shift_time)
 
     def _read_state(self) -> None:
@@ -97,6 +115,7 @@ class LinkedSlave:
     def _coe(self, index: int, subindex: int, access: Callable):
         if self._esc.al_status & ec.AL_STATE_MASK == ec.AlState.INIT:
             raise pysoem.MailboxError(self.position + 1, 0, "mailbox not running in INIT")
+        self._changes[0] += 1
         try:
             return access()
         except SdoAbort as exc:
@@ -125,11 +144,12 @@ class LinkedSlave:
     def _map(self) -> int:
         """SM2/SM3 sized for the PDOs assigned by CoE (SOEM's config_map); bytes mapped."""
         objects = self._firmware.objects
-        sizes = []
-        for assign in (ec.RXPDO_ASSIGN, ec.TXPDO_ASSIGN):
-            entries = [mappable_object(self._firmware.device.dictionary, e)
-                       for e in objects.assigned_entries(assign)]
-            sizes.append(sum(entry.bits for entry in entries) // 8)
+        layouts = tuple(PdoLayout(0, tuple(
+            mappable_object(self._firmware.device.dictionary, e)
+            for e in objects.assigned_entries(assign)))
+            for assign in (ec.RXPDO_ASSIGN, ec.TXPDO_ASSIGN))
+        self.layouts = layouts
+        sizes = [layout.size for layout in layouts]
         self._outputs = self._sync_manager("Outputs", sizes[0])
         self._inputs = self._sync_manager("Inputs", sizes[1])
         self.output = bytes(sizes[0])
@@ -174,19 +194,23 @@ class LinkedMaster:
         # s each process data exchange spent in the slaves (their firmware and physics), in
         # order: what a benchmark of the master takes out of its figures
         self.slave_seconds: list[float] = []
+        self._image: LinkedImage | None = None  # the batch, once mapped with one layout
+        self._changes = [0]  # register writes and CoE accesses: the slaves may have changed
 
     def open(self, interface: str) -> None:
         """Nothing to open: the line is in this process."""
 
     def close(self) -> None:
         self.slaves = []
+        self._image = None
 
     def config_init(self) -> int:
         """INIT (errors acknowledged), station addresses, the mailbox sync managers as the
         SII gives them, PRE-OP requested: SOEM's config_init. The number of slaves."""
         segment = self._segment
         with segment.lock:
-            self.slaves = [LinkedSlave(k, esc, firmware, self._clock) for k, (esc, firmware)
+            self.slaves = [LinkedSlave(k, esc, firmware, self._changes, self._clock)
+                           for k, (esc, firmware)
                            in enumerate(zip(segment.escs, segment.firmwares, strict=True))]
             for slave in self.slaves:
                 slave.state = ec.AlState.INIT
@@ -207,6 +231,7 @@ class LinkedMaster:
         with self._segment.lock:
             size = sum(slave._map() for slave in self.slaves)
             self.expected_wkc = WORKING_COUNTER_PER_SLAVE * len(self.slaves)
+            self._image = LinkedImage.of(self.slaves, self._segment, self._changes)
             for slave in self.slaves:
                 slave.state = ec.AlState.SAFE_OP
                 slave.write_state()
@@ -245,10 +270,150 @@ class LinkedMaster:
             dc_time = self._clock.before_frame()
             if dc_time is not None:
                 self.dc_time = dc_time
-            self._wkc = sum(slave._exchange() for slave in self.slaves)
+            image = self._image
+            self._wkc = (image.exchange() if image is not None
+                         else sum(slave._exchange() for slave in self.slaves))
             self._segment.frames += 1
             self._clock.after_frame()
         self.slave_seconds.append(time.perf_counter() - start)
 
     def receive_processdata(self, timeout_us: int = 0) -> int:
         return self._wkc
+
+
+_TARGETS = frozenset(((cia_objects.TARGET_TORQUE, 0), (cia_objects.TARGET_CURRENT, 0)))
+
+
+class LinkedImage:
+    """The line's process data cycle as a batch over its slaves, for a line whose slaves all
+    map the same layout: the controlword and targets out, inputs among the drive's live
+    objects (`sim_bus.device.LINE_KEYS`). Built by `of`, which says None for any other."""
+
+    def __init__(self, slaves: list[LinkedSlave], segment: Segment, changes: list[int]):
+        self.slaves = slaves
+        self.line = segment.drives
+        # which slaves' cycles are steady for the ESC and the firmware, as of `_seen`
+        # changes on the line: kept while the line only exchanges process data in steady
+        # cycles (nothing else changes a slave's state or sync managers)
+        self._changes, self._seen = changes, -1
+        self._steady = np.zeros(len(slaves), dtype=bool)
+        outputs, inputs = slaves[0].layouts
+        self.keys = (tuple((o.index, o.subindex) for o in outputs.objects),
+                     tuple((o.index, o.subindex) for o in inputs.objects))
+        self._out_dtype, self._in_dtype = outputs.dtype, inputs.dtype
+        self._out_size, self._in_size = outputs.size, inputs.size
+        self._in_fields = [(f"f{k}", LINE_KEYS.index(key))
+                           for k, key in enumerate(self.keys[1])]
+        self._inputs = np.zeros(len(slaves), self._in_dtype)
+        self._rows = np.arange(len(slaves))
+        # per slave: its sync managers as last checked, whether their buffers are plain
+        # (enabled for the PDI, exactly the mapped areas, nothing else over them) and
+        # whether the output buffer retriggers the watchdog
+        self._checked: list = [None] * len(slaves)
+        self._plain = [False] * len(slaves)
+        self._watchdog = [False] * len(slaves)
+        # per slave, where a batched cycle writes: the ESC's memory (a view), the SM2 and
+        # SM3 buffers' starts; the ESCs whose watchdog the outputs retrigger
+        self._memories = List([np.frombuffer(slave._esc.memory, np.uint8) for slave in slaves])
+        self._starts = np.zeros((len(slaves), 2), dtype=np.int64)
+        self._watchdogs: list[int] = []
+        self._firmwares = [slave._firmware for slave in slaves]
+
+    @classmethod
+    def of(cls, slaves: list[LinkedSlave], segment: Segment,
+           changes: list[int]) -> "LinkedImage | None":
+        if not slaves or len(segment.drives) != len(slaves):
+            return None
+        layouts = {(slave.layouts[0].objects, slave.layouts[1].objects) for slave in slaves}
+        if len(layouts) != 1:
+            return None
+        outputs, inputs = layouts.pop()
+        out_keys = [(o.index, o.subindex) for o in outputs]
+        in_keys = [(o.index, o.subindex) for o in inputs]
+        if (not out_keys or not in_keys or out_keys[0] != (cia_objects.CONTROLWORD, 0)
+                or not set(out_keys[1:]) <= _TARGETS or len(set(out_keys)) != len(out_keys)
+                or not set(in_keys) <= set(LINE_KEYS)):
+            return None
+        return cls(slaves, segment, changes)
+
+    def _check(self, k: int) -> bool:
+        """Whether slave k's SM2/SM3 take the whole buffers as the ESC's rules would (the
+        sync managers change only with a register write: checked again after one)."""
+        slave = self.slaves[k]
+        esc = slave._esc
+        self._checked[k] = sms = esc._sms
+        plain, watchdog = True, False
+        for (start, length), writes in ((slave._outputs, True), (slave._inputs, False)):
+            over = [sm for sm in sms if sm[1] < start + length and start < sm[2]]
+            if (len(over) != 1 or over[0][0] < 0 or over[0][1:3] != (start, start + length)
+                    or over[0][3] or over[0][4] != writes):
+                plain = False
+            elif writes:
+                watchdog = over[0][5]
+        self._plain[k], self._watchdog[k] = plain, watchdog
+        return plain
+
+    def exchange(self) -> int:
+        """One frame's process data for every slave; the working counter."""
+        slaves, line = self.slaves, self.line
+        if line.refresh() or self._changes[0] != self._seen:
+            keys, checked, plain = self.keys, self._checked, self._plain
+            self._steady[:] = [
+                slave._firmware.steady_keys() == keys
+                and (plain[k] if checked[k] is slave._esc._sms else self._check(k))
+                for k, slave in enumerate(slaves)]
+            self._starts[:] = [(slave._outputs[0], slave._inputs[0]) for slave in slaves]
+            self._watchdogs = [k for k, slave in enumerate(slaves)
+                               if self._watchdog[k] and slave._esc._watchdog_period]
+            self._seen = self._changes[0]
+        steady = self._steady
+        data = b"".join([slave.output for slave in slaves])
+        if len(data) != self._out_size * len(slaves):  # not the mapped image: slave by slave
+            return sum(slave._exchange() for slave in slaves)
+        outputs = np.frombuffer(data, self._out_dtype)
+        rows = self._rows[steady]
+        out_keys = self.keys[0]
+        done = line.cycle(rows, outputs["f0"].astype(np.int64), out_keys,
+                          [outputs[f"f{k}"].astype(np.int64) for k in range(1, len(out_keys))],
+                          refresh=False)
+        batched = rows[done]
+        every = len(batched) == len(slaves)
+        inputs, values = self._inputs, line.values
+        for field, column in self._in_fields:
+            if every:
+                inputs[field] = values[:, column]
+            else:
+                inputs[field][batched] = values[batched, column]
+        image = inputs.tobytes()
+        _into_buffers(batched, self._memories, self._starts,
+                      np.frombuffer(data, np.uint8).reshape(len(slaves), self._out_size),
+                      inputs.view(np.uint8).reshape(len(slaves), self._in_size))
+        if self._watchdogs:
+            ran = set(batched.tolist())
+            for k in self._watchdogs:
+                if k in ran:
+                    slaves[k]._esc._trigger_watchdog()
+        in_size, firmwares = self._in_size, self._firmwares
+        for k in batched.tolist():
+            slaves[k].input = image[k * in_size:(k + 1) * in_size]
+            firmwares[k].cycles += 1
+        count = WORKING_COUNTER_PER_SLAVE * len(batched)
+        if not every:  # slave by slave, which may change them: look again
+            left = np.ones(len(slaves), dtype=bool)
+            left[batched] = False
+            count += sum(slaves[k]._exchange() for k in np.flatnonzero(left).tolist())
+            self._seen = -1
+        return count
+
+
+@numba.njit(cache=True)
+def _into_buffers(rows: np.ndarray, memories, starts: np.ndarray, outputs: np.ndarray,
+                  inputs: np.ndarray) -> None:
+    """Each batched slave's outputs into its SM2 buffer and inputs into its SM3 buffer (what
+    the master's write and the firmware's sample leave there), a row of each image per
+    slave."""
+    out_size, in_size = outputs.shape[1], inputs.shape[1]
+    for k in rows:
+        memory = memories[k]
+        memory[starts[k, 0]:starts[k, 0] + out_size] = outputs[k]
+        memory[starts[k, 1]:starts[k, 1] + in_size] = inputs[k]

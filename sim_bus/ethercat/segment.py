@@ -28,6 +28,7 @@ from protocol.sii import build_sii
 from sim_bus.device import Cia402Device
 from sim_bus.ethercat.esc import Esc
 from sim_bus.ethercat.firmware import SlaveFirmware
+from sim_bus.line_physics import DriveLine
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +52,7 @@ class Segment:
             firmware.attach(esc)
             self.escs.append(esc)
         self.lock = threading.Lock()  # one frame at a time; Python callers take it too
+        self.drives = DriveLine(devices)  # their physics in rows of one set of arrays
         self.frames = 0
         self.dropped = 0
 

@@ -1,0 +1,286 @@
+"""The virtual drives of one line advanced as a batch: one compiled call a cycle over the
+line's joints (command, physics, sensors), where a Python cycle per drive cost about 10 us
+each, a third of a millisecond for the whole TALOS.
+
+One behaviour: `sim_bus.device.Cia402Device` stays the drive. Its plant's state, parameters
+and noise draws live in rows of this line's arrays (`Plant.adopt`), the physics is the
+model's own compiled step (`model.dynamics.step_sensed`, in a loop over the rows), and the
+batch runs only a drive's steady cycles: whenever the device would do more than latch,
+advance and sample (the controlword acts, the command trips, the joint leaves its window, a
+quick stop is to finish, a fault is due, its terms changed), the batch leaves that drive's
+cycle to `Cia402Device.cycle()` itself. What the batch repeats of the device (the command
+in each mode, the saturation, the sensors' conversion) is checked against it, cycle for
+cycle, in tests/test_line_physics.py.
+"""
+
+from collections.abc import Sequence
+
+import numba
+import numpy as np
+
+from model import dynamics
+from protocol import objects
+from sim_bus.device import (
+    COMMAND_CURRENT,
+    COMMAND_TORQUE,
+    LINE_KEYS,
+    Cia402Device,
+)
+from sim_bus.plant import (
+    CURRENT,
+    DRY,
+    DRY_LEVEL,
+    JOINT_TORQUE,
+    NOISE_BATCH,
+    POSITION,
+    STATE_SIZE,
+    TIME,
+    VELOCITY,
+)
+
+# columns of the float terms (a row per drive, from `Cia402Device.line_terms`)
+(T_PERIOD, T_MAX_CURRENT, T_TRIP, T_WINDOW_LOW, T_WINDOW_HIGH, T_PER_RAD, T_RATED_CURRENT,
+ T_RATED_TORQUE, T_DRIVE_GAIN, T_SENSOR_GAIN, T_NOISE_CURRENT, T_NOISE_TORQUE) = range(12)
+N_TERMS = 12
+# columns of the integer terms
+I_KIND, I_BRAKED, I_FAULTED = range(3)
+N_FLAGS = 3
+# columns of the values a cycle leaves (`LINE_KEYS` order): echo, statusword, the readings
+V_ECHO, V_STATUSWORD = 0, 1
+V_READINGS = 2  # then LIVE_READINGS: position, velocity, motor current, joint torque sensor,
+V_CURRENT, V_TORQUE = 6, 7  # current actual (per mille) and torque actual (per mille)
+N_VALUES = len(LINE_KEYS)
+_MILLI = objects.MILLI
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _saturate(value: float, low: int, high: int) -> int:
+    """`sim_bus.device._saturate`: NaN and below the range give its low end."""
+    if not value > low:
+        return low
+    if not value < high:
+        return high
+    return np.int64(np.rint(value))  # half to even, as Python's round()
+
+
+@numba.njit(cache=True, error_model="numpy")
+def advance_line(rows: np.ndarray, controlwords: np.ndarray, torque_out: np.ndarray,
+                 current_out: np.ndarray, counter: int, steady: np.ndarray,
+                 controlword: np.ndarray, next_due: np.ndarray, cycles: np.ndarray,
+                 terms: np.ndarray, flags: np.ndarray, ranges: np.ndarray,
+                 torque_targets: np.ndarray, current_targets: np.ndarray,
+                 state: np.ndarray, packed: np.ndarray, packed_braked: np.ndarray,
+                 draws: np.ndarray, cursor: np.ndarray, values: np.ndarray,
+                 applied: np.ndarray, outputs: np.ndarray, substeps: int) -> np.ndarray:
+    """One cycle of each drive in `rows`, as `Cia402Device.cycle()` runs it when nothing but
+    the physics happens: the outputs taken (`controlwords`, and the targets where
+    `torque_out` / `current_out` have a row per drive), the command latched in its mode and
+    clamped at the drive's maximum, the plant advanced one period, the sensors sampled. A
+    drive whose cycle has more to it (not `steady`, a new controlword, a fault due, its noise
+    draws to renew, a command that trips, a joint leaving its window) is left untouched
+    (False in the result): its device runs that cycle itself. `values` gets the readings,
+    `applied` the current, `outputs` (controlword, torque target, current target) what the
+    drive took."""
+    done = np.zeros(rows.shape[0], dtype=np.bool_)
+    for n in range(rows.shape[0]):
+        j = rows[n]
+        if (not steady[j] or controlwords[j] != controlword[j]
+                or next_due[j] <= cycles[j] + 1 or cursor[j] > NOISE_BATCH - 2):
+            continue
+        torque = torque_out[j] if torque_out.shape[0] else torque_targets[j]
+        current_target = (current_out[j] / _MILLI if current_out.shape[0]
+                          else current_targets[j])
+        t = terms[j]
+        kind = flags[j, I_KIND]
+        if kind == COMMAND_CURRENT:
+            command = current_target
+        elif kind == COMMAND_TORQUE:
+            command = torque / _MILLI * t[T_RATED_TORQUE] / t[T_DRIVE_GAIN]
+        else:
+            command = 0.0
+        if abs(command) > t[T_TRIP]:
+            continue
+        limit = t[T_MAX_CURRENT]
+        current = command if command < limit else limit  # max(-m, min(m, command))
+        current = current if current > -limit else -limit
+        q, qd, dry, level, joint = dynamics.step_sensed(
+            state[j, POSITION], state[j, VELOCITY], current,
+            packed_braked[j] if flags[j, I_BRAKED] else packed[j], packed[j], t[T_PERIOD],
+            substeps)
+        if not flags[j, I_FAULTED] and not t[T_WINDOW_LOW] <= q <= t[T_WINDOW_HIGH]:
+            continue
+        done[n] = True
+        torque_targets[j], current_targets[j] = torque, current_target
+        outputs[j, 0] = controlwords[j]
+        if torque_out.shape[0]:
+            outputs[j, 1] = torque_out[j]
+        if current_out.shape[0]:
+            outputs[j, 2] = current_out[j]
+        cycles[j] += 1
+        x = state[j]
+        x[POSITION], x[VELOCITY], x[DRY], x[DRY_LEVEL], x[JOINT_TORQUE] = q, qd, dry, level, joint
+        x[CURRENT] = current
+        x[TIME] += t[T_PERIOD]
+        applied[j] = current
+        k = cursor[j]
+        cursor[j] = k + 2
+        measured = current + t[T_NOISE_CURRENT] * draws[j, k]
+        reading = joint / t[T_SENSOR_GAIN] + t[T_NOISE_TORQUE] * draws[j, k + 1]
+        per_rad = t[T_PER_RAD]
+        v, r = values[j], ranges[j]
+        v[V_ECHO] = counter
+        v[V_READINGS] = _saturate(q * per_rad, r[0, 0], r[0, 1])
+        v[V_READINGS + 1] = _saturate(qd * per_rad, r[1, 0], r[1, 1])
+        v[V_READINGS + 2] = _saturate(measured * _MILLI, r[2, 0], r[2, 1])
+        v[V_READINGS + 3] = _saturate(reading * _MILLI, r[3, 0], r[3, 1])
+        if t[T_RATED_CURRENT] > 0:
+            v[V_CURRENT] = _saturate(measured / t[T_RATED_CURRENT] * _MILLI, r[4, 0], r[4, 1])
+        if t[T_RATED_TORQUE] > 0:
+            v[V_TORQUE] = _saturate(t[T_DRIVE_GAIN] * measured / t[T_RATED_TORQUE] * _MILLI,
+                                    r[5, 0], r[5, 1])
+    return done
+
+
+_NONE = np.zeros(0, dtype=np.int64)  # an output the layout does not carry
+_TORQUE_KEY = (objects.TARGET_TORQUE, 0)
+_CURRENT_KEY = (objects.TARGET_CURRENT, 0)
+
+
+class DriveLine:
+    """The drives of one line; `cycle` runs a cycle of those given, in one compiled call for
+    every steady one, and says which ran (the others' cycles are their devices' to run).
+
+    What a batch cycle leaves in a device (its objects, cycle count, applied current,
+    targets) is written back when anything next reads or changes that device (`flush`, from
+    `Cia402Device._settle`), not every cycle: in a run nobody looks between two cycles."""
+
+    def __init__(self, devices: Sequence[Cia402Device]):
+        self.devices = list(devices)
+        count = len(self.devices)
+        size = self.devices[0].plant.parameters.packed().size if count else 0
+        self.state = np.zeros((count, STATE_SIZE))
+        self.packed = np.zeros((count, size))
+        self.packed_braked = np.zeros((count, size))
+        self.draws = np.zeros((count, NOISE_BATCH))
+        self.cursor = np.zeros(count, dtype=np.int64)
+        for j, device in enumerate(self.devices):
+            device.plant.adopt(self.state[j], self.packed[j], self.packed_braked[j],
+                               self.draws[j], self.cursor[j:j + 1])
+            device.join_line(self)
+        self.terms = np.zeros((count, N_TERMS))
+        self.flags = np.zeros((count, N_FLAGS), dtype=np.int64)
+        self.ranges = np.zeros((count, len(LINE_KEYS) - 2, 2), dtype=np.int64)
+        self.values = np.zeros((count, N_VALUES), dtype=np.int64)
+        self.applied = np.zeros(count)
+        self.torque_targets = np.zeros(count)  # per mille of rated torque
+        self.current_targets = np.zeros(count)  # A
+        self.outputs = np.zeros((count, 3), dtype=np.int64)  # controlword, targets as taken
+        # what decides, per drive, whether its next cycle is the batch's
+        self._steady = np.zeros(count, dtype=np.bool_)  # terms steady, controlword repeated
+        self._controlword = np.zeros(count, dtype=np.int64)
+        self._next_due = np.zeros(count, dtype=np.int64)
+        self._cycles = np.zeros(count, dtype=np.int64)
+        self._drifting: list[int] = []
+        # the devices' revisions the terms are from (-1: read them before the next cycle),
+        # and whether any may have changed since (set by the devices and their plants)
+        self._revisions = [-1] * count
+        self.changed = True
+        self._rows = np.arange(count)
+        # drives whose last cycles ran here and are not written back yet; their output keys
+        self.pending = False
+        self._unwritten = np.zeros(count, dtype=np.bool_)
+        self._output_keys: tuple = ()
+
+    def __len__(self) -> int:
+        return len(self.devices)
+
+    def flush(self) -> None:
+        """Write what the batch's cycles left into the devices they ran for."""
+        self.pending = False
+        rows = np.flatnonzero(self._unwritten)
+        self._unwritten[:] = False
+        keys = LINE_KEYS + self._output_keys
+        columns = [0] + [1 + (key == _CURRENT_KEY) for key in self._output_keys[1:]]
+        written = np.concatenate((self.values[rows], self.outputs[rows][:, columns]),
+                                 axis=1).tolist()
+        cycles, applied = self._cycles[rows].tolist(), self.applied[rows].tolist()
+        current = self.current_targets[rows].tolist()
+        torque = self.torque_targets[rows].astype(np.int64).tolist()
+        for n, j in enumerate(rows.tolist()):
+            self.devices[j].cycled_by_line(keys, written[n], cycles[n], applied[n],
+                                           current[n], torque[n])
+
+    def _read_terms(self, j: int) -> None:
+        device = self.devices[j]
+        terms = device.line_terms()
+        plant = device.plant
+        self._steady[j] = terms.steady and terms.commanded
+        self._controlword[j] = terms.controlword
+        self._next_due[j] = terms.next_due
+        self._cycles[j] = terms.cycle_count
+        low, high = terms.window
+        self.terms[j] = (terms.period, terms.max_current, terms.trip_current, low, high,
+                         terms.increments_per_rad, terms.rated_current, terms.rated_torque,
+                         terms.drive_gain, plant.parameters.torque_sensor_gain,
+                         plant.noise.current, plant.noise.joint_torque)
+        self.flags[j] = (terms.kind, terms.braked, terms.faulted)
+        self.ranges[j] = terms.ranges
+        self.values[j, V_STATUSWORD] = terms.statusword
+        self.values[j, V_READINGS:] = terms.readings
+        self.torque_targets[j] = terms.target_torque_permille
+        self.current_targets[j] = terms.target_current
+        if plant.drifts and j not in self._drifting:
+            self._drifting.append(j)
+        elif not plant.drifts and j in self._drifting:
+            self._drifting.remove(j)
+
+    def refresh(self) -> bool:
+        """Read again the terms of every drive that changed (or may have been cycled
+        elsewhere) since they were read; whether any had."""
+        if not self.changed:
+            return False
+        self.changed = False
+        revisions = [d.revision + d.plant.revision for d in self.devices]
+        if revisions == self._revisions:
+            return False
+        for j, (now, then) in enumerate(zip(revisions, self._revisions, strict=True)):
+            if now != then:
+                self._read_terms(j)
+        # reading them settled the devices, whose revisions stay as they were
+        self._revisions = revisions
+        return True
+
+    def cycle(self, rows: np.ndarray, controlwords: np.ndarray, outputs: tuple,
+              output_values: list, counter: int = 0, refresh: bool = True) -> np.ndarray:
+        """One cycle of the drives `rows` (indices, in line order) under these outputs, a
+        row per drive of the line: `controlwords` and, for the objects `outputs` other than
+        the controlword (target torque and current), `output_values`. The rows whose cycle
+        ran here (bool over `rows`); every drive not among them may have been cycled
+        another way, so its terms are read again before its next. `refresh` False: the
+        caller has just called `refresh`."""
+        if refresh:
+            self.refresh()
+        devices = self.devices
+        for j in self._drifting:
+            devices[j].plant.renew_parameters()
+        if outputs != self._output_keys:
+            if self.pending:
+                self.flush()
+            self._output_keys = outputs
+        columns = dict(zip(outputs[1:], output_values, strict=True))
+        done = advance_line(rows, controlwords, columns.get(_TORQUE_KEY, _NONE),
+                            columns.get(_CURRENT_KEY, _NONE), counter, self._steady,
+                            self._controlword, self._next_due, self._cycles, self.terms,
+                            self.flags, self.ranges, self.torque_targets,
+                            self.current_targets, self.state, self.packed,
+                            self.packed_braked, self.draws, self.cursor, self.values,
+                            self.applied, self.outputs, dynamics.SUBSTEPS)
+        cycled = rows[done]
+        self._unwritten[cycled] = True
+        self.pending = True
+        if len(cycled) < len(devices):  # the others may run elsewhere: read them again
+            revisions = self._revisions
+            for j in np.setdiff1d(self._rows, cycled, assume_unique=True).tolist():
+                revisions[j] = -1
+            self.changed = True
+        return done
