@@ -21,7 +21,9 @@ accepts or rejects its own step. A simulation writes every lane of the trial tra
 joints that accept it take it as their current solution (the two trajectories swap roles when
 every joint of the block takes it, as in the scalar solver; otherwise the takers' lanes are
 copied), and the trial lanes of the others are scratch. A round costs the same whatever the
-number of joints still working in a chunk: a chunk is as slow as its slowest joint.
+number of joints still working in a chunk (a chunk is as slow as its slowest joint), and
+nothing for a chunk none of whose joints works in it: that chunk's sweep, simulation and copy
+are left out.
 
 The transcendental functions are `controller.lane_math` (the scalar kernel's are libm's), so a
 lane joint's decisions equal the scalar kernel's to rounding, not bit for bit (tested to 1e-9
@@ -105,9 +107,9 @@ GAIN_FIELDS = 5
 PARAMETERS = 0
 COSTS = N_PARAMS
 (Q0, QD0, BOX, TOLERANCE, MU, COST, MERIT, DV1, DV2, ALPHA, VX1, VX2, V11, V12, V22, SWEEP_OK,
- TOTAL, NEEDS_SWEEP, TAKES, SHIFTS, SUM, SIMULATED_Q, SIMULATED_QD, INVERSE_INERTIA) = range(
-    COSTS + N_COST, COSTS + N_COST + 24)
-SCRATCH = COSTS + N_COST + 24
+ TOTAL, NEEDS_SWEEP, TAKES, SHIFTS, SUM, SIMULATED_Q, SIMULATED_QD, INVERSE_INERTIA,
+ SIMULATES) = range(COSTS + N_COST, COSTS + N_COST + 25)
+SCRATCH = COSTS + N_COST + 25
 
 # phases of a joint within a tick
 DONE, WARM_SWEEP, FIRST_ROLLOUT, SWEEP, SEARCH = range(5)
@@ -209,6 +211,20 @@ def _rows(a, width):
 
 
 @register_jitable(forceinline=True)
+def _any(S, c, row, width):
+    """Whether any lane of chunk c has scratch[row] set: a chunk none of whose joints works in
+    a round is left out of its sweep or simulation. A tick's rounds go on until its slowest
+    joint is done (a failed warm line search is 10 trials and a solve from the controls), and
+    a chunk of joints that finished early must not pay for them: measured on talos_32's
+    problem, the wrists' and grippers' line searches (their friction step at the edge of
+    stability) made every chunk run up to 16 simulations a tick."""
+    for w in range(width):
+        if S[c, row, w] != 0.0:
+            return True
+    return False
+
+
+@register_jitable(forceinline=True)
 def _at(k, r, n):
     """The slot of step k in a ring of n + 1 slots whose step 0 is in slot r: a tick advances
     the ring by one instead of moving every stored step (controller.mpc._shift's copy)."""
@@ -291,6 +307,8 @@ def _rollout(current, trial, gains, scratch, n, r, c0, c1, width):
     Tc, Tt = _steps(current, TRAJECTORY_FIELDS, width), _steps(trial, TRAJECTORY_FIELDS, width)
     G, S = _steps(gains, GAIN_FIELDS, width), _rows(scratch, width)
     for c in range(c0, c1):
+        if not _any(S, c, SIMULATES, width):
+            continue
         for w in range(width):
             S[c, SIMULATED_Q, w] = S[c, Q0, w]
             S[c, SIMULATED_QD, w] = S[c, QD0, w]
@@ -324,6 +342,8 @@ def _backward(current, gains, scratch, n, r, c0, c1, width):
     Tc = _steps(current, TRAJECTORY_FIELDS, width)
     G, S = _steps(gains, GAIN_FIELDS, width), _rows(scratch, width)
     for c in range(c0, c1):
+        if not _any(S, c, NEEDS_SWEEP, width):
+            continue
         last = _at(n, r, n)
         for w in range(width):
             S[c, VX1, w] = Tc[c, last, LQ, w]
@@ -428,6 +448,8 @@ def _take(trajectories, scratch, current, block, n, joints, c0, c1, width):
     Tc = _steps(trajectories[current[block, WHICH]], TRAJECTORY_FIELDS, width)
     Tt = _steps(trajectories[1 - current[block, WHICH]], TRAJECTORY_FIELDS, width)
     for c in range(c0, c1):
+        if not _any(S, c, TAKES, width):
+            continue
         for k in range(n + 1):
             for f in range(TRAJECTORY_FIELDS):
                 for w in range(width):
@@ -699,12 +721,16 @@ def _end(rows, Tc, G, state, scratch, n, r, c0, c1, width):
 
 
 @numba.njit(**JIT)
-def _simulates(state, c0, c1, width):
+def _simulates(scratch, state, c0, c1, width):
+    """Mark the lanes that simulate this round; returns whether any does."""
+    simulates = False
     for c in range(c0, c1):
         for w in range(width):
-            if state[c, PHASE, w] == FIRST_ROLLOUT or state[c, PHASE, w] == SEARCH:
-                return True
-    return False
+            phase = state[c, PHASE, w]
+            lane = phase == FIRST_ROLLOUT or phase == SEARCH
+            scratch[c, SIMULATES, w] = 1.0 if lane else 0.0
+            simulates = simulates or lane
+    return simulates
 
 
 @numba.njit(**JIT)
@@ -724,7 +750,7 @@ def tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n,
         if swept:
             _backward(cur, gains, scratch, n, r, c0, c1, width)
             _after_sweep(cur, gains, scratch, state, n, r, c0, c1, width)
-        simulates = _simulates(state, c0, c1, width)
+        simulates = _simulates(scratch, state, c0, c1, width)
         if simulates:
             _rollout(cur, trajectories[1 - current[block, WHICH]], gains, scratch, n, r, c0, c1,
                      width)
