@@ -51,7 +51,7 @@ def _numpy_ticks(settings: OcpSettings, ticks: int) -> np.ndarray:
     (simulate, backward pass, line search) per tick, on the same closed loop."""
     model = load_model()
     p = model.parameters.packed()
-    c = pack_cost(settings, model.limits, model.parameters.drive_gain)
+    c = pack_cost(settings, model.limits, p)
     packed = Sinusoid().packed()
     n, dt = settings.horizon, settings.dt
     q, qd = packed[1] + packed[2], 0.0

@@ -231,7 +231,7 @@ class JointRow:
         self.settings = settings
         row = self.row
         row[ws.COST_VECTOR:ws.TRAJECTORIES] = pack_cost(settings, self.limits,
-                                                        self.parameters.drive_gain)
+                                                        self.packed_parameters)
         row[ws.TOLERANCE] = settings.tolerance
         row[ws.COLD_ITERATIONS] = settings.max_iterations
         row[ws.WARM_ITERATIONS] = settings.tick_iterations

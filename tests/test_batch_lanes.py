@@ -181,7 +181,7 @@ def test_two_lane_blocks_decide_as_one():
 @pytest.mark.parametrize("reference", [Sinusoid(), Setpoint(-1.0)])
 def test_lane_cold_solve_matches_the_numpy_reference(reference):
     settings = OcpSettings()
-    c = pack_cost(settings, MODEL.limits, MODEL.parameters.drive_gain)
+    c = pack_cost(settings, MODEL.limits, MODEL.parameters.packed())
     t = np.arange(settings.horizon + 1) * settings.dt
     ref = np.stack(reference_at(reference.packed(), t), axis=1)
     mpc = Mpc(MODEL, settings, reference=reference, kernel="lanes")
