@@ -30,8 +30,9 @@ lane joint's decisions equal the scalar kernel's to rounding, not bit for bit (t
 relative in tests/test_batch_lanes.py); a joint decides the same bit for bit whatever its chunk
 and width. The cost algebra and the discrete step are shared with the scalar kernel
 (`controller.cost`, `controller.action_model`); the acceleration is the paper's joint model of
-`model.dynamics.smooth_acceleration` written out for lanes, so a batch whose joints carry an
-extra effect (`model.effects`) runs the scalar kernel instead (`supports`).
+`model.dynamics.smooth_acceleration` written out for lanes, with the extra effects' terms
+(`model.effects`) added by their own code in a batch whose models switch one on (`has_effects`:
+that batch's loops over lanes are not vectorised, their terms branching and calling libm).
 
 Threads: the chunks are split in contiguous blocks, one per thread of a numba prange; each
 block runs the whole tick on its own lanes. One block is the default where the machine has two
@@ -82,6 +83,8 @@ from model.dynamics import (
     P_LINK_INERTIA,
     P_OFFSET,
     P_VISCOUS,
+    current_losses,
+    effect_terms,
 )
 
 # Joints go in chunks of WIDTH lanes: a compile-time width, so the compiler knows the loop over
@@ -123,11 +126,11 @@ PADDING = -1  # STATUS of a lane that is skipped this tick or holds no joint
 WHICH, RING = 0, 1
 
 
-def supports(packed_parameters: np.ndarray) -> bool:
-    """Whether a joint's model is one the lanes compute: the paper's model, no extra effect
-    switched on (their terms are the scalar kernel's alone)."""
+def has_effects(packed_parameters: np.ndarray) -> bool:
+    """Whether a joint's model switches on an extra effect (`model.effects`): a batch with one
+    runs the lane kernel that computes their terms (`tick_lanes`' `effects`)."""
     first = min(EFFECT_OFFSET.values(), default=P_LINK_INERTIA)
-    return not np.any(packed_parameters[first:P_LINK_INERTIA])
+    return bool(np.any(packed_parameters[first:P_LINK_INERTIA]))
 
 
 def default_threads() -> int:
@@ -183,6 +186,18 @@ def _costs_reader():
 lane_costs = _costs_reader()
 
 
+def _parameters_reader():
+    """The dynamics parameters of lane w of chunk c as a tuple (what model.dynamics indexes),
+    as `lane_costs` reads the cost vector."""
+    items = ", ".join(f"S[c, {PARAMETERS + i}, w]" for i in range(N_PARAMS))
+    namespace: dict = {}
+    exec(f"def lane_parameters(S, c, w):\n    return ({items},)\n", namespace)
+    return register_jitable(forceinline=True)(namespace["lane_parameters"])
+
+
+lane_parameters = _parameters_reader()
+
+
 @intrinsic
 def _data(typingctx, a):
     """The data pointer of a C-contiguous float64 array."""
@@ -233,9 +248,15 @@ def _at(k, r, n):
 
 
 @register_jitable(forceinline=True)
-def _acceleration(q, qd, u, S, c, w):
-    """`model.dynamics.smooth_acceleration` for a joint without extra effects, with the lane
-    maths: qdd and its partial derivatives in q, qd and u."""
+def _acceleration(q, qd, u, S, c, w, effects):
+    """`model.dynamics.smooth_acceleration` with the lane maths: qdd and its partial
+    derivatives in q, qd and u. `effects` (a compile-time constant) adds the extra effects'
+    terms (`model.effects`, computed by their own code with libm's functions), in
+    smooth_acceleration's order: a joint whose effects are all off gets the same bits either
+    way (their terms are zeros). Without them the loop over lanes is vectorised; with them,
+    whose terms branch and call libm, it runs lane after lane."""
+    if effects:
+        return _acceleration_with_effects(q, qd, u, S, c, w)
     sharpness = S[c, COSTS + C_FRICTION_SHARPNESS, w]
     th = tanh(sharpness * qd)
     inv_inertia = S[c, INVERSE_INERTIA, w]  # 1 / I, as smooth_acceleration computes it
@@ -253,11 +274,33 @@ def _acceleration(q, qd, u, S, c, w):
 
 
 @register_jitable(forceinline=True)
-def _store_stage(T, G, S, c, k, w, q, qd, u):
+def _acceleration_with_effects(q, qd, u, S, c, w):
+    """`model.dynamics.smooth_acceleration` term by term, the base model's functions being the
+    lane maths'."""
+    p = lane_parameters(S, c, w)
+    sharpness = S[c, COSTS + C_FRICTION_SHARPNESS, w]
+    th = tanh(sharpness * qd)
+    inv_inertia = S[c, INVERSE_INERTIA, w]
+    sin_q, cos_q = sin_cos(q)
+    gravity = p[P_GRAVITY_MY] * sin_q + p[P_GRAVITY_MX] * cos_q
+    d_gravity = p[P_GRAVITY_MY] * cos_q - p[P_GRAVITY_MX] * sin_q
+    level, level_q, level_qd, extra, extra_q, extra_qd = effect_terms(q, qd, p, p[P_DRY],
+                                                                      gravity, d_gravity)
+    level = level + p[P_DRY]
+    loss, d_loss = current_losses(u, p)
+    torque = (p[P_DRIVE_GAIN] * (u - loss) - p[P_VISCOUS] * qd - level * th - p[P_OFFSET]
+              - gravity - extra)
+    d_friction = p[P_VISCOUS] + level * sharpness * (1.0 - th * th) + level_qd * th + extra_qd
+    return (torque * inv_inertia, -(d_gravity + extra_q + level_q * th) * inv_inertia,
+            -d_friction * inv_inertia, p[P_DRIVE_GAIN] * (1.0 - d_loss) * inv_inertia)
+
+
+@register_jitable(forceinline=True)
+def _store_stage(T, G, S, c, k, w, q, qd, u, effects):
     """Step k (a slot) of lane w into trajectory T: state, control, linearisation
     and cost derivatives (controller.ilqr.store_stage). Returns the stage cost and x+."""
     costs = lane_costs(S, c, w)
-    a, a_q, a_qd, a_u = _acceleration(q, qd, u, S, c, w)
+    a, a_q, a_qd, a_u = _acceleration(q, qd, u, S, c, w, effects)
     step = step_given(q, qd, costs[C_DT], a, a_q, a_qd, a_u)
     cost = stage_cost_given(q, qd, u, G[c, k, REFERENCE_Q, w], G[c, k, REFERENCE_QD, w], costs,
                             exp(costs[C_ALPHA_POSITION] * q), exp(costs[C_ALPHA_VELOCITY] * qd),
@@ -299,10 +342,11 @@ def _store_terminal(T, G, S, c, n, w, q, qd):
 
 
 @numba.njit(**JIT)
-def _rollout(current, trial, gains, scratch, n, r, c0, c1, width):
+def _rollout(current, trial, gains, scratch, n, r, c0, c1, width, effects):
     """Simulate u = U_cur + alpha kff + K (x - X_cur) from x0 into the trial trajectory, for
     every lane of chunks [c0, c1) with its own alpha and gains (controller.ilqr.rollout); the
     total cost, inf when not finite, goes to scratch[TOTAL]."""
+    literally(effects)  # with or without the effects' terms: one kernel each
     literally(width)  # a compile-time lane count: one compiled kernel per width
     Tc, Tt = _steps(current, TRAJECTORY_FIELDS, width), _steps(trial, TRAJECTORY_FIELDS, width)
     G, S = _steps(gains, GAIN_FIELDS, width), _rows(scratch, width)
@@ -321,7 +365,7 @@ def _rollout(current, trial, gains, scratch, n, r, c0, c1, width):
                 q, qd = S[c, SIMULATED_Q, w], S[c, SIMULATED_QD, w]
                 u = Tc[c, i, U, w] + S[c, ALPHA, w] * G[c, i, KFF, w] + G[c, i, K1, w] * (
                     q - Tc[c, i, Q, w]) + G[c, i, K2, w] * (qd - Tc[c, i, QD, w])
-                cost, q_next, qd_next = _store_stage(Tt, G, S, c, i, w, q, qd, u)
+                cost, q_next, qd_next = _store_stage(Tt, G, S, c, i, w, q, qd, u, effects)
                 S[c, TOTAL, w] += cost
                 S[c, SIMULATED_Q, w] = q_next
                 S[c, SIMULATED_QD, w] = qd_next
@@ -408,10 +452,11 @@ def _backward(current, gains, scratch, n, r, c0, c1, width):
 
 
 @numba.njit(**JIT)
-def _shift(current, gains, scratch, n, r, c0, c1, width):
+def _shift(current, gains, scratch, n, r, c0, c1, width, effects):
     """The rest of controller.mpc._shift for lanes with scratch[SHIFTS] set, once the ring has
     advanced: the last control repeated, the last stage and the terminal state evaluated anew.
     Then every lane's shifted cost summed into scratch[SUM], in the scalar tick's order."""
+    literally(effects)
     literally(width)  # a compile-time lane count: one compiled kernel per width
     Tc = _steps(current, TRAJECTORY_FIELDS, width)
     G, S = _steps(gains, GAIN_FIELDS, width), _rows(scratch, width)
@@ -420,7 +465,8 @@ def _shift(current, gains, scratch, n, r, c0, c1, width):
         for w in range(width):
             if S[c, SHIFTS, w] != 0.0:
                 _, q_next, qd_next = _store_stage(Tc, G, S, c, last, w, Tc[c, last, Q, w],
-                                                  Tc[c, last, QD, w], Tc[c, before_last, U, w])
+                                                  Tc[c, last, QD, w], Tc[c, before_last, U, w],
+                                                  effects)
                 _store_terminal(Tc, G, S, c, terminal, w, q_next, qd_next)
             S[c, SUM, w] = 0.0
         for k in range(n + 1):
@@ -734,16 +780,19 @@ def _simulates(scratch, state, c0, c1, width):
 
 
 @numba.njit(**JIT)
-def tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n, c0, c1, width):
+def tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n, c0, c1, width,
+               effects):
     """Every joint of chunks [c0, c1) at time t0: rounds of one masked backward pass and one
     simulation until each joint's iLQR has ended (see the module docstring)."""
     literally(width)  # a compile-time lane count: one compiled kernel per width
+    literally(effects)
     r = current[block, RING] + 1  # every mode wants the stored steps moved up by one
     r = 0 if r > n else r
     current[block, RING] = r
     if _begin(rows, trajectories[current[block, WHICH]], gains, scratch, state, t0, n, r, c0,
               c1, width):
-        _shift(trajectories[current[block, WHICH]], gains, scratch, n, r, c0, c1, width)
+        _shift(trajectories[current[block, WHICH]], gains, scratch, n, r, c0, c1, width,
+               effects)
     while True:
         cur = trajectories[current[block, WHICH]]
         swept = _before_sweep(scratch, state, c0, c1, width)
@@ -753,7 +802,7 @@ def tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n,
         simulates = _simulates(scratch, state, c0, c1, width)
         if simulates:
             _rollout(cur, trajectories[1 - current[block, WHICH]], gains, scratch, n, r, c0, c1,
-                     width)
+                     width, effects)
             _after_rollout(gains, scratch, state, n, c0, c1, width)
             _take(trajectories, scratch, current, block, n, rows.shape[0], c0, c1, width)
         if not swept and not simulates:
@@ -762,18 +811,33 @@ def tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n,
 
 
 @numba.njit(parallel=True, **JIT)
-def tick_lanes(rows, trajectories, gains, scratch, state, current, t0, n):
+def tick_lanes(rows, trajectories, gains, scratch, state, current, t0, n, effects):
     """Every joint's MPC step at time t0, the chunks of lanes split in len(current) blocks, one
-    per thread (one block: no thread team is woken). A joint alone is a chunk of one lane."""
+    per thread (one block: no thread team is woken). A joint alone is a chunk of one lane.
+    `effects`: some joint's model carries an extra effect (`has_effects`); each branch below
+    names its kernel by constants (a prange in a called function would run serially)."""
     count = gains.shape[0]
     blocks = current.shape[0]
     if blocks == 1:
         if gains.shape[3] == 1:
-            tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count, 1)
+            if effects:
+                tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count,
+                           1, True)
+            else:
+                tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count,
+                           1, False)
+        elif effects:
+            tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count,
+                       WIDTH, True)
         else:
             tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count,
-                       WIDTH)
+                       WIDTH, False)
         return
     for block in numba.prange(blocks):
-        tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n,
-                   block * count // blocks, (block + 1) * count // blocks, WIDTH)
+        c0, c1 = block * count // blocks, (block + 1) * count // blocks
+        if effects:
+            tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n, c0, c1,
+                       WIDTH, True)
+        else:
+            tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n, c0, c1,
+                       WIDTH, False)
