@@ -1,7 +1,7 @@
 """`bench`: the speed of the MPC tick and the cold solve against a plain numpy iLQR, the
-batched MPC for 1, 7 and 32 joints on one and two threads, the vectorised kernel beside the
-scalar one (the measuring is `controller.benchmark`), and the master's own cost per cycle for
-1, 7 and 32 joints with the MPC left out (`robot.bench`)."""
+batched MPC for 1, 7 and 32 joints and for talos_32's own problem on one and two threads, the
+vectorised kernel beside the scalar one (the measuring is `controller.benchmark`), and the
+master's own cost per cycle for 1, 7 and 32 joints with the MPC left out (`robot.bench`)."""
 
 import json
 import sys

@@ -9,6 +9,8 @@ excluded from the tick figures.
 import os
 import time
 from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
 
 import numba
 import numpy as np
@@ -22,9 +24,14 @@ from driver import Sample
 from model import dynamics
 from model.dynamics import SUBSTEPS
 from model.parameters import Payload, load_model
+from robot.description import load_robot
 
 PAPER_TICK_US = 200.0  # paper: 100 steps of 1 ms on an i7-8850H laptop
 JOINT_COUNTS = (1, 7, 32)  # one joint, one TALOS arm, the whole robot
+# the robot's own problem beside the elbow-like ones: its lighter joints (wrists, grippers,
+# head) made the in-loop tick five times the bench's 32 joints until the friction step was
+# made resolvable (controller.problem.resolvable_friction_sharpness)
+TALOS = Path(__file__).parent.parent / "robots" / "talos_32.toml"
 THREAD_COUNTS = (1, 2)
 
 
@@ -51,7 +58,7 @@ def _numpy_ticks(settings: OcpSettings, ticks: int) -> np.ndarray:
     (simulate, backward pass, line search) per tick, on the same closed loop."""
     model = load_model()
     p = model.parameters.packed()
-    c = pack_cost(settings, model.limits, model.parameters.drive_gain)
+    c = pack_cost(settings, model.limits, p)
     packed = Sinusoid().packed()
     n, dt = settings.horizon, settings.dt
     q, qd = packed[1] + packed[2], 0.0
@@ -120,15 +127,16 @@ def joint_problems(joints: int, settings: OcpSettings = OcpSettings()) -> list[J
 
 
 class _ClosedLoop:
-    """A batch of `joints` joints, each on its exact model, ticked one cycle at a time."""
+    """A batch of joints, each on its exact model, ticked one cycle at a time from `start`
+    (positions; at rest)."""
 
-    def __init__(self, joints: int, settings: OcpSettings, kernel: str, threads: int):
-        self.batch = BatchMpc(joint_problems(joints, settings), kernel, threads)
+    def __init__(self, problems: list[JointProblem], start: np.ndarray, kernel: str,
+                 threads: int):
+        self.batch = BatchMpc(problems, kernel, threads)
         self.parameters = np.stack([joint.packed_parameters for joint in self.batch.joints])
         self.limits = np.array([joint.limits.current_max for joint in self.batch.joints])
-        self.states = np.array([[p.reference.packed()[1] + p.reference.packed()[2], 0.0]
-                                for p in (joint.problem for joint in self.batch.joints)])
-        self.dt = settings.dt
+        self.states = np.stack([start, np.zeros(len(problems))], axis=1)
+        self.dt = problems[0].settings.dt
         self.cycle = 0
         self.decisions = self.batch.tick(0.0, self.states[:, 0], self.states[:, 1])
 
@@ -151,17 +159,42 @@ class _ClosedLoop:
         return times * 1e6
 
 
+def reference_starts(problems: list[JointProblem]) -> np.ndarray:
+    """Each joint at its reference's value at t = 0 (a sinusoid's centre plus amplitude)."""
+    return np.array([p.reference.packed()[1] + p.reference.packed()[2] for p in problems])
+
+
+def robot_problems(path: Path = TALOS) -> tuple[list[JointProblem], np.ndarray]:
+    """A robot file's joints as `actuatord --robot` poses them at its default horizon and
+    step (each joint's model, weights, friction sharpness and reference), and where the
+    virtual drives start them: at rest (`model.dynamics.rest_position`)."""
+    problems = []
+    for joint in load_robot(path).joints:
+        settings = OcpSettings().with_weights(**joint.weights)
+        if joint.friction_sharpness is not None:
+            settings = replace(settings, friction_sharpness=joint.friction_sharpness)
+        problems.append(JointProblem(joint.model, settings, reference=joint.reference))
+    return problems, np.array([dynamics.rest_position(p.model.parameters.packed())
+                               for p in problems])
+
+
 def measure_joints(joints: int, ticks: int, threads: int,
-                   settings: OcpSettings = OcpSettings()) -> dict:
+                   settings: OcpSettings = OcpSettings(),
+                   problems: tuple[list[JointProblem], np.ndarray] | None = None) -> dict:
     """The batched MPC of `joints` joints in one compiled call per cycle, each joint on its exact
     model in closed loop, with the vectorised kernel (joints in SIMD lanes) and the scalar one
     (joint after joint): tick median and p99 (us), the cold first solve excluded. The two run
     in alternating blocks of ticks, so a change in the host's load hits both alike; `threads`
-    is the lane blocks of the vectorised kernel and numba's thread count for both."""
+    is the lane blocks of the vectorised kernel and numba's thread count for both. The
+    problems are `joint_problems` from their references' start unless `problems` gives them
+    with their start positions (`robot_problems`)."""
+    if problems is None:
+        chosen = joint_problems(joints, settings)
+        problems = chosen, reference_starts(chosen)
     previous = numba.get_num_threads()
     numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
     try:
-        loops = {kernel: _ClosedLoop(joints, settings, kernel, threads)
+        loops = {kernel: _ClosedLoop(*problems, kernel, threads)
                  for kernel in ("lanes", "scalar")}
         block = max(1, min(50, ticks // 100))  # 100 turns each: bursts of load average out
         times: dict[str, list[np.ndarray]] = {kernel: [] for kernel in loops}
@@ -188,10 +221,11 @@ def run(ticks: int = 20_000, numpy_ticks: int = 300, joint_ticks: int = 5_000,
         progress: Callable[[str], None] = lambda stage: None) -> dict:
     """Everything `bench --json` prints: the paper's N = 100 at 1 ms, the paper's robot setting
     (N = 5 at 3.3 ms) under `paper_robot`, and the batched MPC under `joints`: for each joint
-    count, one and two threads, the vectorised and the scalar kernel side by side. The host's
+    count, and for talos_32's own problem (`robot_problems`), one and two threads, the
+    vectorised and the scalar kernel side by side. The host's
     load average and core count come with the figures (they move them). `progress` is told
     each stage as it starts (the whole run takes a quarter of a minute or more)."""
-    stages = 2 + len(JOINT_COUNTS)
+    stages = 3 + len(JOINT_COUNTS)
     progress(f"[1/{stages}] MPC N = 100 at 1 ms: {ticks} ticks, {numpy_ticks} of numpy iLQR")
     result = measure(OcpSettings(), ticks, numpy_ticks)
     result["paper_tick_us"] = PAPER_TICK_US
@@ -205,6 +239,13 @@ def run(ticks: int = 20_000, numpy_ticks: int = 300, joint_ticks: int = 5_000,
         result["joints"][str(joints)] = {
             f"threads_{threads}": measure_joints(joints, joint_ticks, threads)
             for threads in THREAD_COUNTS}
+    progress(f"[{stages}/{stages}] batched MPC of {TALOS.stem}'s problem: {joint_ticks} ticks "
+             f"on {', '.join(map(str, THREAD_COUNTS))} threads")
+    robot = robot_problems()
+    result["joints"][TALOS.stem] = {
+        f"threads_{threads}": measure_joints(len(robot[0]), joint_ticks, threads,
+                                             problems=robot)
+        for threads in THREAD_COUNTS}
     result["default_threads"] = default_threads()
     result["cores"] = os.cpu_count()
     result["load_average"] = [round(load, 2) for load in os.getloadavg()]

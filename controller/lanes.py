@@ -21,15 +21,18 @@ accepts or rejects its own step. A simulation writes every lane of the trial tra
 joints that accept it take it as their current solution (the two trajectories swap roles when
 every joint of the block takes it, as in the scalar solver; otherwise the takers' lanes are
 copied), and the trial lanes of the others are scratch. A round costs the same whatever the
-number of joints still working in a chunk: a chunk is as slow as its slowest joint.
+number of joints still working in a chunk (a chunk is as slow as its slowest joint), and
+nothing for a chunk none of whose joints works in it: that chunk's sweep, simulation and copy
+are left out.
 
 The transcendental functions are `controller.lane_math` (the scalar kernel's are libm's), so a
 lane joint's decisions equal the scalar kernel's to rounding, not bit for bit (tested to 1e-9
 relative in tests/test_batch_lanes.py); a joint decides the same bit for bit whatever its chunk
 and width. The cost algebra and the discrete step are shared with the scalar kernel
 (`controller.cost`, `controller.action_model`); the acceleration is the paper's joint model of
-`model.dynamics.smooth_acceleration` written out for lanes, so a batch whose joints carry an
-extra effect (`model.effects`) runs the scalar kernel instead (`supports`).
+`model.dynamics.smooth_acceleration` written out for lanes, with the extra effects' terms
+(`model.effects`) added by their own code in a batch whose models switch one on (`has_effects`:
+that batch's loops over lanes are not vectorised, their terms branching and calling libm).
 
 Threads: the chunks are split in contiguous blocks, one per thread of a numba prange; each
 block runs the whole tick on its own lanes. One block is the default where the machine has two
@@ -80,6 +83,8 @@ from model.dynamics import (
     P_LINK_INERTIA,
     P_OFFSET,
     P_VISCOUS,
+    current_losses,
+    effect_terms,
 )
 
 # Joints go in chunks of WIDTH lanes: a compile-time width, so the compiler knows the loop over
@@ -94,9 +99,14 @@ WIDTH = 8
 # Elsewhere it only lets short loops with such checks be vectorised too.
 llvm.set_option("", f"-vectorizer-min-trip-count={WIDTH}")
 
-# fields of trajectories[which, chunk, k, field, lane]: the current solution and the trial
-Q, QD, U, A11, A12, A21, A22, B1, B2, LQ, LQD, LQQ, LQDQD, LU, LUU, LC = range(16)
-TRAJECTORY_FIELDS = 16
+# fields of trajectories[which, chunk, k, field, lane]: the current solution and the trial. The
+# step's Jacobians are kept as the acceleration's partial derivatives (AQ, AQD, AU), from which
+# the backward pass forms A and B by `step_given`'s own expressions (the same bits): 13 fields
+# instead of 16. In the control loop the line's simulation and the telemetry evict this working
+# set between ticks, and the tick then runs at the speed of memory: with a 32 MB array written
+# between ticks, talos_32's tick took 333-380 us against 127-142 us without (one thread).
+Q, QD, U, AQ, AQD, AU, LQ, LQD, LQQ, LQDQD, LU, LUU, LC = range(13)
+TRAJECTORY_FIELDS = 13
 # fields of gains[chunk, k, field, lane]
 K1, K2, KFF, REFERENCE_Q, REFERENCE_QD = range(5)  # feedback on q, qd; feed-forward; q*, qd*
 GAIN_FIELDS = 5
@@ -105,9 +115,9 @@ GAIN_FIELDS = 5
 PARAMETERS = 0
 COSTS = N_PARAMS
 (Q0, QD0, BOX, TOLERANCE, MU, COST, MERIT, DV1, DV2, ALPHA, VX1, VX2, V11, V12, V22, SWEEP_OK,
- TOTAL, NEEDS_SWEEP, TAKES, SHIFTS, SUM, SIMULATED_Q, SIMULATED_QD, INVERSE_INERTIA) = range(
-    COSTS + N_COST, COSTS + N_COST + 24)
-SCRATCH = COSTS + N_COST + 24
+ TOTAL, NEEDS_SWEEP, TAKES, SHIFTS, SUM, SIMULATED_Q, SIMULATED_QD, INVERSE_INERTIA,
+ SIMULATES) = range(COSTS + N_COST, COSTS + N_COST + 25)
+SCRATCH = COSTS + N_COST + 25
 
 # phases of a joint within a tick
 DONE, WARM_SWEEP, FIRST_ROLLOUT, SWEEP, SEARCH = range(5)
@@ -121,11 +131,11 @@ PADDING = -1  # STATUS of a lane that is skipped this tick or holds no joint
 WHICH, RING = 0, 1
 
 
-def supports(packed_parameters: np.ndarray) -> bool:
-    """Whether a joint's model is one the lanes compute: the paper's model, no extra effect
-    switched on (their terms are the scalar kernel's alone)."""
+def has_effects(packed_parameters: np.ndarray) -> bool:
+    """Whether a joint's model switches on an extra effect (`model.effects`): a batch with one
+    runs the lane kernel that computes their terms (`tick_lanes`' `effects`)."""
     first = min(EFFECT_OFFSET.values(), default=P_LINK_INERTIA)
-    return not np.any(packed_parameters[first:P_LINK_INERTIA])
+    return bool(np.any(packed_parameters[first:P_LINK_INERTIA]))
 
 
 def default_threads() -> int:
@@ -181,6 +191,18 @@ def _costs_reader():
 lane_costs = _costs_reader()
 
 
+def _parameters_reader():
+    """The dynamics parameters of lane w of chunk c as a tuple (what model.dynamics indexes),
+    as `lane_costs` reads the cost vector."""
+    items = ", ".join(f"S[c, {PARAMETERS + i}, w]" for i in range(N_PARAMS))
+    namespace: dict = {}
+    exec(f"def lane_parameters(S, c, w):\n    return ({items},)\n", namespace)
+    return register_jitable(forceinline=True)(namespace["lane_parameters"])
+
+
+lane_parameters = _parameters_reader()
+
+
 @intrinsic
 def _data(typingctx, a):
     """The data pointer of a C-contiguous float64 array."""
@@ -209,6 +231,20 @@ def _rows(a, width):
 
 
 @register_jitable(forceinline=True)
+def _any(S, c, row, width):
+    """Whether any lane of chunk c has scratch[row] set: a chunk none of whose joints works in
+    a round is left out of its sweep or simulation. A tick's rounds go on until its slowest
+    joint is done (a failed warm line search is 10 trials and a solve from the controls), and
+    a chunk of joints that finished early must not pay for them: measured on talos_32's
+    problem, the wrists' and grippers' line searches (their friction step at the edge of
+    stability) made every chunk run up to 16 simulations a tick."""
+    for w in range(width):
+        if S[c, row, w] != 0.0:
+            return True
+    return False
+
+
+@register_jitable(forceinline=True)
 def _at(k, r, n):
     """The slot of step k in a ring of n + 1 slots whose step 0 is in slot r: a tick advances
     the ring by one instead of moving every stored step (controller.mpc._shift's copy)."""
@@ -217,9 +253,15 @@ def _at(k, r, n):
 
 
 @register_jitable(forceinline=True)
-def _acceleration(q, qd, u, S, c, w):
-    """`model.dynamics.smooth_acceleration` for a joint without extra effects, with the lane
-    maths: qdd and its partial derivatives in q, qd and u."""
+def _acceleration(q, qd, u, S, c, w, effects):
+    """`model.dynamics.smooth_acceleration` with the lane maths: qdd and its partial
+    derivatives in q, qd and u. `effects` (a compile-time constant) adds the extra effects'
+    terms (`model.effects`, computed by their own code with libm's functions), in
+    smooth_acceleration's order: a joint whose effects are all off gets the same bits either
+    way (their terms are zeros). Without them the loop over lanes is vectorised; with them,
+    whose terms branch and call libm, it runs lane after lane."""
+    if effects:
+        return _acceleration_with_effects(q, qd, u, S, c, w)
     sharpness = S[c, COSTS + C_FRICTION_SHARPNESS, w]
     th = tanh(sharpness * qd)
     inv_inertia = S[c, INVERSE_INERTIA, w]  # 1 / I, as smooth_acceleration computes it
@@ -237,12 +279,34 @@ def _acceleration(q, qd, u, S, c, w):
 
 
 @register_jitable(forceinline=True)
-def _store_stage(T, G, S, c, k, w, q, qd, u):
+def _acceleration_with_effects(q, qd, u, S, c, w):
+    """`model.dynamics.smooth_acceleration` term by term, the base model's functions being the
+    lane maths'."""
+    p = lane_parameters(S, c, w)
+    sharpness = S[c, COSTS + C_FRICTION_SHARPNESS, w]
+    th = tanh(sharpness * qd)
+    inv_inertia = S[c, INVERSE_INERTIA, w]
+    sin_q, cos_q = sin_cos(q)
+    gravity = p[P_GRAVITY_MY] * sin_q + p[P_GRAVITY_MX] * cos_q
+    d_gravity = p[P_GRAVITY_MY] * cos_q - p[P_GRAVITY_MX] * sin_q
+    level, level_q, level_qd, extra, extra_q, extra_qd = effect_terms(q, qd, p, p[P_DRY],
+                                                                      gravity, d_gravity)
+    level = level + p[P_DRY]
+    loss, d_loss = current_losses(u, p)
+    torque = (p[P_DRIVE_GAIN] * (u - loss) - p[P_VISCOUS] * qd - level * th - p[P_OFFSET]
+              - gravity - extra)
+    d_friction = p[P_VISCOUS] + level * sharpness * (1.0 - th * th) + level_qd * th + extra_qd
+    return (torque * inv_inertia, -(d_gravity + extra_q + level_q * th) * inv_inertia,
+            -d_friction * inv_inertia, p[P_DRIVE_GAIN] * (1.0 - d_loss) * inv_inertia)
+
+
+@register_jitable(forceinline=True)
+def _store_stage(T, G, S, c, k, w, q, qd, u, effects):
     """Step k (a slot) of lane w into trajectory T: state, control, linearisation
     and cost derivatives (controller.ilqr.store_stage). Returns the stage cost and x+."""
     costs = lane_costs(S, c, w)
-    a, a_q, a_qd, a_u = _acceleration(q, qd, u, S, c, w)
-    step = step_given(q, qd, costs[C_DT], a, a_q, a_qd, a_u)
+    a, a_q, a_qd, a_u = _acceleration(q, qd, u, S, c, w, effects)
+    step = step_given(q, qd, costs[C_DT], a, a_q, a_qd, a_u)  # its Jacobians: in _backward
     cost = stage_cost_given(q, qd, u, G[c, k, REFERENCE_Q, w], G[c, k, REFERENCE_QD, w], costs,
                             exp(costs[C_ALPHA_POSITION] * q), exp(costs[C_ALPHA_VELOCITY] * qd),
                             exp(costs[C_ALPHA_TORQUE] * (costs[C_DRIVE_GAIN] * u)))
@@ -256,12 +320,9 @@ def _store_stage(T, G, S, c, k, w, q, qd, u):
     T[c, k, LU, w] = cost.l_u
     T[c, k, LUU, w] = cost.l_uu
     T[c, k, LC, w] = cost.l
-    T[c, k, A11, w] = step.a11
-    T[c, k, A12, w] = step.a12
-    T[c, k, A21, w] = step.a21
-    T[c, k, A22, w] = step.a22
-    T[c, k, B1, w] = step.b1
-    T[c, k, B2, w] = step.b2
+    T[c, k, AQ, w] = a_q
+    T[c, k, AQD, w] = a_qd
+    T[c, k, AU, w] = a_u
     return cost.l, step.q, step.qd
 
 
@@ -283,14 +344,17 @@ def _store_terminal(T, G, S, c, n, w, q, qd):
 
 
 @numba.njit(**JIT)
-def _rollout(current, trial, gains, scratch, n, r, c0, c1, width):
+def _rollout(current, trial, gains, scratch, n, r, c0, c1, width, effects):
     """Simulate u = U_cur + alpha kff + K (x - X_cur) from x0 into the trial trajectory, for
     every lane of chunks [c0, c1) with its own alpha and gains (controller.ilqr.rollout); the
     total cost, inf when not finite, goes to scratch[TOTAL]."""
+    literally(effects)  # with or without the effects' terms: one kernel each
     literally(width)  # a compile-time lane count: one compiled kernel per width
     Tc, Tt = _steps(current, TRAJECTORY_FIELDS, width), _steps(trial, TRAJECTORY_FIELDS, width)
     G, S = _steps(gains, GAIN_FIELDS, width), _rows(scratch, width)
     for c in range(c0, c1):
+        if not _any(S, c, SIMULATES, width):
+            continue
         for w in range(width):
             S[c, SIMULATED_Q, w] = S[c, Q0, w]
             S[c, SIMULATED_QD, w] = S[c, QD0, w]
@@ -303,7 +367,7 @@ def _rollout(current, trial, gains, scratch, n, r, c0, c1, width):
                 q, qd = S[c, SIMULATED_Q, w], S[c, SIMULATED_QD, w]
                 u = Tc[c, i, U, w] + S[c, ALPHA, w] * G[c, i, KFF, w] + G[c, i, K1, w] * (
                     q - Tc[c, i, Q, w]) + G[c, i, K2, w] * (qd - Tc[c, i, QD, w])
-                cost, q_next, qd_next = _store_stage(Tt, G, S, c, i, w, q, qd, u)
+                cost, q_next, qd_next = _store_stage(Tt, G, S, c, i, w, q, qd, u, effects)
                 S[c, TOTAL, w] += cost
                 S[c, SIMULATED_Q, w] = q_next
                 S[c, SIMULATED_QD, w] = qd_next
@@ -324,6 +388,8 @@ def _backward(current, gains, scratch, n, r, c0, c1, width):
     Tc = _steps(current, TRAJECTORY_FIELDS, width)
     G, S = _steps(gains, GAIN_FIELDS, width), _rows(scratch, width)
     for c in range(c0, c1):
+        if not _any(S, c, NEEDS_SWEEP, width):
+            continue
         last = _at(n, r, n)
         for w in range(width):
             S[c, VX1, w] = Tc[c, last, LQ, w]
@@ -341,9 +407,10 @@ def _backward(current, gains, scratch, n, r, c0, c1, width):
                 box = S[c, BOX, w]
                 vx1, vx2 = S[c, VX1, w], S[c, VX2, w]
                 v11, v12, v22 = S[c, V11, w], S[c, V12, w], S[c, V22, w]
-                a11, a12 = Tc[c, k, A11, w], Tc[c, k, A12, w]
-                a21, a22 = Tc[c, k, A21, w], Tc[c, k, A22, w]
-                b1, b2 = Tc[c, k, B1, w], Tc[c, k, B2, w]
+                step = step_given(0.0, 0.0, S[c, COSTS + C_DT, w], 0.0, Tc[c, k, AQ, w],
+                                  Tc[c, k, AQD, w], Tc[c, k, AU, w])
+                a11, a12, a21, a22, b1, b2 = (step.a11, step.a12, step.a21, step.a22, step.b1,
+                                              step.b2)
                 luu = Tc[c, k, LUU, w]
                 qx1 = Tc[c, k, LQ, w] + a11 * vx1 + a21 * vx2
                 qx2 = Tc[c, k, LQD, w] + a12 * vx1 + a22 * vx2
@@ -388,10 +455,11 @@ def _backward(current, gains, scratch, n, r, c0, c1, width):
 
 
 @numba.njit(**JIT)
-def _shift(current, gains, scratch, n, r, c0, c1, width):
+def _shift(current, gains, scratch, n, r, c0, c1, width, effects):
     """The rest of controller.mpc._shift for lanes with scratch[SHIFTS] set, once the ring has
     advanced: the last control repeated, the last stage and the terminal state evaluated anew.
     Then every lane's shifted cost summed into scratch[SUM], in the scalar tick's order."""
+    literally(effects)
     literally(width)  # a compile-time lane count: one compiled kernel per width
     Tc = _steps(current, TRAJECTORY_FIELDS, width)
     G, S = _steps(gains, GAIN_FIELDS, width), _rows(scratch, width)
@@ -400,7 +468,8 @@ def _shift(current, gains, scratch, n, r, c0, c1, width):
         for w in range(width):
             if S[c, SHIFTS, w] != 0.0:
                 _, q_next, qd_next = _store_stage(Tc, G, S, c, last, w, Tc[c, last, Q, w],
-                                                  Tc[c, last, QD, w], Tc[c, before_last, U, w])
+                                                  Tc[c, last, QD, w], Tc[c, before_last, U, w],
+                                                  effects)
                 _store_terminal(Tc, G, S, c, terminal, w, q_next, qd_next)
             S[c, SUM, w] = 0.0
         for k in range(n + 1):
@@ -428,6 +497,8 @@ def _take(trajectories, scratch, current, block, n, joints, c0, c1, width):
     Tc = _steps(trajectories[current[block, WHICH]], TRAJECTORY_FIELDS, width)
     Tt = _steps(trajectories[1 - current[block, WHICH]], TRAJECTORY_FIELDS, width)
     for c in range(c0, c1):
+        if not _any(S, c, TAKES, width):
+            continue
         for k in range(n + 1):
             for f in range(TRAJECTORY_FIELDS):
                 for w in range(width):
@@ -699,35 +770,42 @@ def _end(rows, Tc, G, state, scratch, n, r, c0, c1, width):
 
 
 @numba.njit(**JIT)
-def _simulates(state, c0, c1, width):
+def _simulates(scratch, state, c0, c1, width):
+    """Mark the lanes that simulate this round; returns whether any does."""
+    simulates = False
     for c in range(c0, c1):
         for w in range(width):
-            if state[c, PHASE, w] == FIRST_ROLLOUT or state[c, PHASE, w] == SEARCH:
-                return True
-    return False
+            phase = state[c, PHASE, w]
+            lane = phase == FIRST_ROLLOUT or phase == SEARCH
+            scratch[c, SIMULATES, w] = 1.0 if lane else 0.0
+            simulates = simulates or lane
+    return simulates
 
 
 @numba.njit(**JIT)
-def tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n, c0, c1, width):
+def tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n, c0, c1, width,
+               effects):
     """Every joint of chunks [c0, c1) at time t0: rounds of one masked backward pass and one
     simulation until each joint's iLQR has ended (see the module docstring)."""
     literally(width)  # a compile-time lane count: one compiled kernel per width
+    literally(effects)
     r = current[block, RING] + 1  # every mode wants the stored steps moved up by one
     r = 0 if r > n else r
     current[block, RING] = r
     if _begin(rows, trajectories[current[block, WHICH]], gains, scratch, state, t0, n, r, c0,
               c1, width):
-        _shift(trajectories[current[block, WHICH]], gains, scratch, n, r, c0, c1, width)
+        _shift(trajectories[current[block, WHICH]], gains, scratch, n, r, c0, c1, width,
+               effects)
     while True:
         cur = trajectories[current[block, WHICH]]
         swept = _before_sweep(scratch, state, c0, c1, width)
         if swept:
             _backward(cur, gains, scratch, n, r, c0, c1, width)
             _after_sweep(cur, gains, scratch, state, n, r, c0, c1, width)
-        simulates = _simulates(state, c0, c1, width)
+        simulates = _simulates(scratch, state, c0, c1, width)
         if simulates:
             _rollout(cur, trajectories[1 - current[block, WHICH]], gains, scratch, n, r, c0, c1,
-                     width)
+                     width, effects)
             _after_rollout(gains, scratch, state, n, c0, c1, width)
             _take(trajectories, scratch, current, block, n, rows.shape[0], c0, c1, width)
         if not swept and not simulates:
@@ -736,18 +814,33 @@ def tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n,
 
 
 @numba.njit(parallel=True, **JIT)
-def tick_lanes(rows, trajectories, gains, scratch, state, current, t0, n):
+def tick_lanes(rows, trajectories, gains, scratch, state, current, t0, n, effects):
     """Every joint's MPC step at time t0, the chunks of lanes split in len(current) blocks, one
-    per thread (one block: no thread team is woken). A joint alone is a chunk of one lane."""
+    per thread (one block: no thread team is woken). A joint alone is a chunk of one lane.
+    `effects`: some joint's model carries an extra effect (`has_effects`); each branch below
+    names its kernel by constants (a prange in a called function would run serially)."""
     count = gains.shape[0]
     blocks = current.shape[0]
     if blocks == 1:
         if gains.shape[3] == 1:
-            tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count, 1)
+            if effects:
+                tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count,
+                           1, True)
+            else:
+                tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count,
+                           1, False)
+        elif effects:
+            tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count,
+                       WIDTH, True)
         else:
             tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count,
-                       WIDTH)
+                       WIDTH, False)
         return
     for block in numba.prange(blocks):
-        tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n,
-                   block * count // blocks, (block + 1) * count // blocks, WIDTH)
+        c0, c1 = block * count // blocks, (block + 1) * count // blocks
+        if effects:
+            tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n, c0, c1,
+                       WIDTH, True)
+        else:
+            tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n, c0, c1,
+                       WIDTH, False)

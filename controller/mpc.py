@@ -12,7 +12,7 @@ Two compiled kernels tick a batch: `controller.lanes` puts the joints side by si
 lanes (the default), `tick_joints` below runs each joint's scalar iLQR in turn, in parallel
 across cores (numba prange, one workspace row each; a single joint runs in the calling thread,
 where waking a thread team would cost more than it saves). The scalar one is the reference the
-lanes are tested against, and the kernel of joints whose model carries an extra effect.
+lanes are tested against.
 """
 
 import os
@@ -231,7 +231,7 @@ class JointRow:
         self.settings = settings
         row = self.row
         row[ws.COST_VECTOR:ws.TRAJECTORIES] = pack_cost(settings, self.limits,
-                                                        self.parameters.drive_gain)
+                                                        self.packed_parameters)
         row[ws.TOLERANCE] = settings.tolerance
         row[ws.COLD_ITERATIONS] = settings.max_iterations
         row[ws.WARM_ITERATIONS] = settings.tick_iterations
@@ -285,8 +285,8 @@ class BatchMpc:
 
     Two compiled kernels tick the batch with the same decisions (to rounding): "lanes" puts the
     joints side by side in SIMD lanes (controller.lanes), "scalar" runs each joint's scalar
-    iLQR in turn (tick_joint, the reference). The default is "lanes" unless a joint's model
-    carries an extra effect, which only the scalar kernel computes. `threads` splits the lanes
+    iLQR in turn (tick_joint, the reference). The default is "lanes", with the extra effects'
+    terms computed when a joint's model switches one on. `threads` splits the lanes
     in that many blocks, one per thread (default `lanes.default_threads()`); the scalar kernel
     uses numba's thread count, as before."""
 
@@ -310,11 +310,9 @@ class BatchMpc:
         self.horizon = n
         self.rows = np.zeros((len(problems), ws.row_size(n)))
         self.joints = [JointRow(problem, self.rows[j], n) for j, problem in enumerate(problems)]
-        supported = all(lanes.supports(joint.packed_parameters) for joint in self.joints)
-        if self._kernel_asked == "lanes" and not supported:
-            raise ValueError("the lanes kernel computes the paper's model only; a joint's model "
-                             "carries an extra effect: use kernel='scalar'")
-        self.kernel = self._kernel_asked or ("lanes" if supported else "scalar")
+        # one joint with an extra effect puts the batch on the lane kernel that computes them
+        self._effects = any(lanes.has_effects(joint.packed_parameters) for joint in self.joints)
+        self.kernel = self._kernel_asked or "lanes"
         blocks = min(self.threads, lanes.chunks(len(problems)))
         self._lanes = lanes.allocate(len(problems), n, blocks)
         # load the compiled code now, not in the first control cycle: one iteration each
@@ -356,7 +354,7 @@ class BatchMpc:
     def run(self, t: float) -> None:
         """Tick every joint at time t (one compiled call)."""
         if self.kernel == "lanes":
-            lanes.tick_lanes(self.rows, *self._lanes, t, self.horizon)
+            lanes.tick_lanes(self.rows, *self._lanes, t, self.horizon, self._effects)
         else:
             tick_joints(self.rows, t, self.horizon)
 

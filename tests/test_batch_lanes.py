@@ -181,7 +181,7 @@ def test_two_lane_blocks_decide_as_one():
 @pytest.mark.parametrize("reference", [Sinusoid(), Setpoint(-1.0)])
 def test_lane_cold_solve_matches_the_numpy_reference(reference):
     settings = OcpSettings()
-    c = pack_cost(settings, MODEL.limits, MODEL.parameters.drive_gain)
+    c = pack_cost(settings, MODEL.limits, MODEL.parameters.packed())
     t = np.arange(settings.horizon + 1) * settings.dt
     ref = np.stack(reference_at(reference.packed(), t), axis=1)
     mpc = Mpc(MODEL, settings, reference=reference, kernel="lanes")
@@ -224,12 +224,46 @@ def test_a_skipped_lane_joint_keeps_its_row():
     assert batch.decision(first).ok
 
 
-def test_a_joint_with_an_extra_effect_runs_the_scalar_kernel():
-    model = load_model()
-    stribeck = replace(model, parameters=model.parameters.with_effect(
-        "stribeck", {"breakaway_friction": 0.3, "velocity": 0.05}))
-    mixed = [JointProblem(MODEL), JointProblem(stribeck)]
-    assert BatchMpc([JointProblem(MODEL)]).kernel == "lanes"
-    assert BatchMpc(mixed).kernel == "scalar"
-    with pytest.raises(ValueError, match="extra effect"):
-        BatchMpc(mixed, kernel="lanes")
+EFFECT_TABLES = {
+    "stribeck": {"breakaway_friction": 0.3, "velocity": 0.05},
+    "position_ripple": {"amplitude": 0.2, "spatial_frequency": 6.5, "phase": 0.3},
+    "load_dependent_friction": {"coefficient": 0.08},
+    "friction_ripple": {"amplitude": 0.1, "spatial_frequency": 9.0, "phase": 0.0},
+    "torque_constant_saturation": {"coefficient": 0.06, "knee_current": 1.5},
+    "smooth_reversal": {"velocity": 0.02},
+    "warm_up_friction": {"excess_friction": 0.2, "time_constant": 30.0},
+}
+
+
+def with_effects(names) -> JointProblem:
+    parameters = MODEL.parameters
+    for name in names:
+        parameters = parameters.with_effect(name, EFFECT_TABLES[name])
+    return JointProblem(replace(MODEL, parameters=parameters))
+
+
+def test_joints_with_extra_effects_run_in_lanes_and_decide_as_the_scalar_kernel():
+    """Every effect of the registry, one joint each, one joint with all of them and two
+    without, in one lanes batch: each decides what the scalar kernel decides (1e-9
+    relative) over a closed loop from cold; the joints without an effect decide bit for bit
+    what they decide in a batch where no joint has one."""
+    names = list(EFFECT_TABLES)
+    chosen = [with_effects([name]) for name in names] + [with_effects(names)]
+    chosen += [JointProblem(MODEL), JointProblem(MODEL, reference=Setpoint(-1.0))]
+    lanes, scalar = (BatchMpc(chosen, kernel=kernel) for kernel in ("lanes", "scalar"))
+    plain = BatchMpc(chosen[-2:], kernel="lanes")
+    assert lanes.kernel == "lanes" and BatchMpc(chosen[:1]).kernel == "lanes"
+    parameters = [joint.packed_parameters for joint in lanes.joints]
+    states = np.array([[-0.4 - 0.1 * (j % 5), 0.0] for j in range(len(chosen))])
+    for k in range(60):
+        decisions = [batch.tick(k * DT, states[:, 0], states[:, 1]) for batch in (lanes, scalar)]
+        assert_same_decisions(*decisions)
+        assert all(d.ok for d in decisions[1])
+        assert plain.tick(k * DT, states[-2:, 0], states[-2:, 1]) == decisions[0][-2:]
+        for j, decision in enumerate(decisions[1]):
+            current = float(np.clip(decision.planned_current, -6.0, 6.0))
+            states[j] = dynamics.step(*states[j], current, parameters[j], DT, 20)[:2]
+    # the effects count: from one state, the joint with all of them plans another current
+    both = BatchMpc([chosen[len(names)], chosen[-2]], kernel="lanes")
+    loaded, bare = both.tick(0.0, [-0.5, -0.5], [0.0, 0.0])
+    assert abs(loaded.planned_current - bare.planned_current) > 1e-3

@@ -19,7 +19,7 @@ P = MODEL.parameters.packed()
 
 
 def problem(settings=OcpSettings()):
-    return settings, pack_cost(settings, MODEL.limits, MODEL.parameters.drive_gain)
+    return settings, pack_cost(settings, MODEL.limits, P)
 
 
 @pytest.mark.parametrize("reference", [Sinusoid(), Setpoint(-1.0)])
