@@ -52,7 +52,7 @@ from controller.reference import ReferenceError, Sinusoid, reference_from_dict
 from controller.requests import RequestHandler
 from model.parameters import ActuatorModel, ModelFileError, Payload
 from protocol import telemetry
-from protocol.bus_spec import BusSpecError
+from protocol.bus_spec import BusSpecError, is_ethercat
 from robot.wiring import Connection, DriveOpenError
 
 PROG = "actuatord"
@@ -414,6 +414,10 @@ def _robot_setup(args: argparse.Namespace) -> "_Setup | int":
         problems = _robot_problems(args, robot)
         with CompileNotice(PROG):
             batch = BatchMpc(problems)  # compiled before any drive is opened
+            if args.sim and any(is_ethercat(bus) for bus in robot.buses()):
+                from sim_bus.line_physics import compile_ahead
+
+                compile_ahead()  # the virtual line's batch, or its first cycle compiles it
     except (RobotFileError, BusSpecError, ValueError) as exc:
         return usage_error(PROG, str(exc))
     period = robot.period_us * 1e-6
