@@ -15,7 +15,7 @@ from kickcat.mailbox.request import MessageStatus
 
 from model import dynamics
 from model.parameters import Payload, load_model
-from protocol import objects
+from protocol import esi_path, objects
 from protocol.cia402 import State, state_from_statusword
 from protocol.esi import load_esi
 from sim_bus.ethercat.netns import SlaveProcess
@@ -24,7 +24,7 @@ from tests.conftest import as_a_real_time_master
 pytestmark = [pytest.mark.root, pytest.mark.subprocess]
 
 MODEL = load_model()
-ESI = load_esi("protocol/elbow_drive.xml")
+ESI = load_esi(esi_path())
 LOAD = Payload(5.0, 0.0, 0.05)  # kg on the forearm: gravity the drive must hold
 PACKED = MODEL.parameters.with_payload(LOAD).packed()
 SLAVES = 2
