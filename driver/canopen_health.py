@@ -65,6 +65,9 @@ class BusWatch:
         self.network = network
         self.lockstep = lockstep
         self.frames = 0  # every frame this network received, ours echoed or not
+        # the receive stamp of the last frame through (the kernel's on SocketCAN and
+        # udp_multicast): how far the receive thread has caught up with the bus
+        self.last_stamp = 0.0
         self._frames_at_cycle = 0
         self._cycle = 0  # the last cycle counted (drives report theirs; the first counts)
         # more than this in one cycle is a flood: the bus's cyclic frames plus the margin
@@ -80,6 +83,7 @@ class BusWatch:
 
         def counting_notify(can_id: int, data: bytearray, timestamp: float) -> None:
             self.frames += 1
+            self.last_stamp = timestamp
             deliver(can_id, data, timestamp)
 
         network.notify = counting_notify

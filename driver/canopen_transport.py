@@ -23,6 +23,9 @@ from protocol.pdo import MappedObject
 NOTIFIER_CYCLE = 0.05  # s; bounds how long closing the network waits for the receive thread
 DEFAULT_HEARTBEAT_MS = 100  # the drive's producer period the master asks for (0x1017)
 FOREIGN_TRAFFIC_WINDOW = 0.1  # s of listening for another master before resetting the drive
+# s: the most the listening waits for the receive thread to catch up when the drive does not
+# answer (a silent bus waits it all: only a drive that is off or stopped pays it)
+FOREIGN_TRAFFIC_LIMIT = 1.0
 
 
 def open_network(bus_spec: str, bitrate: int | None = None) -> canopen.Network:
@@ -102,16 +105,39 @@ class CanOpenTransport(Transport):
                 cob_id = default_value(variable(self.dictionary, objects.RPDO_COMM + n, 1))
                 if not cob_id & cia301.PDO_INVALID and cob_id & cia301.COB_ID_MASK:
                     watched.add(cob_id & cia301.COB_ID_MASK)
-        if not self.lockstep:
-            self._refuse_traffic(watched, FOREIGN_TRAFFIC_WINDOW)
+        seen: dict[int, int] = {}
+
+        def count(can_id: int, data: bytes, timestamp: float) -> None:
+            seen[can_id] = seen.get(can_id, 0) + 1
+
+        listening = () if self.lockstep else watched
+        for cob_id in listening:
+            self.network.subscribe(cob_id, count)
         try:
-            statusword = self.read(objects.STATUSWORD)
-        except DriveError:
-            # not answering: powered off, NMT stopped, or answering too late on a busy host.
-            # Listen longer before the reset that follows: a reset of a drive another master
-            # runs would stop that master's joint
-            if not self.lockstep:
-                self._refuse_traffic(watched, FOREIGN_TRAFFIC_WINDOW * 3)
+            time.sleep(FOREIGN_TRAFFIC_WINDOW if listening else 0.0)
+            # the drive's answer comes through the same receive thread as every frame
+            # before it: once it is in, whatever another master sent in the window was
+            # counted, however late a busy host ran that thread
+            try:
+                statusword = self.read(objects.STATUSWORD)
+            except DriveError:
+                # not answering: powered off, NMT stopped, or its answer late behind a busy
+                # host's receive thread. Before the reset that follows (a reset of a drive
+                # another master runs would stop that master's joint), listen until a frame
+                # stamped after now has come through, or the limit
+                statusword = None
+                if listening:
+                    self._catch_up(time.time(), FOREIGN_TRAFFIC_LIMIT)
+        finally:
+            for cob_id in listening:
+                self.network.unsubscribe(cob_id, count)
+        if seen:
+            kinds = {cia301.SYNC_COB_ID: "SYNC"}
+            frames = ", ".join(f"{n} x 0x{cob_id:03X} ({kinds.get(cob_id, 'RPDO')})"
+                               for cob_id, n in sorted(seen.items()))
+            raise ForeignMaster(f"{self.name}: another master is driving it: {frames} while "
+                                "listening before the reset")
+        if statusword is None:
             return  # the boot-up wait says whether it is there at all
         state = cia402.state_from_statusword(statusword)
         # a drive stopping on its own (quick stop active: no torque, brake on) after its
@@ -121,24 +147,13 @@ class CanOpenTransport(Transport):
             raise ForeignMaster(f"{self.name}: another master is driving it: the drive is "
                                 f"already in '{state.value}' (statusword 0x{statusword:04X})")
 
-    def _refuse_traffic(self, watched: set[int], window: float) -> None:
-        """ForeignMaster if any of the `watched` COB-IDs is on the bus within `window` s."""
-        seen: dict[int, int] = {}
-
-        def count(can_id: int, data: bytes, timestamp: float) -> None:
-            seen[can_id] = seen.get(can_id, 0) + 1
-
-        for cob_id in watched:
-            self.network.subscribe(cob_id, count)
-        time.sleep(window)
-        for cob_id in watched:
-            self.network.unsubscribe(cob_id, count)
-        if seen:
-            kinds = {cia301.SYNC_COB_ID: "SYNC"}
-            frames = ", ".join(f"{n} x 0x{cob_id:03X} ({kinds.get(cob_id, 'RPDO')})"
-                               for cob_id, n in sorted(seen.items()))
-            raise ForeignMaster(f"{self.name}: another master is driving it: {frames} in "
-                                f"{window * 1e3:.0f} ms")
+    def _catch_up(self, stamp: float, limit: float) -> None:
+        """Wait until the receive thread has passed a frame stamped `stamp` or later (the
+        bus's frames up to then are counted), at most `limit` s: a silent bus never does."""
+        bus = self.health.bus
+        deadline = time.monotonic() + limit
+        while bus.last_stamp < stamp and time.monotonic() < deadline:
+            time.sleep(0.005)
 
     def read(self, index: int, subindex: int = 0) -> int:
         return self.sdo.read(index, subindex)

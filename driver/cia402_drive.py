@@ -276,11 +276,20 @@ class Cia402Drive(Drive):
     def _emergency_code(self) -> int:
         return self.last_emergency.code if self.last_emergency is not None else 0
 
+    @property
+    def booted(self) -> bool:
+        """This master booted the drive (it is ours to stop and leave disabled)."""
+        return self._booted
+
     def quick_stop(self) -> None:
         """CiA 402 quick stop, now: the controlword by process data (the fastest way in) and
         again acyclically (in case the cyclic path is what failed). A torque drive then
         applies no torque and engages its brake (quick stop option 0x605A). Best effort:
-        never raises, so one dead drive does not keep the others running."""
+        never raises, so one dead drive does not keep the others running. A drive never
+        booted (refused: another master drives it) is left alone, as `close` leaves it: a
+        refused second master used to quick-stop the first master's running joint."""
+        if not self._booted:
+            return
         controlword = cia402.Command.QUICK_STOP.value
         try:
             if self.scaling is not None:

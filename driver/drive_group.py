@@ -386,11 +386,15 @@ class DriveGroup:
 
     def quick_stop_all(self) -> list[tuple[str, str]]:
         """Quick-stop every drive (best effort each: a dead one does not spare the others),
-        then read back each state: (joint, CiA 402 state name, or why it could not be read)."""
+        then read back each state: (joint, CiA 402 state name, or why it could not be read).
+        A drive this master never booted (refused) is not ours: left alone, said so."""
         for drive in self.drives:
             drive.quick_stop()
         states = []
         for name, drive in zip(self.names, self.drives, strict=True):
+            if not drive.booted:
+                states.append((name, "left alone (not started by this master)"))
+                continue
             try:
                 states.append((name, drive.state().value))
             except DriveError as exc:

@@ -1,12 +1,14 @@
 """Many joints in one cycle, in lock-step: one SYNC per bus, every joint in every telemetry
 message, every joint tracking, a refused bus, and one joint's fault stopping them all."""
 
+import json
 import math
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
+import zenoh
 
 from controller.messages import JointStates
 from driver import Sample
@@ -20,7 +22,6 @@ from robot.wiring import open_robot
 from sim_bus.faults import Fault
 from sim_bus.plant import SensorNoise
 from tests.conftest import free_port
-from tests.test_actuatord_zenoh import dashboard_session
 
 ROBOTS = Path(__file__).resolve().parent.parent / "robots"
 ARM = ROBOTS / "talos_arm.toml"
@@ -145,24 +146,29 @@ def test_the_arm_runs_five_seconds_with_every_joint_in_every_message_and_trackin
     port = free_port()
     prefix = "test/arm"
     received: list[bytes] = []
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "commands.actuatord", "--sim", "--lockstep", "--robot", str(ARM),
-         "--duration", "5", "--prefix", prefix, "--listen", f"tcp/127.0.0.1:{port}",
-         "--no-multicast-scouting"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    session = None
+    # the test's session listens and subscribes first, actuatord connects to it: its
+    # publisher knows the subscriber from its first message on (a lock-step run of 5 s is
+    # over in about that: subscribing after actuatord started missed all but its last 200)
+    config = zenoh.Config()
+    config.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(config)
+    proc = None
     try:
-        # the joints are enabled after the compiled MPC is loaded: plenty of time to subscribe
-        session = dashboard_session(port)
         subscriber = session.declare_subscriber(
             telemetry.key_expr(prefix, "joints"),
             lambda sample: received.append(sample.payload.to_bytes()))
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "commands.actuatord", "--sim", "--lockstep", "--robot",
+             str(ARM), "--duration", "5", "--prefix", prefix, "--connect",
+             f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         out, err = proc.communicate(timeout=900)
         subscriber.undeclare()
     finally:
-        if proc.poll() is None:
+        if proc is not None and proc.poll() is None:
             proc.kill()
-        if session is not None:
-            session.close()
+        session.close()
     assert proc.returncode == 0, err
     assert "5000 cycles" in out
     messages = [telemetry.decode("JointStates", data) for data in received]
