@@ -279,8 +279,14 @@ class DriveLine:
         self._unwritten[cycled] = True
         self.pending = True
         if len(cycled) < len(devices):  # the others may run elsewhere: read them again
-            revisions = self._revisions
-            for j in np.setdiff1d(self._rows, cycled, assume_unique=True).tolist():
-                revisions[j] = -1
-            self.changed = True
+            self.cycled_elsewhere(np.setdiff1d(self._rows, cycled, assume_unique=True).tolist())
         return done
+
+    def cycled_elsewhere(self, rows: Sequence[int]) -> None:
+        """The drives `rows` may have run cycles of their own (`Cia402Device.cycle()`, which
+        the line is not told of): their terms are read again before their next batch
+        cycle."""
+        revisions = self._revisions
+        for j in rows:
+            revisions[j] = -1
+        self.changed = True

@@ -24,18 +24,17 @@ import struct
 import time
 from collections.abc import Callable
 
-import numba
 import numpy as np
 import pysoem
 from numba.typed import List
 
 from protocol import ethercat as ec
-from protocol import objects as cia_objects
 from protocol.dictionary import mappable_object
 from protocol.pdo import PdoLayout
 from sim_bus.device import LINE_KEYS
 from sim_bus.ethercat.esc import Esc
 from sim_bus.ethercat.firmware import SlaveFirmware
+from sim_bus.ethercat.frame_batch import batchable_keys, into_buffers
 from sim_bus.ethercat.linked_dc import LinkedClock
 from sim_bus.ethercat.mailbox import SdoAbort
 from sim_bus.ethercat.segment import Segment
@@ -281,9 +280,6 @@ class LinkedMaster:
         return self._wkc
 
 
-_TARGETS = frozenset(((cia_objects.TARGET_TORQUE, 0), (cia_objects.TARGET_CURRENT, 0)))
-
-
 class LinkedImage:
     """The line's process data cycle as a batch over its slaves, for a line whose slaves all
     map the same layout: the controlword and targets out, inputs among the drive's live
@@ -328,11 +324,8 @@ class LinkedImage:
         if len(layouts) != 1:
             return None
         outputs, inputs = layouts.pop()
-        out_keys = [(o.index, o.subindex) for o in outputs]
-        in_keys = [(o.index, o.subindex) for o in inputs]
-        if (not out_keys or not in_keys or out_keys[0] != (cia_objects.CONTROLWORD, 0)
-                or not set(out_keys[1:]) <= _TARGETS or len(set(out_keys)) != len(out_keys)
-                or not set(in_keys) <= set(LINE_KEYS)):
+        if not batchable_keys([(o.index, o.subindex) for o in outputs],
+                              [(o.index, o.subindex) for o in inputs]):
             return None
         return cls(slaves, segment, changes)
 
@@ -385,7 +378,7 @@ class LinkedImage:
             else:
                 inputs[field][batched] = values[batched, column]
         image = inputs.tobytes()
-        _into_buffers(batched, self._memories, self._starts,
+        into_buffers(batched, self._memories, self._starts,
                       np.frombuffer(data, np.uint8).reshape(len(slaves), self._out_size),
                       inputs.view(np.uint8).reshape(len(slaves), self._in_size))
         if self._watchdogs:
@@ -405,15 +398,3 @@ class LinkedImage:
             self._seen = -1
         return count
 
-
-@numba.njit(cache=True)
-def _into_buffers(rows: np.ndarray, memories, starts: np.ndarray, outputs: np.ndarray,
-                  inputs: np.ndarray) -> None:
-    """Each batched slave's outputs into its SM2 buffer and inputs into its SM3 buffer (what
-    the master's write and the firmware's sample leave there), a row of each image per
-    slave."""
-    out_size, in_size = outputs.shape[1], inputs.shape[1]
-    for k in rows:
-        memory = memories[k]
-        memory[starts[k, 0]:starts[k, 0] + out_size] = outputs[k]
-        memory[starts[k, 1]:starts[k, 1] + in_size] = inputs[k]
