@@ -141,8 +141,9 @@ def main() -> None:
     """Time talos_32's cyclic frame through the segment, stage by stage, batch off and on."""
     parser = argparse.ArgumentParser(prog="python3 -m tests.segment_frames")
     parser.add_argument("--frames", type=int, default=3000)
+    parser.add_argument("--batch", choices=("on", "off", "both"), default="both")
     args = parser.parse_args()
-    for batching in (False, True):
+    for batching in {"on": (True,), "off": (False,), "both": (False, True)}[args.batch]:
         segment = Segment(talos_devices())
         if not batching:
             segment.batch = None

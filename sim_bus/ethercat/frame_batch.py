@@ -97,14 +97,14 @@ class _Plan:
     """Which slaves a frame of this layout batches, and where their data lie in it."""
 
     def __init__(self, rows: np.ndarray, out_index: np.ndarray, in_index: np.ndarray,
-                 wkc: np.ndarray, wkc_offsets: list[int], others: list, watchdogs: np.ndarray):
+                 wkc: np.ndarray, wkc_offsets: list[int], others: list, watchdogs: list[bool]):
         self.rows = rows  # line positions of the batched slaves
         self.out_index = out_index  # (batched, out size) frame offsets of their outputs
         self.in_index = in_index  # (batched, in size) frame offsets of their inputs
         self.wkc = wkc  # (batched, logical datagrams) each one's working counter share
         self.wkc_offsets = wkc_offsets  # the logical datagrams' working counters
         self.others = others  # per slave: the spans the ESC still passes (None: all)
-        self.watchdogs = watchdogs  # bool per batched slave: its outputs retrigger it
+        self.watchdogs = watchdogs  # per slave: batched, and its outputs retrigger it
 
 
 class FrameBatch:
@@ -219,7 +219,7 @@ class FrameBatch:
             np.array(rows, dtype=np.int64), np.array(out_index), np.array(in_index),
             np.array(wkc, dtype=np.int64), [d[3] + d[4] for d in logical],
             [others if k in batched else None for k in range(len(self.escs))],
-            np.array([bool(self.escs[k]._plan[0][0][4]) for k in rows]))
+            [k in batched and bool(self.escs[k]._plan[0][0][4]) for k in range(len(self.escs))])
 
     def passed_without(self, frame: bytearray, spans: list) -> None:
         """The frame went slave by slave: unless it only read registers, it may have
@@ -286,29 +286,27 @@ class FrameBatch:
                 ec.WKC.pack_into(frame, offset, (ec.WKC.unpack_from(frame, offset)[0] + share)
                                  & 0xFFFF)
         self.batched += len(ran)
-        escs, firmwares = self.escs, self.firmwares
-        watchdogs = plan.watchdogs[done]
-        for n, k in enumerate(ran.tolist()):
-            esc = escs[k]
-            esc.now = now + esc.dc.hop
-            if watchdogs[n]:
-                esc._trigger_watchdog()
-            firmwares[k].cycles += 1
-        # the rest of the frame slave by slave, in line order; a batched slave whose drive
+        # the rest of the frame slave by slave, in line order (a batched slave's cycle
+        # leaves its watchdog retriggered and its cycle counted); a batched slave whose drive
         # had more to its cycle passes the whole frame through its ESC (its data untouched)
         others = plan.others
         if not all_ran:
             others = list(others)
             for k in rows[~done].tolist():
                 others[k] = None
-            self.stale = True
-        for k, esc in enumerate(escs):
+        firmwares = self.firmwares
+        for k, esc in enumerate(self.escs):
+            esc.now = now + esc.dc.hop
             rest = others[k]
             if rest is None:
-                esc.now = now + esc.dc.hop
                 esc.process(frame, view, spans)
-            elif rest:
+                continue
+            if plan.watchdogs[k]:
+                esc._trigger_watchdog()
+            firmware = firmwares[k]
+            firmware.cycles += 1
+            if rest:
                 esc.process(frame, view, rest)
             else:
-                firmwares[k].frame_passed(esc)
+                firmware.frame_passed(esc)
         return True

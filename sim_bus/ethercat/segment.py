@@ -120,7 +120,7 @@ class Segment:
                     elif deadline is not None and deadline < earliest:
                         earliest = deadline
                 self._watch_after = earliest
-            devices = [firmware.device for firmware in self.firmwares]
+            devices = self.drives.devices
             lost = [k for k, device in enumerate(devices) if device.master_loss is not None]
             # run_alone also forgets its own time once the master is back: one call more
             alone = sorted(set(lost + self._alone))
