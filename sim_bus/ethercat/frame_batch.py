@@ -49,6 +49,7 @@ _WATCHDOG_REGISTERS = (ec.REG_WATCHDOG_DIVIDER, ec.REG_WATCHDOG_COUNTER_PROCESS_
 _CLOCK_TIMES = (dc.REG_RECEIVE_TIME_PORT0, dc.REG_SPEED_COUNTER_START)
 _TARGETS = frozenset(((objects.TARGET_TORQUE, 0), (objects.TARGET_CURRENT, 0)))
 _CONTROLWORD = (objects.CONTROLWORD, 0)
+_TORQUE = (objects.TARGET_TORQUE, 0)
 
 
 @numba.njit(cache=True)
@@ -115,6 +116,8 @@ class FrameBatch:
         self.escs, self.firmwares, self.line = list(escs), list(firmwares), line
         count = len(self.escs)
         self.stale = True  # the slaves may have changed: find which are steady again
+        # their drives may have run cycles the line was not told of: read them again
+        self._drives_unknown = True
         self._steady = np.zeros(count, dtype=bool)
         self._keys: tuple | None = None
         self._layouts: tuple[PdoLayout, PdoLayout] | None = None
@@ -123,6 +126,18 @@ class FrameBatch:
         self._memories = List([np.frombuffer(esc.memory, np.uint8) for esc in self.escs])
         self._starts = np.zeros((count, 2), dtype=np.int64)
         self.batched = 0  # slave cycles the batch ran (the rest ran through their ESCs)
+        self._warm()
+
+    def _warm(self) -> None:
+        """Load the compiled code now, not in the first frame in OP: loading it takes about
+        0.1 s, longer than a master waits for its frame."""
+        count, none = len(self.escs), np.zeros(0, dtype=np.int64)
+        if not count:
+            return
+        self.line.cycle(none, np.zeros(count, dtype=np.int64), (_CONTROLWORD, _TORQUE),
+                        [np.zeros(count, dtype=np.int64)])
+        empty = np.zeros((count, 1), dtype=np.uint8)
+        into_buffers(none, self._memories, self._starts, empty, empty)
 
     # --- the plan --------------------------------------------------------------------------
 
@@ -230,11 +245,17 @@ class FrameBatch:
                 continue
             end = (frame[header + 4] | frame[header + 5] << 8) + length
             if command not in _READS or end > ec.PROCESS_RAM_START:
-                self.stale = True
+                self.stale = self._drives_unknown = True
                 return
 
+    def slaves_changed(self, cycled: bool) -> None:
+        """Something outside a frame changed the slaves (a watchdog expired, SYNC0 fired);
+        `cycled`: their drives ran cycles too."""
+        self.stale = True
+        self._drives_unknown = self._drives_unknown or cycled
+
     def cycled_elsewhere(self, rows: Sequence[int]) -> None:
-        """The drives `rows` ran cycles outside the batch (alone, on SYNC0)."""
+        """The drives `rows` ran cycles outside the batch (alone)."""
         self.line.cycled_elsewhere(rows)
 
     # --- one frame ---------------------------------------------------------------------------
@@ -245,8 +266,6 @@ class FrameBatch:
         slave."""
         line = self.line
         if self.stale:
-            line.cycled_elsewhere(range(len(self.escs)))
-        if line.refresh() or self.stale:
             self._find_steady()
         key = tuple(spans) + tuple(bytes(frame[h + 2:h + 6]) for _, h, _, _ in spans)
         plan = self._plans.get(key, False)
@@ -254,6 +273,17 @@ class FrameBatch:
             plan = self._plans[key] = self._plan(frame, spans)
         if plan is None:
             return False
+        # the drives as they are now (read again only when the line may be behind them)
+        if self._drives_unknown:
+            line.cycled_elsewhere(range(len(self.escs)))
+            self._drives_unknown = False
+        if line.refresh():
+            self._find_steady()
+            plan = self._plans.get(key, False)
+            if plan is False:
+                plan = self._plans[key] = self._plan(frame, spans)
+            if plan is None:
+                return False
         buffer = np.frombuffer(frame, np.uint8)
         layouts, encoder = self._layouts, self._encoder
         outputs = buffer[plan.out_index]  # (batched, out size), a copy: taken before inputs

@@ -55,7 +55,7 @@ class Segment:
             self.escs.append(esc)
         self.lock = threading.Lock()  # one frame at a time; Python callers take it too
         self.drives = DriveLine(devices)  # their physics in rows of one set of arrays
-        # the steady slaves' process data of a frame at once (False: slave by slave, the
+        # the steady slaves' process data of a frame at once (None: slave by slave, the
         # reference the batch is tested against)
         self.batch: FrameBatch | None = FrameBatch(self.escs, self.firmwares, self.drives)
         self.frames = 0
@@ -99,7 +99,7 @@ class Segment:
                         break
                     fired += 1
             if fired and self.batch is not None:
-                self.batch.stale = True
+                self.batch.slaves_changed(cycled=True)
         return fired
 
     def check_watchdogs(self, now: float) -> None:
@@ -116,7 +116,7 @@ class Segment:
                     if deadline is not None and now > deadline and esc.present:
                         esc.check_watchdog(now)
                         if self.batch is not None:
-                            self.batch.stale = True
+                            self.batch.slaves_changed(cycled=False)
                     elif deadline is not None and deadline < earliest:
                         earliest = deadline
                 self._watch_after = earliest
