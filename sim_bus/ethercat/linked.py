@@ -31,10 +31,9 @@ from numba.typed import List
 from protocol import ethercat as ec
 from protocol.dictionary import mappable_object
 from protocol.pdo import PdoLayout
-from sim_bus.device import LINE_KEYS
 from sim_bus.ethercat.esc import Esc
 from sim_bus.ethercat.firmware import SlaveFirmware
-from sim_bus.ethercat.frame_batch import batchable_keys, into_buffers
+from sim_bus.ethercat.frame_batch import InputEncoder, batchable_keys, into_buffers
 from sim_bus.ethercat.linked_dc import LinkedClock
 from sim_bus.ethercat.mailbox import SdoAbort
 from sim_bus.ethercat.segment import Segment
@@ -296,11 +295,9 @@ class LinkedImage:
         outputs, inputs = slaves[0].layouts
         self.keys = (tuple((o.index, o.subindex) for o in outputs.objects),
                      tuple((o.index, o.subindex) for o in inputs.objects))
-        self._out_dtype, self._in_dtype = outputs.dtype, inputs.dtype
+        self._out_dtype = outputs.dtype
         self._out_size, self._in_size = outputs.size, inputs.size
-        self._in_fields = [(f"f{k}", LINE_KEYS.index(key))
-                           for k, key in enumerate(self.keys[1])]
-        self._inputs = np.zeros(len(slaves), self._in_dtype)
+        self._inputs = InputEncoder(inputs, len(slaves))
         self._rows = np.arange(len(slaves))
         # per slave: its sync managers as last checked, whether their buffers are plain
         # (enabled for the PDI, exactly the mapped areas, nothing else over them) and
@@ -371,16 +368,12 @@ class LinkedImage:
                           refresh=False)
         batched = rows[done]
         every = len(batched) == len(slaves)
-        inputs, values = self._inputs, line.values
-        for field, column in self._in_fields:
-            if every:
-                inputs[field] = values[:, column]
-            else:
-                inputs[field][batched] = values[batched, column]
-        image = inputs.tobytes()
+        inputs = self._inputs
+        inputs.encode(line.values, None if every else batched)
+        image = inputs.image.tobytes()
         into_buffers(batched, self._memories, self._starts,
-                      np.frombuffer(data, np.uint8).reshape(len(slaves), self._out_size),
-                      inputs.view(np.uint8).reshape(len(slaves), self._in_size))
+                     np.frombuffer(data, np.uint8).reshape(len(slaves), self._out_size),
+                     inputs.bytes)
         if self._watchdogs:
             ran = set(batched.tolist())
             for k in self._watchdogs:
