@@ -114,16 +114,16 @@ def enable_sequence(k: int, count: int) -> np.ndarray:
     return np.full(count, (SHUTDOWN, SWITCH_ON, ENABLE)[min(k, 2)], dtype=np.int64)
 
 
-def talos_devices() -> list[Cia402Device]:
-    """talos_32's drives as `sim-bus --robot robots/talos_32.toml` makes them, in cyclic
-    synchronous torque mode."""
+def talos_devices(count: int | None = None) -> list[Cia402Device]:
+    """talos_32's drives (the first `count` of the line) as `sim-bus --robot
+    robots/talos_32.toml` makes them, in cyclic synchronous torque mode."""
     from robot.description import load_robot
     from sim_bus.embedded import make_device
     from sim_bus.plant import SensorNoise
 
     robot = load_robot("robots/talos_32.toml")
     devices = []
-    for n, joint in enumerate(sorted(robot.joints, key=lambda joint: joint.address)):
+    for n, joint in enumerate(sorted(robot.joints, key=lambda joint: joint.address)[:count]):
         device = make_device(joint.model, Payload(), SensorNoise(seed=n), eds_path=joint.eds,
                              commissioned=True)
         device.write(objects.MODES_OF_OPERATION, 0, objects.MODE_CYCLIC_SYNC_TORQUE)

@@ -21,7 +21,7 @@ QUICK_STOP, FAULT_RESET = 0x02, 0x80
 
 
 def _line(batching: bool) -> FrameMaster:
-    devices = talos_devices()[:SLAVES]
+    devices = talos_devices(SLAVES)
     devices[1].schedule(Fault.ENCODER_GLITCH, 0.300)
     devices[2].schedule(Fault.TORQUE_SENSOR_SATURATED, 0.250)
     devices[3].schedule(Fault.OVERCURRENT_TRIP, 0.900)
