@@ -279,31 +279,33 @@ class DriveLine:
         self._unwritten[cycled] = True
         self.pending = True
         if len(cycled) < len(devices):  # the others may run elsewhere: read them again
-            revisions = self._revisions
-            for j in np.setdiff1d(self._rows, cycled, assume_unique=True).tolist():
-                revisions[j] = -1
-            self.changed = True
+            self.cycled_elsewhere(np.setdiff1d(self._rows, cycled, assume_unique=True).tolist())
         return done
 
+    def load_kernel(self) -> None:
+        """Compile (a first run) or load (from the cache) the batch's kernel now, with a
+        cycle of no drive: numba does it at the first call, which would otherwise be a first
+        cycle in OP (0.1 s from the cache, longer than a master waits for its frame; seconds
+        when it compiles)."""
+        count = len(self.devices)
+        self.cycle(np.zeros(0, dtype=np.int64), np.zeros(count, dtype=np.int64),
+                   ((objects.CONTROLWORD, 0), _TORQUE_KEY), [np.zeros(count, dtype=np.int64)])
+
+    def cycled_elsewhere(self, rows: Sequence[int]) -> None:
+        """The drives `rows` may have run cycles of their own (`Cia402Device.cycle()`, which
+        the line is not told of): their terms are read again before their next batch
+        cycle."""
+        revisions = self._revisions
+        for j in rows:
+            revisions[j] = -1
+        self.changed = True
 
 def compile_ahead() -> None:
-    """Compile the batch's kernel now, on a line of one virtual drive enabled and cycled a
-    few times: numba compiles it at its first call, which would otherwise be the first cycle
-    of a `--sim` robot's loop, its drives already enabled (a first run's cycle took 12 s, at
-    load 7), outside the first run's notice. From the cache afterwards: a few ms."""
+    """Compile the batch's kernel now (`DriveLine.load_kernel` on a line of one virtual
+    drive): `actuatord --sim` calls it inside the first run's notice, before any drive is
+    enabled; a first run's compile was otherwise the loop's first cycle (12 s at load 7)."""
     from model.parameters import Payload, load_model
     from sim_bus.embedded import make_device
     from sim_bus.plant import SensorNoise
 
-    device = make_device(load_model(), Payload(), SensorNoise(), commissioned=True)
-    device.write(objects.MODES_OF_OPERATION, 0, objects.MODE_CYCLIC_SYNC_TORQUE)
-    line = DriveLine([device])
-    keys = ((objects.CONTROLWORD, 0), _TORQUE_KEY, _CURRENT_KEY)
-    rows, zero = np.zeros(1, dtype=np.intp), np.zeros(1, dtype=np.int64)
-    # shut down, switch on, enable (CiA 402), then steady cycles: those are the batch's
-    for controlword in (0x06, 0x07, 0x0F, 0x0F, 0x0F, 0x0F):
-        controlwords = np.full(1, controlword, dtype=np.int64)
-        if not line.cycle(rows, controlwords, keys, [zero, zero])[0]:
-            device.write_outputs(keys, (controlword, 0, 0))
-            device.cycle()
-    line.flush()
+    DriveLine([make_device(load_model(), Payload(), SensorNoise())]).load_kernel()

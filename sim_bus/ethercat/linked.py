@@ -24,18 +24,16 @@ import struct
 import time
 from collections.abc import Callable
 
-import numba
 import numpy as np
 import pysoem
 from numba.typed import List
 
 from protocol import ethercat as ec
-from protocol import objects as cia_objects
 from protocol.dictionary import mappable_object
 from protocol.pdo import PdoLayout
-from sim_bus.device import LINE_KEYS
 from sim_bus.ethercat.esc import Esc
 from sim_bus.ethercat.firmware import SlaveFirmware
+from sim_bus.ethercat.frame_batch import InputEncoder, batchable_keys, into_buffers
 from sim_bus.ethercat.linked_dc import LinkedClock
 from sim_bus.ethercat.mailbox import SdoAbort
 from sim_bus.ethercat.segment import Segment
@@ -281,9 +279,6 @@ class LinkedMaster:
         return self._wkc
 
 
-_TARGETS = frozenset(((cia_objects.TARGET_TORQUE, 0), (cia_objects.TARGET_CURRENT, 0)))
-
-
 class LinkedImage:
     """The line's process data cycle as a batch over its slaves, for a line whose slaves all
     map the same layout: the controlword and targets out, inputs among the drive's live
@@ -300,11 +295,9 @@ class LinkedImage:
         outputs, inputs = slaves[0].layouts
         self.keys = (tuple((o.index, o.subindex) for o in outputs.objects),
                      tuple((o.index, o.subindex) for o in inputs.objects))
-        self._out_dtype, self._in_dtype = outputs.dtype, inputs.dtype
+        self._out_dtype = outputs.dtype
         self._out_size, self._in_size = outputs.size, inputs.size
-        self._in_fields = [(f"f{k}", LINE_KEYS.index(key))
-                           for k, key in enumerate(self.keys[1])]
-        self._inputs = np.zeros(len(slaves), self._in_dtype)
+        self._inputs = InputEncoder(inputs, len(slaves))
         self._rows = np.arange(len(slaves))
         # per slave: its sync managers as last checked, whether their buffers are plain
         # (enabled for the PDI, exactly the mapped areas, nothing else over them) and
@@ -328,11 +321,8 @@ class LinkedImage:
         if len(layouts) != 1:
             return None
         outputs, inputs = layouts.pop()
-        out_keys = [(o.index, o.subindex) for o in outputs]
-        in_keys = [(o.index, o.subindex) for o in inputs]
-        if (not out_keys or not in_keys or out_keys[0] != (cia_objects.CONTROLWORD, 0)
-                or not set(out_keys[1:]) <= _TARGETS or len(set(out_keys)) != len(out_keys)
-                or not set(in_keys) <= set(LINE_KEYS)):
+        if not batchable_keys([(o.index, o.subindex) for o in outputs],
+                              [(o.index, o.subindex) for o in inputs]):
             return None
         return cls(slaves, segment, changes)
 
@@ -378,16 +368,12 @@ class LinkedImage:
                           refresh=False)
         batched = rows[done]
         every = len(batched) == len(slaves)
-        inputs, values = self._inputs, line.values
-        for field, column in self._in_fields:
-            if every:
-                inputs[field] = values[:, column]
-            else:
-                inputs[field][batched] = values[batched, column]
-        image = inputs.tobytes()
-        _into_buffers(batched, self._memories, self._starts,
-                      np.frombuffer(data, np.uint8).reshape(len(slaves), self._out_size),
-                      inputs.view(np.uint8).reshape(len(slaves), self._in_size))
+        inputs = self._inputs
+        inputs.encode(line.values, None if every else batched)
+        image = inputs.image.tobytes()
+        into_buffers(batched, self._memories, self._starts,
+                     np.frombuffer(data, np.uint8).reshape(len(slaves), self._out_size),
+                     inputs.bytes)
         if self._watchdogs:
             ran = set(batched.tolist())
             for k in self._watchdogs:
@@ -405,15 +391,3 @@ class LinkedImage:
             self._seen = -1
         return count
 
-
-@numba.njit(cache=True)
-def _into_buffers(rows: np.ndarray, memories, starts: np.ndarray, outputs: np.ndarray,
-                  inputs: np.ndarray) -> None:
-    """Each batched slave's outputs into its SM2 buffer and inputs into its SM3 buffer (what
-    the master's write and the firmware's sample leave there), a row of each image per
-    slave."""
-    out_size, in_size = outputs.shape[1], inputs.shape[1]
-    for k in rows:
-        memory = memories[k]
-        memory[starts[k, 0]:starts[k, 0] + out_size] = outputs[k]
-        memory[starts[k, 1]:starts[k, 1] + in_size] = inputs[k]

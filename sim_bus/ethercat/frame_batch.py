@@ -1,0 +1,340 @@
+"""A line's cyclic process data frame passed as a batch: the part of a frame that is every
+steady slave's outputs in and inputs out, done for all of them at once.
+
+Passing a frame slave by slave costs about 25 us a slave in Python (the ESC's FMMU copies,
+the firmware's decode, the drive's cycle, the encode), most of a millisecond for the whole
+TALOS; the slave process then cannot keep up with a 1 kHz master. Here, for the logical
+datagrams (LRW/LRD/LWR) of a frame, every slave whose cycle is steady (`SlaveFirmware.
+steady_keys`: in OP, no transition pending, not on SYNC0) and whose FMMUs map exactly its
+output and input sync manager buffers has its outputs gathered out of the frame at once
+(numpy fancy indexing over the frame buffer), its drive cycled in one compiled call
+(`sim_bus.line_physics.DriveLine`), its inputs scattered into the frame at once and its
+share of the working counter added; its buffers, watchdog, and cycle count are left as the
+ESC and firmware leave them. Everything else (other datagrams, slaves not steady, a drive
+whose cycle has more to it than the physics) takes the ESC's own path, in line order.
+
+Same result as slave by slave (tests/test_segment_batch.py compares frames and devices),
+given what the batch checks: the batched slaves' logical areas overlap no other slave's and
+lie whole in one datagram each; the frame's other datagrams only read registers or write the
+distributed clock's times, which a steady cycle neither reads nor changes, so their order
+against the cycle does not matter. Any other frame goes slave by slave, and the plan is
+made again before the next.
+"""
+
+from collections.abc import Sequence
+
+import numba
+import numpy as np
+from numba.typed import List
+
+from protocol import ethercat as ec
+from protocol import objects
+from protocol.dictionary import mappable_object
+from protocol.pdo import PdoLayout
+from sim_bus.device import LINE_KEYS
+from sim_bus.ethercat import dc
+from sim_bus.ethercat.esc import Esc
+from sim_bus.ethercat.firmware import SlaveFirmware
+from sim_bus.line_physics import DriveLine
+
+_LOGICAL = frozenset((ec.Command.LRD, ec.Command.LWR, ec.Command.LRW))
+_READS = frozenset((ec.Command.APRD, ec.Command.FPRD, ec.Command.BRD))
+_WRITES_OUTPUTS = frozenset((ec.Command.LWR, ec.Command.LRW))
+_READS_INPUTS = frozenset((ec.Command.LRD, ec.Command.LRW))
+# registers a steady cycle changes (the process data watchdog's status): a frame reading them
+# goes slave by slave, so the read sees them before or after the cycle as it would
+_WATCHDOG_REGISTERS = (ec.REG_WATCHDOG_DIVIDER, ec.REG_WATCHDOG_COUNTER_PROCESS_DATA + 2)
+# what other datagrams may write beside a batch: the distributed clock's times (an FRMW of
+# the reference clock's system time rides in every cyclic frame of a DC master)
+_CLOCK_TIMES = (dc.REG_RECEIVE_TIME_PORT0, dc.REG_SPEED_COUNTER_START)
+_TARGETS = frozenset(((objects.TARGET_TORQUE, 0), (objects.TARGET_CURRENT, 0)))
+_CONTROLWORD = (objects.CONTROLWORD, 0)
+
+
+@numba.njit(cache=True)
+def into_buffers(rows: np.ndarray, memories, starts: np.ndarray, outputs: np.ndarray,
+                 inputs: np.ndarray) -> None:
+    """Each batched slave's outputs into its SM2 buffer and inputs into its SM3 buffer (what
+    the master's write and the firmware's sample leave there), a row of each image per
+    slave."""
+    out_size, in_size = outputs.shape[1], inputs.shape[1]
+    for k in rows:
+        memory = memories[k]
+        memory[starts[k, 0]:starts[k, 0] + out_size] = outputs[k]
+        memory[starts[k, 1]:starts[k, 1] + in_size] = inputs[k]
+
+
+def batchable_keys(out_keys: Sequence[tuple[int, int]],
+                   in_keys: Sequence[tuple[int, int]]) -> bool:
+    """Whether a layout is one the line's batch can cycle: the controlword first, then
+    target torque and/or current, inputs among the drive's live objects (`LINE_KEYS`)."""
+    return (bool(out_keys) and bool(in_keys) and out_keys[0] == _CONTROLWORD
+            and set(out_keys[1:]) <= _TARGETS and len(set(out_keys)) == len(out_keys)
+            and set(in_keys) <= set(LINE_KEYS))
+
+
+class InputEncoder:
+    """The drives' inputs as a packed process image, a row per slave, from the line's
+    values (`DriveLine.values`, columns in `LINE_KEYS` order)."""
+
+    def __init__(self, layout: PdoLayout, count: int):
+        self.image = np.zeros(count, layout.dtype)
+        self._fields = [(f"f{k}", LINE_KEYS.index((o.index, o.subindex)))
+                        for k, o in enumerate(layout.objects)]
+        self.bytes = self.image.view(np.uint8).reshape(count, layout.size)
+
+    def encode(self, values: np.ndarray, rows: np.ndarray | None) -> None:
+        """Rows `rows` (None: all) of the image from `values` (same rows)."""
+        image = self.image
+        for field, column in self._fields:
+            if rows is None:
+                image[field] = values[:, column]
+            else:
+                image[field][rows] = values[rows, column]
+
+
+class _Plan:
+    """Which slaves a frame of this layout batches, and where their data lie in it."""
+
+    def __init__(self, rows: np.ndarray, out_index: np.ndarray, in_index: np.ndarray,
+                 wkc: np.ndarray, wkc_offsets: list[int], others: list, watchdogs: list[bool]):
+        self.rows = rows  # line positions of the batched slaves
+        self.out_index = out_index  # (batched, out size) frame offsets of their outputs
+        self.in_index = in_index  # (batched, in size) frame offsets of their inputs
+        self.wkc = wkc  # (batched, logical datagrams) each one's working counter share
+        self.wkc_offsets = wkc_offsets  # the logical datagrams' working counters
+        self.others = others  # per slave: the spans the ESC still passes (None: all)
+        self.watchdogs = watchdogs  # per slave: batched, and its outputs retrigger it
+
+
+class FrameBatch:
+    """The batch of one segment's slaves (`escs`, `firmwares`, `line` in line order)."""
+
+    def __init__(self, escs: Sequence[Esc], firmwares: Sequence[SlaveFirmware],
+                 line: DriveLine):
+        self.escs, self.firmwares, self.line = list(escs), list(firmwares), line
+        count = len(self.escs)
+        self.stale = True  # the slaves may have changed: find which are steady again
+        # their drives may have run cycles the line was not told of: read them again
+        self._drives_unknown = True
+        self._steady = np.zeros(count, dtype=bool)
+        self._keys: tuple | None = None
+        self._layouts: tuple[PdoLayout, PdoLayout] | None = None
+        self._encoder: InputEncoder | None = None
+        self._plans: dict = {}  # frame layout -> _Plan (or None: not batched)
+        self._memories = List([np.frombuffer(esc.memory, np.uint8) for esc in self.escs])
+        self._starts = np.zeros((count, 2), dtype=np.int64)
+        self.batched = 0  # slave cycles the batch ran (the rest ran through their ESCs)
+        self._warm()
+
+    def _warm(self) -> None:
+        """Load the compiled code now, not in the first frame in OP: loading it takes about
+        0.1 s, longer than a master waits for its frame."""
+        count, none = len(self.escs), np.zeros(0, dtype=np.int64)
+        if not count:
+            return
+        self.line.load_kernel()
+        empty = np.zeros((count, 1), dtype=np.uint8)
+        into_buffers(none, self._memories, self._starts, empty, empty)
+
+    # --- the plan --------------------------------------------------------------------------
+
+    def _find_steady(self) -> None:
+        """Which slaves are steady with one common batchable layout and plain FMMUs; the
+        frame plans are kept while that stays as it was and nothing else changed."""
+        before = self._steady.copy()
+        self._steady[:] = False
+        self._find_steady_into()
+        if self.stale or not np.array_equal(before, self._steady):
+            self._plans.clear()
+        self.stale = False
+
+    def _find_steady_into(self) -> None:
+        keys = [firmware.steady_keys() if esc.present else None
+                for esc, firmware in zip(self.escs, self.firmwares, strict=True)]
+        common = next((k for k in keys if k is not None and batchable_keys(*k)), None)
+        if common is None:
+            return
+        if common != self._keys:
+            firmware = self.firmwares[keys.index(common)]
+            self._layouts = tuple(PdoLayout(0, tuple(
+                mappable_object(firmware.device.dictionary, entry)
+                for entry in firmware.objects.assigned_entries(assign)))
+                for assign in (ec.RXPDO_ASSIGN, ec.TXPDO_ASSIGN))
+            self._keys = common
+            self._encoder = InputEncoder(self._layouts[1], len(self.escs))
+        sizes = (self._layouts[0].size, self._layouts[1].size)
+        for k, (esc, firmware) in enumerate(zip(self.escs, self.firmwares, strict=True)):
+            if keys[k] != common or esc._plan is None:
+                continue
+            out_start, out_length = esc.sync_manager(firmware.outputs_sm)[:2]
+            in_start, in_length = esc.sync_manager(firmware.inputs_sm)[:2]
+            writes, reads = esc._plan
+            # exactly one FMMU onto each whole buffer, nothing else mapped
+            if (len(writes) == 1 and len(reads) == 1 and len(esc._fmmus) == 2
+                    and (out_length, in_length) == sizes
+                    and writes[0][2] == out_start and writes[0][1] - writes[0][0] == out_length
+                    and writes[0][3]
+                    and reads[0][2] == in_start and reads[0][1] - reads[0][0] == in_length):
+                self._steady[k] = True
+                self._starts[k] = out_start, in_start
+
+    def _plan(self, frame: bytearray, spans: list) -> "_Plan | None":
+        """The plan for a frame of these datagrams; None: slave by slave."""
+        logical, others = [], []
+        for span in spans:
+            command, header, data, length = span
+            if command in _LOGICAL:
+                address = int.from_bytes(frame[header + 2:header + 6], "little")
+                logical.append((command, address, address + length, data, length))
+            elif command != ec.Command.NOP:
+                ado = frame[header + 4] | frame[header + 5] << 8
+                end = ado + length
+                reads_only = command in _READS and end <= ec.PROCESS_RAM_START and not (
+                    ado < _WATCHDOG_REGISTERS[1] and _WATCHDOG_REGISTERS[0] < end)
+                clock = _CLOCK_TIMES[0] <= ado and end <= _CLOCK_TIMES[1]
+                if not (reads_only or clock):
+                    return None
+                others.append(span)
+        if not logical:
+            return None
+        rows, out_index, in_index, wkc = [], [], [], []
+        ranges = [(start, stop) for esc in self.escs for start, stop, *_ in esc._fmmus]
+        for k in np.flatnonzero(self._steady).tolist():
+            esc = self.escs[k]
+            (o_start, o_stop, *_), = esc._plan[0]
+            (i_start, i_stop, *_), = esc._plan[1]
+            shares = [0] * len(logical)
+            places = []
+            for start, stop, wanted, share in ((o_start, o_stop, _WRITES_OUTPUTS, 2),
+                                               (i_start, i_stop, _READS_INPUTS, 1)):
+                over = [n for n, d in enumerate(logical) if d[1] < stop and start < d[2]]
+                if len(over) != 1:
+                    break
+                command, address, end, data, _ = logical[over[0]]
+                if command not in wanted or not (address <= start and stop <= end):
+                    break
+                # nobody else's FMMU over this area (this slave's own two may overlap)
+                if sum(1 for s, e in ranges if s < stop and start < e) > (
+                        2 if o_start < i_stop and i_start < o_stop else 1):
+                    break
+                shares[over[0]] += share if command == ec.Command.LRW else 1
+                places.append(data + start - address + np.arange(stop - start))
+            else:
+                rows.append(k)
+                out_index.append(places[0])
+                in_index.append(places[1])
+                wkc.append(shares)
+        if not rows:
+            return None
+        batched = set(rows)
+        return _Plan(
+            np.array(rows, dtype=np.int64), np.array(out_index), np.array(in_index),
+            np.array(wkc, dtype=np.int64), [d[3] + d[4] for d in logical],
+            [others if k in batched else None for k in range(len(self.escs))],
+            [k in batched and bool(self.escs[k]._plan[0][0][4]) for k in range(len(self.escs))])
+
+    def passed_without(self, frame: bytearray, spans: list) -> None:
+        """The frame went slave by slave: unless it only read registers, it may have
+        changed the slaves (state, sync managers, FMMUs) and run their drives' cycles
+        outside the line, so both are looked at again before the next batch."""
+        for command, header, _, length in spans:
+            if command == ec.Command.NOP:
+                continue
+            end = (frame[header + 4] | frame[header + 5] << 8) + length
+            if command not in _READS or end > ec.PROCESS_RAM_START:
+                self.stale = self._drives_unknown = True
+                return
+
+    def slaves_changed(self, cycled: bool) -> None:
+        """Something outside a frame changed the slaves (a watchdog expired, SYNC0 fired);
+        `cycled`: their drives ran cycles too."""
+        self.stale = True
+        self._drives_unknown = self._drives_unknown or cycled
+
+    def cycled_elsewhere(self, rows: Sequence[int]) -> None:
+        """The drives `rows` ran cycles outside the batch (alone)."""
+        self.line.cycled_elsewhere(rows)
+
+    # --- one frame ---------------------------------------------------------------------------
+
+    def process(self, frame: bytearray, view: memoryview, spans: list, now: float) -> bool:
+        """Pass the frame through the line with its steady slaves' process data as a batch;
+        False (the frame untouched) when this frame has none: the caller passes it slave by
+        slave."""
+        line = self.line
+        if self.stale:
+            self._find_steady()
+        key = tuple(spans) + tuple(bytes(frame[h + 2:h + 6]) for _, h, _, _ in spans)
+        plan = self._plans.get(key, False)
+        if plan is False:
+            plan = self._plans[key] = self._plan(frame, spans)
+        if plan is None:
+            return False
+        # the drives as they are now (read again only when the line may be behind them)
+        if self._drives_unknown:
+            line.cycled_elsewhere(range(len(self.escs)))
+            self._drives_unknown = False
+        if line.refresh():
+            self._find_steady()
+            plan = self._plans.get(key, False)
+            if plan is False:
+                plan = self._plans[key] = self._plan(frame, spans)
+            if plan is None:
+                return False
+        buffer = np.frombuffer(frame, np.uint8)
+        layouts, encoder = self._layouts, self._encoder
+        outputs = buffer[plan.out_index]  # (batched, out size), a copy: taken before inputs
+        decoded = outputs.view(layouts[0].dtype)[:, 0]
+        out_keys = self._keys[0]
+        rows = plan.rows
+        count = len(self.escs)
+        controlwords = np.zeros(count, dtype=np.int64)
+        controlwords[rows] = decoded["f0"]
+        targets = []
+        for n in range(1, len(out_keys)):
+            column = np.zeros(count, dtype=np.int64)
+            column[rows] = decoded[f"f{n}"]
+            targets.append(column)
+        done = line.cycle(rows, controlwords, out_keys, targets, refresh=False)
+        ran = rows[done]
+        all_ran = len(ran) == len(rows)
+        encoder.encode(line.values, None if all_ran and len(ran) == count else ran)
+        inputs = encoder.bytes[rows]
+        if all_ran:
+            buffer[plan.in_index] = inputs
+        else:
+            buffer[plan.in_index[done]] = inputs[done]
+        full_outputs = np.zeros((count, outputs.shape[1]), dtype=np.uint8)
+        full_outputs[rows] = outputs
+        into_buffers(ran, self._memories, self._starts, full_outputs, encoder.bytes)
+        shares = plan.wkc[done].sum(axis=0).tolist()
+        for offset, share in zip(plan.wkc_offsets, shares, strict=True):
+            if share:
+                ec.WKC.pack_into(frame, offset, (ec.WKC.unpack_from(frame, offset)[0] + share)
+                                 & 0xFFFF)
+        self.batched += len(ran)
+        # the rest of the frame slave by slave, in line order (a batched slave's cycle
+        # leaves its watchdog retriggered and its cycle counted); a batched slave whose drive
+        # had more to its cycle passes the whole frame through its ESC (its data untouched)
+        others = plan.others
+        if not all_ran:
+            others = list(others)
+            for k in rows[~done].tolist():
+                others[k] = None
+        firmwares = self.firmwares
+        for k, esc in enumerate(self.escs):
+            esc.now = now + esc.dc.hop
+            rest = others[k]
+            if rest is None:
+                esc.process(frame, view, spans)
+                continue
+            if plan.watchdogs[k]:
+                esc._trigger_watchdog()
+            firmware = firmwares[k]
+            firmware.cycles += 1
+            if rest:
+                esc.process(frame, view, rest)
+            else:
+                firmware.frame_passed(esc)
+        return True

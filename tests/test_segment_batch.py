@@ -1,0 +1,117 @@
+"""The segment's batch (`sim_bus.ethercat.frame_batch`) passes a frame exactly as the slaves
+one by one do: the same frames go through two lines of the same drives, one with the batch
+and one without, and every answer, every drive and every ESC's memory must be the same, through
+an enable sequence, sensor faults, an overcurrent trip, a slave leaving OP on its own and
+brought back, a quick stop, mixed frames (AL status reads, a DC time write, a watchdog status
+read) and a process data watchdog expiry with the drives left to run alone."""
+
+import struct
+
+import numpy as np
+
+from protocol import ethercat as ec
+from sim_bus.ethercat.segment import Segment
+from sim_bus.faults import Fault
+from tests.segment_frames import ENABLE, FIRST_STATION, FrameMaster, talos_devices
+
+Cmd = ec.Command
+SLAVES = 6
+CYCLES = 2000
+QUICK_STOP, FAULT_RESET = 0x02, 0x80
+
+
+def _line(batching: bool) -> FrameMaster:
+    devices = talos_devices(SLAVES)
+    devices[1].schedule(Fault.ENCODER_GLITCH, 0.300)
+    devices[2].schedule(Fault.TORQUE_SENSOR_SATURATED, 0.250)
+    devices[3].schedule(Fault.OVERCURRENT_TRIP, 0.900)
+    devices[4].schedule(Fault.LEAVES_OP, 0.600)
+    segment = Segment(devices)
+    if not batching:
+        segment.batch = None
+    master = FrameMaster(segment)
+    master.start()
+    return master
+
+
+def _controlwords(k: int) -> np.ndarray:
+    """Each slave's controlword at cycle k: enabled at staggered cycles, slave 3 reset after
+    its trip, slave 5 quick-stopped for a while, every slave enabled again after the
+    watchdog (1600)."""
+    words = np.full(SLAVES, ENABLE, dtype=np.int64)
+    for j in range(SLAVES):
+        start = 0 if k < 1600 else 1600
+        if k - start < 3 + j:
+            words[j] = (0x06, 0x07, ENABLE)[min(max(k - start - j, 0), 2)]
+    if 950 <= k < 954:
+        words[3] = (FAULT_RESET, 0x06, 0x07, ENABLE)[k - 950]
+    if 400 <= k < 500:
+        words[5] = QUICK_STOP
+    elif 500 <= k < 503:
+        words[5] = (0x06, 0x07, ENABLE)[k - 500]
+    if 1600 <= k < 1601:
+        words[:] = FAULT_RESET
+    return words
+
+
+def _frame(master: FrameMaster, k: int) -> list:
+    """Cycle k's datagrams: the LRW, and in some cycles what a master adds to it."""
+    count = master.count
+    outputs = np.zeros(count, master.layouts[0].dtype)
+    outputs["f0"] = _controlwords(k)
+    outputs["f1"] = (300 * np.sin(np.arange(count) + k / 70)).astype(np.int64)
+    if k == 800:  # slave 0's torque past its trip: the device's own cycle faults it
+        outputs["f1"][0] = 32000
+    datagrams = [(Cmd.LRW, 0, 0, outputs.tobytes() + bytes(count * master.in_size))]
+    if k % 7 == 0:
+        datagrams.append((Cmd.BRD, 0, ec.REG_AL_STATUS << 16, bytes(2)))
+    if k % 5 == 0:
+        datagrams.insert(0, (Cmd.FRMW, 0, FIRST_STATION | ec.REG_DC_SYSTEM_TIME << 16,
+                             bytes(8)))
+    if k % 97 == 0:  # a register the batch leaves alone: slave by slave
+        datagrams.append((Cmd.APRD, 0, ec.REG_WATCHDOG_STATUS_PROCESS_DATA << 16, bytes(2)))
+    return datagrams
+
+
+def _devices(master: FrameMaster) -> list:
+    return [(d.state, d.cycle_count, d.applied_current, d.plant.position, d.master_loss,
+             sorted(d.values.items())) for d in master.segment.drives.devices]
+
+
+def test_the_batch_passes_frames_exactly_as_the_slaves_one_by_one():
+    batched, single = _line(True), _line(False)
+    assert batched.segment.batch is not None
+    seen = set()
+    for k in range(CYCLES):
+        for master in (batched, single):
+            master.now += 1e-3
+            if k == 1500:  # the master away for 150 ms: every watchdog expires
+                master.now += 0.150
+                master.segment.check_watchdogs(master.now)
+        frames = [m.send(_frame(m, k)) for m in (batched, single)]
+        assert frames[0] == frames[1], f"cycle {k}"
+        for master in (batched, single):
+            master.segment.check_watchdogs(master.now)
+        if k in (1000, 1530):  # slave 4 left OP (1000) / all did (1530): back to OP
+            for master in (batched, single):
+                master.request(ec.AlState.SAFE_OP)
+                master.request(ec.AlState.OP)
+        if k % 100 == 0 or k in (601, 801, 901, 1501):
+            assert _devices(batched) == _devices(single), f"cycle {k}"
+            for a, b in zip(batched.segment.escs, single.segment.escs, strict=True):
+                assert a.memory == b.memory, f"cycle {k}"
+                assert a._watchdog_deadline == b._watchdog_deadline, f"cycle {k}"
+        seen.add(tuple(s & 0x1F for s in struct.unpack(
+            f"<{SLAVES}H", b"".join(batched.read(j, ec.REG_AL_STATUS, 2)
+                                    for j in range(SLAVES)))) if k % 50 == 0 else ())
+    assert _devices(batched) == _devices(single)
+    assert [f.cycles for f in batched.segment.firmwares] == [
+        f.cycles for f in single.segment.firmwares]
+    # what happened happened: a slave out of OP with an error, the watchdog's drop, and the
+    # batch carried most cycles
+    assert any(ec.AlState.SAFE_OP | ec.AL_ERROR in states for states in seen), seen
+    devices = batched.segment.drives.devices
+    assert devices[3].injected and devices[4].injected
+    assert "watchdog" in devices[0].master_loss  # the expiry reached the drives
+    assert all(f.cycles > CYCLES - 200 for f in batched.segment.firmwares)
+    assert batched.segment.batch.batched > 0.8 * CYCLES * SLAVES, batched.segment.batch.batched
