@@ -26,7 +26,9 @@ from model.identify import Experiment, identify
 from model.parameters import ActuatorParameters, Payload, load_model
 from recorder.reader import load_recording
 
-pytestmark = pytest.mark.subprocess  # runs the commands as processes
+# runs the commands as processes; the module's recordings are made once, by its first test,
+# in 100-214 s (quiet host to load 7): past the suite's 300 s per-test default beside load
+pytestmark = [pytest.mark.subprocess, pytest.mark.timeout(900)]
 
 HIDDEN = {
     "stribeck": "stribeck:breakaway_friction=1.5,velocity=0.05",
