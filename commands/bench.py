@@ -10,7 +10,7 @@ from commands.first_run import CompileNotice
 from commands.log_options import add_logging_argument, configure_logging, reports_failures
 from commands.parsing import CommandParser, doc_description, int_range
 from controller.benchmark import run
-from robot.bench import MASTER_JOINT_COUNTS
+from robot.bench import MASTER_JOINT_COUNTS, TALOS, robot_problems
 from robot.bench import run as master_cost
 
 
@@ -35,7 +35,8 @@ def main(argv: list[str] | None = None) -> int:
     def progress(stage: str) -> None:
         print(f"bench: {stage} ...", file=sys.stderr, flush=True)
 
-    result = run(args.ticks, args.numpy_ticks, args.joint_ticks, progress=progress)
+    result = run(args.ticks, args.numpy_ticks, args.joint_ticks, progress=progress,
+                 robot=(TALOS.stem, robot_problems()))
     progress(f"the master's own cost (MPC excluded) for {', '.join(map(str, MASTER_JOINT_COUNTS))}"
              f" joints on a line linked in this process: {args.master_cycles} cycles each")
     result["master"] = master_cost(args.master_cycles)

@@ -9,8 +9,6 @@ excluded from the tick figures.
 import os
 import time
 from collections.abc import Callable
-from dataclasses import replace
-from pathlib import Path
 
 import numba
 import numpy as np
@@ -24,14 +22,9 @@ from driver import Sample
 from model import dynamics
 from model.dynamics import SUBSTEPS
 from model.parameters import Payload, load_model
-from robot.description import load_robot
 
 PAPER_TICK_US = 200.0  # paper: 100 steps of 1 ms on an i7-8850H laptop
 JOINT_COUNTS = (1, 7, 32)  # one joint, one TALOS arm, the whole robot
-# the robot's own problem beside the elbow-like ones: its lighter joints (wrists, grippers,
-# head) made the in-loop tick five times the bench's 32 joints until the friction step was
-# made resolvable (controller.problem.resolvable_friction_sharpness)
-TALOS = Path(__file__).parent.parent / "robots" / "talos_32.toml"
 THREAD_COUNTS = (1, 2)
 
 
@@ -164,20 +157,6 @@ def reference_starts(problems: list[JointProblem]) -> np.ndarray:
     return np.array([p.reference.packed()[1] + p.reference.packed()[2] for p in problems])
 
 
-def robot_problems(path: Path = TALOS) -> tuple[list[JointProblem], np.ndarray]:
-    """A robot file's joints as `actuatord --robot` poses them at its default horizon and
-    step (each joint's model, weights, friction sharpness and reference), and where the
-    virtual drives start them: at rest (`model.dynamics.rest_position`)."""
-    problems = []
-    for joint in load_robot(path).joints:
-        settings = OcpSettings().with_weights(**joint.weights)
-        if joint.friction_sharpness is not None:
-            settings = replace(settings, friction_sharpness=joint.friction_sharpness)
-        problems.append(JointProblem(joint.model, settings, reference=joint.reference))
-    return problems, np.array([dynamics.rest_position(p.model.parameters.packed())
-                               for p in problems])
-
-
 def measure_joints(joints: int, ticks: int, threads: int,
                    settings: OcpSettings = OcpSettings(),
                    problems: tuple[list[JointProblem], np.ndarray] | None = None) -> dict:
@@ -187,7 +166,7 @@ def measure_joints(joints: int, ticks: int, threads: int,
     in alternating blocks of ticks, so a change in the host's load hits both alike; `threads`
     is the lane blocks of the vectorised kernel and numba's thread count for both. The
     problems are `joint_problems` from their references' start unless `problems` gives them
-    with their start positions (`robot_problems`)."""
+    with their start positions (a robot's: `robot.bench.robot_problems`)."""
     if problems is None:
         chosen = joint_problems(joints, settings)
         problems = chosen, reference_starts(chosen)
@@ -218,14 +197,16 @@ def measure_joints(joints: int, ticks: int, threads: int,
 
 
 def run(ticks: int = 20_000, numpy_ticks: int = 300, joint_ticks: int = 5_000,
-        progress: Callable[[str], None] = lambda stage: None) -> dict:
+        progress: Callable[[str], None] = lambda stage: None,
+        robot: tuple[str, tuple[list[JointProblem], np.ndarray]] | None = None) -> dict:
     """Everything `bench --json` prints: the paper's N = 100 at 1 ms, the paper's robot setting
     (N = 5 at 3.3 ms) under `paper_robot`, and the batched MPC under `joints`: for each joint
-    count, and for talos_32's own problem (`robot_problems`), one and two threads, the
-    vectorised and the scalar kernel side by side. The host's
-    load average and core count come with the figures (they move them). `progress` is told
-    each stage as it starts (the whole run takes a quarter of a minute or more)."""
-    stages = 3 + len(JOINT_COUNTS)
+    count, and for a robot's own problem when `robot` gives it (its name, its problems and
+    start positions), one and two threads, the vectorised and the scalar kernel side by side.
+    The host's load average and core count come with the figures (they move them).
+    `progress` is told each stage as it starts (the whole run takes a quarter of a minute or
+    more)."""
+    stages = 2 + len(JOINT_COUNTS) + (robot is not None)
     progress(f"[1/{stages}] MPC N = 100 at 1 ms: {ticks} ticks, {numpy_ticks} of numpy iLQR")
     result = measure(OcpSettings(), ticks, numpy_ticks)
     result["paper_tick_us"] = PAPER_TICK_US
@@ -239,13 +220,14 @@ def run(ticks: int = 20_000, numpy_ticks: int = 300, joint_ticks: int = 5_000,
         result["joints"][str(joints)] = {
             f"threads_{threads}": measure_joints(joints, joint_ticks, threads)
             for threads in THREAD_COUNTS}
-    progress(f"[{stages}/{stages}] batched MPC of {TALOS.stem}'s problem: {joint_ticks} ticks "
-             f"on {', '.join(map(str, THREAD_COUNTS))} threads")
-    robot = robot_problems()
-    result["joints"][TALOS.stem] = {
-        f"threads_{threads}": measure_joints(len(robot[0]), joint_ticks, threads,
-                                             problems=robot)
-        for threads in THREAD_COUNTS}
+    if robot is not None:
+        name, problems = robot
+        progress(f"[{stages}/{stages}] batched MPC of {name}'s problem: {joint_ticks} ticks on "
+                 f"{', '.join(map(str, THREAD_COUNTS))} threads")
+        result["joints"][name] = {
+            f"threads_{threads}": measure_joints(len(problems[0]), joint_ticks, threads,
+                                                 problems=problems)
+            for threads in THREAD_COUNTS}
     result["default_threads"] = default_threads()
     result["cores"] = os.cpu_count()
     result["load_average"] = [round(load, 2) for load in os.getloadavg()]

@@ -7,6 +7,7 @@ master's, not the harness's, and needs no root or hardware.
 Joints are the elbow's model on one EtherCAT line (the shipped model: the bench needs no
 robot file); the robot's cycle is `controller.loop.ControlLoop`, in lock-step."""
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -15,10 +16,15 @@ from controller.loop import ControlLoop, LoopOptions
 from controller.mpc import BatchMpc, JointProblem
 from controller.problem import OcpSettings
 from driver.clock import DriveClock
+from model import dynamics
 from model.parameters import load_model
-from robot.description import JointSpec, RobotSpec, default_reference
+from robot.description import JointSpec, RobotSpec, default_reference, load_robot
 from robot.wiring import open_robot
 
+# the robot whose own problem `bench` times beside the elbow-like joints: its lighter joints
+# (wrists, grippers, head) made the in-loop tick five times the bench's 32 joints until the
+# friction step was made resolvable (controller.problem.resolvable_friction_sharpness)
+TALOS = Path(__file__).parent.parent / "robots" / "talos_32.toml"
 MASTER_JOINT_COUNTS = (1, 7, 32)  # an elbow, an arm, the whole TALOS
 LINE = "ethercat:bench0"  # a name only: the line is linked in this process
 # the MPC is not what is measured: a short horizon keeps the bench quick (its call is
@@ -61,3 +67,17 @@ def measure_master(joints: int, cycles: int) -> dict:
 def run(cycles: int = 3000) -> dict:
     """`bench --json`'s `master`: the master's own cost for 1, 7 and 32 joints."""
     return {str(joints): measure_master(joints, cycles) for joints in MASTER_JOINT_COUNTS}
+
+
+def robot_problems(path: Path = TALOS) -> tuple[list[JointProblem], np.ndarray]:
+    """A robot file's joints as `actuatord --robot` poses them at its default horizon and
+    step (each joint's model, weights, friction sharpness and reference), and where the
+    virtual drives start them: at rest (`model.dynamics.rest_position`)."""
+    problems = []
+    for joint in load_robot(path).joints:
+        settings = OcpSettings().with_weights(**joint.weights)
+        if joint.friction_sharpness is not None:
+            settings = replace(settings, friction_sharpness=joint.friction_sharpness)
+        problems.append(JointProblem(joint.model, settings, reference=joint.reference))
+    return problems, np.array([dynamics.rest_position(p.model.parameters.packed())
+                               for p in problems])

@@ -1,9 +1,9 @@
 """model-gap on harder data: every pair of library effects hidden together, effects outside
 the library (alone and beside each library effect), a joint far heavier than the elbow, and
 clean data. Each effect's parameters are drawn at random within the stated ranges (three seeds
-per case, one for the combinations with an outside effect); each case is recorded once on the
-virtual drive in lock-step (tests/gap_case.py, two processes sharing the cases) and its report
-shared by the tests."""
+per single effect, two per pair, one for the combinations with an outside effect); each case
+is recorded once on the virtual drive in lock-step (tests/gap_case.py, two processes sharing
+the cases) and its report shared by the tests."""
 
 import itertools
 import json
@@ -38,6 +38,9 @@ RANGES = {
     "warm_up_friction": {"excess_friction": (0.3, 0.8), "time_constant": (10.0, 40.0)},
 }
 SEEDS = (0, 1, 2)
+# two seeds per pair (ten pairs), three for the single effects: the suite stays under its 12
+# minutes (51 cases with three seeds per pair took 5-11 min of it: 12:28 in all, quiet)
+PAIR_SEEDS = (0, 1)
 PAIRS = list(itertools.combinations(LIBRARY_NAMES, 2))
 # library effects with no single-effect case in test_model_gap.py
 NEW = ("friction_ripple", "torque_constant_saturation")
@@ -50,7 +53,7 @@ HEAVY = {"first_moment_x": 4, "first_moment_y": 4, "drive_gain": 3, "link_inerti
          "dry_friction_motor": 3, "dry_friction_joint": 3, "torque_offset_motor": 3,
          "torque_offset_joint": 3}
 HEAVY_SATURATION = "torque_constant_saturation:coefficient=0.05,knee_current=2"
-CASES = ([(pair, seed, "elbow") for pair in PAIRS for seed in SEEDS]
+CASES = ([(pair, seed, "elbow") for pair in PAIRS for seed in PAIR_SEEDS]
          + [((name,), seed, "elbow") for name in (*NEW, *OUTSIDE) for seed in SEEDS]
          + [((outside, name), 0, "elbow") for outside in ("warm_up_friction",)
             for name in LIBRARY_NAMES]
@@ -98,7 +101,7 @@ def heavy_model(folder: Path) -> Path:
     return path
 
 
-# the first test pays for every case's recordings (61 cases, two at a time: 294-545 s measured
+# the first test pays for every case's recordings (41 cases, two at a time: 294-545 s measured
 # beside other test runs): longer than the suite's 300 s per-test default
 pytestmark = [pytest.mark.timeout(1800), pytest.mark.slow, pytest.mark.subprocess]
 
