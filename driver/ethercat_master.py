@@ -386,15 +386,21 @@ class EthercatMaster:
 
     def _keep(self, stop: threading.Event) -> None:
         while not stop.wait(KEEP_ALIVE / 2):
-            with self.lock:
-                if stop.is_set():
-                    return
-                try:
-                    self.keep_alive()
-                except DriveError:
-                    return  # kept in self.failure: the next cycle raises it, naming the slave
-                except pysoem.NetworkInterfaceNotOpenError:
-                    return  # the interface went away under it: the next cycle says so
+            if not self._keep_once(stop):
+                return
+
+    def _keep_once(self, stop: threading.Event) -> bool:
+        """One look of the keeper, under the line's lock; False: it ends."""
+        with self.lock:
+            if stop.is_set():
+                return False
+            try:
+                self.keep_alive()
+            except DriveError:
+                return False  # kept in self.failure: the next cycle raises it, naming the slave
+            except pysoem.NetworkInterfaceNotOpenError:
+                return False  # the interface went away under it: the next cycle says so
+        return True
 
     def _keep_windows(self, stop: threading.Event) -> None:
         """DC: SYNC0 wants outputs in every window, also while the cycle is busy elsewhere
@@ -404,17 +410,8 @@ class EthercatMaster:
         goes, as it holds the line for its round trip."""
         while True:
             _, wake = self.dc.window(time.monotonic())
-            if stop.wait(max(0.0, wake - time.monotonic())):
+            if stop.wait(max(0.0, wake - time.monotonic())) or not self._keep_once(stop):
                 return
-            with self.lock:
-                if stop.is_set():
-                    return
-                try:
-                    self.keep_alive()
-                except DriveError:
-                    return  # kept in self.failure: the next cycle raises it, naming the slave
-                except pysoem.NetworkInterfaceNotOpenError:
-                    return
 
     def keep_alive(self) -> None:
         """Real time, while OP: a frame when none went out for KEEP_ALIVE s (DC: since the

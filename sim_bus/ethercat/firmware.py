@@ -282,18 +282,22 @@ class SlaveFirmware:
         if self._op_requested:
             self._op_requested = False
             memory[ec.REG_AL_STATUS] = ec.AlState.OP | memory[ec.REG_AL_STATUS] & ec.AL_ERROR
+        self._run_cycle(memory[ec.REG_AL_STATUS] & ec.AL_STATE_MASK == ec.AlState.OP)
+
+    def _run_cycle(self, apply_outputs: bool) -> None:
+        """The drive's cycle: the outputs latched (when `apply_outputs`), one device cycle,
+        the inputs sampled into SM3; on a completed output buffer (free run) or on SYNC0."""
         device = self.device
-        if memory[ec.REG_AL_STATUS] & ec.AL_STATE_MASK == ec.AlState.OP and self._out_keys:
+        if apply_outputs and self._out_keys:
             try:
-                device.write_outputs(self._out_keys, self._unpack_outputs(memory,
+                device.write_outputs(self._out_keys, self._unpack_outputs(self.esc.memory,
                                                                           self._out_start))
             except DeviceAccessError as exc:
                 self.refused_outputs += 1
                 log.debug("outputs refused: %s", exc)
         device.cycle()
         self.cycles += 1
-        if self._in_keys:
-            self._pack_inputs(memory, self._in_start, *self._input_values(device.values))
+        self._write_inputs()
 
     def steady_keys(self) -> tuple[tuple, tuple] | None:
         """(output objects, input objects) of the process data while a completed output
@@ -345,17 +349,7 @@ class SlaveFirmware:
                     self._sync_lost(esc, ec.AL_SYNC_ERROR, "outputs missed their SYNC0 window "
                                     f"{self.missed_sync0} times")
                     state = ec.AlState.SAFE_OP
-        device = self.device
-        if state == ec.AlState.OP and fresh and self._out_keys:
-            try:
-                device.write_outputs(self._out_keys, self._unpack_outputs(memory,
-                                                                          self._out_start))
-            except DeviceAccessError as exc:
-                self.refused_outputs += 1
-                log.debug("outputs refused: %s", exc)
-        device.cycle()
-        self.cycles += 1
-        self._write_inputs()
+        self._run_cycle(state == ec.AlState.OP and fresh)
 
     def _sync_lost(self, esc: Esc, code: int, reason: str) -> None:
         """OP -> SAFE-OP with the error indicator and `code`, the output sync manager off (the
