@@ -313,11 +313,13 @@ class SlaveFirmware:
     def sync0_steady_keys(self) -> tuple[tuple, tuple] | None:
         """`steady_keys` in DC mode: (output objects, input objects) while a completed
         output buffer only waits for SYNC0 (`outputs_received`) and a SYNC0 with fresh
-        outputs does nothing but the drive's cycle (OP on SYNC0, no transition pending); the
-        segment's batch (`sim_bus.ethercat.frame_batch`) then moves the buffers and runs
-        the cycles of all such slaves at once. None otherwise."""
-        if not self._dc or self._op_requested or self.esc.memory[
-                ec.REG_AL_STATUS] & ec.AL_STATE_MASK != ec.AlState.OP:
+        outputs does nothing but the drive's cycle besides its bookkeeping (in OP on SYNC0,
+        or in SAFE-OP waiting for the first SYNC0 with outputs to enter OP); the segment's
+        batch (`sim_bus.ethercat.frame_batch`) then moves the buffers and runs the cycles
+        of all such slaves at once. None otherwise."""
+        state = self.esc.memory[ec.REG_AL_STATUS] & ec.AL_STATE_MASK
+        if not self._dc or (state != ec.AlState.OP or self._op_requested) and not (
+                state == ec.AlState.SAFE_OP and self._op_requested):
             return None
         return self._out_keys, self._in_keys
 

@@ -131,6 +131,8 @@ class FrameBatch:
         self.escs, self.firmwares, self.line = list(escs), list(firmwares), line
         count = len(self.escs)
         self.stale = True  # the slaves may have changed: find which are steady again
+        # their registers may have changed (FMMUs, sync managers): the frame plans too
+        self._replan = True
         # their drives may have run cycles the line was not told of: read them again
         self._drives_unknown = True
         self._steady = np.zeros(count, dtype=bool)
@@ -163,10 +165,10 @@ class FrameBatch:
         before = self._steady.copy(), self._dc.copy()
         self._steady[:] = self._dc[:] = False
         self._find_steady_into()
-        if self.stale or not (np.array_equal(before[0], self._steady)
+        if self._replan or not (np.array_equal(before[0], self._steady)
                               and np.array_equal(before[1], self._dc)):
             self._plans.clear()
-        self.stale = False
+        self.stale = self._replan = False
 
     def _find_steady_into(self) -> None:
         keys = [(firmware.steady_keys() or firmware.sync0_steady_keys()) if esc.present
@@ -285,13 +287,13 @@ class FrameBatch:
                 continue
             end = (frame[header + 4] | frame[header + 5] << 8) + length
             if command not in _READS or end > ec.PROCESS_RAM_START:
-                self.stale = self._drives_unknown = True
+                self.stale = self._replan = self._drives_unknown = True
                 return
 
     def slaves_changed(self, cycled: bool) -> None:
         """Something outside a frame changed the slaves (a watchdog expired, SYNC0 fired);
         `cycled`: their drives ran cycles too."""
-        self.stale = True
+        self.stale = self._replan = True
         self._drives_unknown = self._drives_unknown or cycled
 
     def cycled_elsewhere(self, rows: Sequence[int]) -> None:
@@ -479,4 +481,7 @@ class FrameBatch:
             line.cycled_elsewhere([k for k, _ in single])
             for k, apply in single:
                 firmwares[k].run_cycle(apply)
-            self.stale = True  # a state may have changed with them
+                # a slave that left its steady state (entered OP, lost its sync) is looked
+                # at again; one that only missed a window stays as it was
+                if steady[k] != (firmwares[k].sync0_steady_keys() is not None):
+                    self.stale = True

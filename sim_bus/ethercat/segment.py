@@ -219,7 +219,7 @@ def _routes(escs: Sequence[Esc], frame: bytearray, spans: list) -> list[list] | 
     when routing saves nothing or the frame itself may readdress a slave. A master's
     state read of a long line (one FPRD per slave in a frame) then costs a datagram per
     slave instead of the whole frame per slave (32 x 32 for TALOS, milliseconds)."""
-    if sum(1 for span in spans if span[0] in _ADDRESSED) < 2:
+    if not any(span[0] in _ADDRESSED for span in spans):
         return None
     for command, header, _, length in spans:
         if command in _WRITING:
