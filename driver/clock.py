@@ -105,6 +105,13 @@ class WallClock:
     """Real time: the monotonic wall clock (s, `time.perf_counter`)."""
 
     now = staticmethod(time.perf_counter)
+    # the watchdogs that time a peer on the wall (an ESC's process data watchdog, a keeper
+    # that sends frames while the cycle is busy) are on; a late answer is a failure
+    real_time = True
+
+    @staticmethod
+    def advance(seconds: float) -> None:
+        """A cycle of `seconds` ran: the wall clock moves by itself."""
 
     @staticmethod
     def sleep_until(deadline: float) -> None:
@@ -122,11 +129,17 @@ class DriveClock:
     deadline is the drives cycling up to it, so it returns at once with the clock there: a
     lock-step loop is never late and runs as fast as the drives answer."""
 
+    real_time = False  # wall-clock watchdogs off: the host may pause between two cycles
+
     def __init__(self) -> None:
         self._now = 0.0
 
     def now(self) -> float:
         return self._now
+
+    def advance(self, seconds: float) -> None:
+        """A cycle of `seconds` ran (an EtherCAT line's cyclic frame): drive time moves on."""
+        self._now += seconds
 
     def sleep_until(self, deadline: float) -> None:
         self._now = max(self._now, deadline)

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 
 import can
 
+from driver.clock import clock_for
 from model.parameters import ActuatorModel, Payload
 from protocol.bus_spec import is_ethercat, parse_bus_spec
 from robot.can_log import CanLog, LoggedBus, tap_link
@@ -113,6 +114,7 @@ def open_line_drive(bus: str, slave: int, model: ActuatorModel, *, esi: EsiDevic
     from driver.ethercat_drive import JointOnLine
 
     options = _master_options(model, lockstep, timing)
+    options["clock"] = clock_for(options.pop("lockstep"))  # the line's own time
     joint = JointOnLine(slave, options.pop("velocity_limit"), options.pop("drive_gain"),
                         current_max=options.pop("current_max"))
     drive = _open_on_line(bus, parse_bus_spec(bus)["channel"], [joint], esi=esi, eds=eds,
@@ -236,7 +238,7 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
                                 j.model.parameters.drive_gain, j.eds,
                                 j.model.limits.current_max, j.name, j.startup)
                     for j in on_line],
-                    period=period, lockstep=lockstep, response_timeout=response_timeout,
+                    period=period, clock=clock_for(lockstep), response_timeout=response_timeout,
                     sync=robot.sync(bus), **options)
                 segments[-1].joints = [(j.name, drive)
                                        for j, drive in zip(on_line, drives, strict=True)]
@@ -306,7 +308,7 @@ def _linked_line(robot: RobotSpec, on_line: list, seed: int,
         devices[joint.name] = device
         line.append(device)
     segment = VirtualLine(line)
-    return lambda: LinkedMaster(segment, lockstep)
+    return lambda: LinkedMaster(segment, clock_for(lockstep))
 
 
 def open_joint(robot: RobotSpec, joint: JointSpec, sim_model: ActuatorModel,
@@ -331,6 +333,7 @@ def open_joint(robot: RobotSpec, joint: JointSpec, sim_model: ActuatorModel,
         on_line = JointOnLine(joint.address, timing.pop("velocity_limit"),
                               timing.pop("drive_gain"), timing.pop("eds"),
                               timing.pop("current_max"), joint.name, timing.pop("startup"))
+        timing["clock"] = clock_for(timing.pop("lockstep"))  # the line's own time
         drive = _open_on_line(joint.bus, parse_bus_spec(joint.bus)["channel"], [on_line],
                               **timing)[0]
         return _one(drive, joint.name, where=joint.bus, address=f"slave {joint.address}")
