@@ -239,8 +239,9 @@ def compare_line(clocks: Sequence[DistributedClock], data: bytes, times: Sequenc
     """The reference clock's time `data` (8 bytes, as an FRMW of 0x0910 carries it) written to
     each of `clocks` at its own host time: `DistributedClock.written` for that write (the
     compare value in 0x0910, the time control loop's step, the difference in 0x092C), for a
-    whole line in a few array operations instead of a slave at a time (a tenth of the time
-    for 32 slaves). The same arithmetic in the same order, so the same results."""
+    whole line in a few array operations instead of a slave at a time through its ESC (31
+    slaves: 56 us of CPU against 176 us, measured with `time.thread_time`). The same
+    arithmetic in the same order, so the same results."""
     t = np.array(times, dtype=np.float64)
     local_at_zero = np.array([c._local_at_zero for c in clocks], dtype=np.float64)
     drift = np.array([c.drift for c in clocks], dtype=np.float64)
