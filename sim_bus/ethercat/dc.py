@@ -265,17 +265,24 @@ def compare_line(clocks: Sequence[DistributedClock], data: bytes, times: Sequenc
     integral = np.maximum(-MAX_SLEW, np.minimum(MAX_SLEW, integral
                                                 + LOOP_INTEGRAL_GAIN * difference))
     slew = np.maximum(-MAX_SLEW, np.minimum(MAX_SLEW, integral + LOOP_GAIN * difference))
+    # the next SYNC0's host time at the new rate, as `host_time_of` works it out at `t` (the
+    # loop asks for it next; a clock without one keeps None)
+    local = (local_at_zero + t * 1e9 * (1.0 + drift) + correction
+             + (t - t) * 1e9 * slew).astype(np.int64).astype(np.uint64)
+    following = np.array([c.next_sync0 or 0 for c in clocks], dtype=np.uint64)
+    ahead = (following - (local + offsets)).view(np.int64)
+    upcoming = (t + ahead * 1e-9 / (1.0 + drift + slew)).tolist()
     values = zip(correction.tolist(), integral.tolist(), slew.tolist(), register, times,
-                 strict=True)
+                 upcoming, strict=True)
     compare = bytes(data[:8])
-    for clock, (corrected, summed, slewed, difference_register, at) in zip(clocks, values,
-                                                                          strict=True):
+    for clock, (corrected, summed, slewed, difference_register, at, host) in zip(
+            clocks, values, strict=True):
         memory = clock.memory
         memory[REG_SYSTEM_TIME:REG_SYSTEM_TIME + 8] = compare
         _U32.pack_into(memory, REG_SYSTEM_TIME_DIFFERENCE, difference_register)
-        clock._next_host = None
         clock._correction, clock._anchor_t = corrected, at
         clock._integral, clock._slew = summed, slewed
+        clock._next_host = None if clock.next_sync0 is None else host
 
 
 def _signed64(value: int) -> int:

@@ -359,9 +359,10 @@ class FrameBatch:
                 esc._trigger_watchdog()
             firmware = firmwares[k]
             if dc_steady[k]:
-                status = esc.al_status
+                memory = esc.memory
+                status = memory[ec.REG_AL_STATUS]
                 firmware.outputs_received(esc)
-                if esc.al_status != status:  # its sync was lost: slave by slave again
+                if memory[ec.REG_AL_STATUS] != status:  # its sync lost: slave by slave again
                     self.stale = True
             else:
                 firmware.cycles += 1
