@@ -23,6 +23,7 @@ robot gives one (`names`).
 
 import logging
 import socket
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -44,6 +45,7 @@ DRIVE_TIME_RESPONSE_TIMEOUT = 1.0  # s: on drive time a late frame is no failure
 REALTIME_RESPONSE_TIMEOUT = 0.1  # s: the slaves' default process data watchdog
 DEFAULT_WATCHDOG = 0.1  # s: the ESC's reset value (ETG.1000.4: 1000 x 100 us)
 KEEP_ALIVE = 0.02  # s: a fifth of the ESC's default watchdog
+KEEPER_SWITCH_SHARE = 0.25  # DC: the interpreter's switch interval at most this share of a period
 SCAN_RETRY = 0.1  # s between two scans of a line that did not answer right
 SYNC_MODES = ("free_run", "dc")
 DEFAULT_DC_PERIOD = 1e-3  # s: SYNC0 period when no transport said (start sets it)
@@ -384,6 +386,12 @@ class EthercatMaster:
         for the same reason. On drive time there is none: a frame is a cycle of it there."""
         if not self.clock.real_time or self._keeper_stop is not None:
             return
+        # the keeper is a Python thread: while another holds the interpreter (the cold solve,
+        # a garbage collection) it waits for the switch interval, 5 ms by default, longer
+        # than the three SYNC0 windows a slave forgives on distributed clocks
+        if self.dc is not None:
+            sys.setswitchinterval(min(sys.getswitchinterval(),
+                                      KEEPER_SWITCH_SHARE * self.dc.period_ns * 1e-9))
         stop = self._keeper_stop = threading.Event()
         threading.Thread(target=self._keep if self.dc is None else self._keep_windows,
                          args=(stop,), daemon=True,
