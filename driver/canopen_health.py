@@ -83,6 +83,10 @@ class BusWatch:
         self._lock = threading.Lock()
         # master id -> [drives producing it, when the next beat is due (on the clock)]
         self._beats: dict[int, list] = {}
+        # before this time on the clock nothing is due (no beat, no drive's deadline): a
+        # cycle's look is one comparison. A beat received only moves a deadline later, so an
+        # early `_due` costs one look too many, never a late verdict
+        self._due = -math.inf
         self._thread_stop: threading.Event | None = None
         deliver = network.notify
 
@@ -124,15 +128,24 @@ class BusWatch:
     def tick(self) -> None:
         """What is due on the clock now: the master's heartbeats, every drive's heartbeat
         judged. From the bus's cycle, and between cycles from the thread (`_run_alone`)."""
+        now = self.clock.now()
+        if now < self._due:
+            return
         with self._lock:
-            now = self.clock.now()
+            due = math.inf
             for beat in self._beats.values():
                 if now >= beat[1] - SAME_TIME:
                     beat[1] = now + MASTER_HEARTBEAT_MS * 1e-3
                     self.network.send_message(beat[2], _OPERATIONAL)
-            healths = self._healths
+                due = min(due, beat[1])
+            healths = list(self._healths)
         for health in healths:
-            health.check(now)
+            due = min(due, health.check(now))
+        self._due = due - SAME_TIME
+
+    def look_soon(self) -> None:
+        """A deadline was set: the next `tick` looks at everything."""
+        self._due = -math.inf
 
     def start_producing(self, master_id: int) -> None:
         """Beat as node `master_id` (NMT operational) every MASTER_HEARTBEAT_MS of the bus's
@@ -143,6 +156,7 @@ class BusWatch:
                 producers[0] += 1
                 return
             self._beats[master_id] = [1, self.clock.now(), cia301.HEARTBEAT_BASE + master_id]
+        self.look_soon()
         self.tick()  # the first beat now
         self._run_alone()
 
@@ -235,6 +249,7 @@ class Health:
                          if heartbeat_ms > 0 else math.inf)
         self.last_heartbeat = self.clock.now()
         self._in_use = True
+        self.bus.look_soon()
         self.bus.restart_count()  # bring-up traffic is not load
         self.bus._run_alone()
 
@@ -246,17 +261,21 @@ class Health:
                                            "while in use"))
         self.last_heartbeat = self.clock.now()
 
-    def check(self, now: float) -> None:
-        """Lost when silent past the timeout at `now` (on the bus's clock)."""
+    def check(self, now: float) -> float:
+        """Lost when silent past the timeout at `now` (on the bus's clock). Returns when
+        this drive is next due to be judged (inf: not watched)."""
         last = self.last_heartbeat
-        if last is None or not self._in_use or now - last <= self._timeout:
-            return
+        if last is None or not self._in_use:
+            return math.inf
+        if now - last <= self._timeout:
+            return last + self._timeout
         self._in_use = False  # one verdict per loss
         error = DriveLost(f"{self.name}: heartbeat missing for "
                           f"{self.clock.span(now - last, self.period)} (producer period "
                           f"{self.heartbeat_ms} ms)")
         log.error("%s", error)
         self._on_failure(error)
+        return math.inf
 
     # --- the master's own heartbeat ---------------------------------------------------------
 
