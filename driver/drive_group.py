@@ -3,8 +3,9 @@ every joint sampled in that cycle, every command sent before the next.
 
 A `DriveGroup` owns the segments (a CAN bus, an EtherCAT line) and, through them, the joints'
 `Cia402Drive`s. A cycle first triggers every segment (so the buses run side by side), then
-collects every joint's sample; commands go out joint by joint right after the controller has
-decided, which is before the next cycle's trigger. A failure on one joint is raised as a
+collects every segment's samples as one array; commands go out segment by segment, each in
+one pass over its joints, right after the controller has decided, which is before the next
+cycle's trigger. A failure on one joint is raised as a
 `JointFailure` naming it; the caller then stops every joint (`quick_stop_all`), because the
 others were planned on the assumption that the whole arm moves together.
 """
@@ -53,9 +54,8 @@ class JointFailure(DriveError):
 class Segment:
     """Drives whose process data travels together. This base covers drives whose transports
     already share one frame a cycle, each `sync()`ed in turn (EtherCAT: the line sends the
-    frame at the first `sync` of a cycle and the others read it; `open_ethercat_drives` on
-    branch `ethercat`), and a drive alone on its CAN bus (its `sync` is the single-joint
-    path exactly)."""
+    frame at the first `sync` of a cycle and the others read it), as a line whose slaves do
+    not share one layout runs, and an EtherCAT joint alone (`single_joint`)."""
 
     def __init__(self, name: str, joints: Sequence[tuple[str, Cia402Drive]]):
         self.name = name
