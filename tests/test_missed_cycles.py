@@ -55,17 +55,17 @@ def test_a_slow_decision_is_named_as_the_cause_of_its_missed_cycles():
 
 
 def slow_sample(group):
-    """`group` (one bus) with its sample late every EVERY-th cycle (the bus's collect
-    stalls)."""
+    """`group` (one bus) with its sample late every EVERY-th cycle: the bus's exchange stalls
+    before its SYNC goes out (as a drive's `sync` stalled when a joint had its own)."""
     segment = group.segments[0]
-    collect, cycles = segment.collect, itertools.count(1)
+    trigger, cycles = segment.trigger, itertools.count(1)
 
-    def stalling_collect():
+    def stalling_trigger():
         if next(cycles) % EVERY == 0:
             time.sleep(STALL)
-        return collect()
+        trigger()
 
-    segment.collect = stalling_collect
+    segment.trigger = stalling_trigger
     return group
 
 
