@@ -43,6 +43,7 @@ def _stage(text: str) -> None:
 
 
 def _lockstep_in_process(cycles: int) -> float:
+    from driver.clock import clock_for
     from model.parameters import Payload, load_model
     from sim_bus.canopen_node import CanOpenNode
     from sim_bus.device import Cia402Device
@@ -55,7 +56,7 @@ def _lockstep_in_process(cycles: int) -> float:
                       lockstep=True)
     sim.boot()
     master = CanOpenDrive(open_network(channel), 2, velocity_limit=model.limits.velocity_max,
-                          lockstep=True)
+                          clock=clock_for(lockstep=True))
     try:
         master.start()
         start = time.perf_counter()

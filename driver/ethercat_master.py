@@ -106,7 +106,7 @@ class EthercatMaster:
         self.esi = esi
         self.clock = clock if clock is not None else WallClock()
         if response_timeout is None:
-            response_timeout = REALTIME_RESPONSE_TIMEOUT if self.clock.real_time else (
+            response_timeout = REALTIME_RESPONSE_TIMEOUT if self.clock.runs_alone else (
                 DRIVE_TIME_RESPONSE_TIMEOUT)
         self.response_timeout_us = int(response_timeout * 1e6)
         self.watchdog = watchdog
@@ -213,7 +213,7 @@ class EthercatMaster:
                 # written in real time too, never left as found: an earlier drive-time master
                 # (killed, or one that never closed) may have switched it off, and a slave
                 # without it keeps its drive enabled when this master dies
-                milliseconds = 0.0 if not self.clock.real_time else (
+                milliseconds = 0.0 if not self.clock.runs_alone else (
                     self.watchdog if self.watchdog is not None else DEFAULT_WATCHDOG) * 1e3
                 for slave in self.slaves:
                     slave.set_watchdog("processdata", milliseconds)
@@ -384,7 +384,7 @@ class EthercatMaster:
         slaves' watchdog: at worst the drives hold the last command a little longer. A real
         master (SOEM's examples, ros2_control's EtherCAT drivers) keeps its own cyclic thread
         for the same reason. On drive time there is none: a frame is a cycle of it there."""
-        if not self.clock.real_time or self._keeper_stop is not None:
+        if not self.clock.runs_alone or self._keeper_stop is not None:
             return
         # the keeper is a Python thread: while another holds the interpreter (the cold solve,
         # a garbage collection) it waits for the switch interval, 5 ms by default, longer
@@ -431,7 +431,7 @@ class EthercatMaster:
         last SYNC0), so an acyclic sequence between cycles (enabling the drive by CoE) does
         not starve the slaves' watchdog (DC: their SYNC0 windows). Drive time needs none (the
         watchdog is off) and gets none (a frame is a cycle of it there)."""
-        if not self.clock.real_time or not self.operational or self.failure is not None:
+        if not self.clock.runs_alone or not self.operational or self.failure is not None:
             return
         now = time.monotonic()
         if self.dc is not None:

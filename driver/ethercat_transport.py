@@ -101,7 +101,7 @@ class EthercatTransport(Transport):
         outputs until the slaves dropped out with 0x001A; a cyclic master steers CiA 402
         through the PDOs anyway."""
         line = self.line
-        return line.dc is not None and line.operational and line.clock.real_time and self._mapped
+        return line.dc is not None and line.operational and line.clock.runs_alone and self._mapped
 
     def read(self, index: int, subindex: int = 0) -> int:
         var = self._variable(index, subindex)

@@ -13,6 +13,7 @@ import pytest
 from can.interfaces.udp_multicast import UdpMulticastBus
 
 from driver.canopen_drive import CanOpenDrive
+from driver.clock import clock_for
 from model.parameters import Payload, load_model
 from protocol.bus_spec import parse_bus_spec
 from sim_bus.embedded import EmbeddedDrive
@@ -30,7 +31,8 @@ def virtual_pair(payload: Payload = Payload(), noise: SensorNoise = SensorNoise(
     model = model or load_model()
     embedded = EmbeddedDrive(model, payload, noise, 2, lockstep=lockstep)
     master = CanOpenDrive(embedded.master_network, 2, velocity_limit=model.limits.velocity_max,
-                          drive_gain=model.parameters.drive_gain, lockstep=lockstep,
+                          drive_gain=model.parameters.drive_gain,
+                          clock=clock_for(lockstep),
                           **drive_kwargs)
     try:
         yield embedded.node, master

@@ -48,7 +48,7 @@ def track(drive) -> tuple[int, float, int]:
 
 def can_drive(sim: EmbeddedDrive) -> CanOpenDrive:
     return CanOpenDrive(sim.master_network, 2, velocity_limit=MODEL.limits.velocity_max,
-                        drive_gain=MODEL.parameters.drive_gain, lockstep=True)
+                        drive_gain=MODEL.parameters.drive_gain, clock=DriveClock())
 
 
 def ethercat_drive(link: VirtualLink):

@@ -14,6 +14,7 @@ import pytest
 
 from driver import ProfileError
 from driver.canopen_drive import CanOpenDrive
+from driver.clock import DriveClock
 from model.parameters import Payload, load_model
 from protocol import cia301, eds_path, objects
 from protocol.cia402 import State
@@ -159,7 +160,7 @@ def test_a_nmt_reset_leaves_the_power_stage_off_and_the_brake_holds_the_load():
     heavy = Payload(30.0, 0.0, 0.05)  # the paper's heaviest: 25 N.m of gravity at -1.5 rad
     sim = EmbeddedDrive(MODEL, heavy, SensorNoise(), 2, lockstep=True, initial_position=-1.5)
     drive = CanOpenDrive(sim.master_network, 2, velocity_limit=MODEL.limits.velocity_max,
-                         lockstep=True)
+                         clock=DriveClock())
     try:
         drive.start()
         assert sim.device.state is State.OPERATION_ENABLED

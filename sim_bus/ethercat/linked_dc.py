@@ -28,7 +28,7 @@ class LineClock(Protocol):
     """What the line needs of the clock it is given (`driver.clock.WallClock` or
     `DriveClock`, made by the master's side with `clock_for`)."""
 
-    real_time: bool
+    runs_alone: bool
 
     def now(self) -> float: ...
 
@@ -42,7 +42,7 @@ class LinkedClock:
         self.escs = list(escs)
         self.clock = clock
         self.configured = False  # config_dc ran: the cyclic frame carries the time datagram
-        if not clock.real_time:
+        if not clock.runs_alone:
             for esc in self.escs:
                 esc.dc.drift = 0.0
 
@@ -59,7 +59,7 @@ class LinkedClock:
         propagation delay (0x0928) from the port times of the slave and its parent."""
         t = self.now()
         self._at(t)
-        if self.clock.real_time:
+        if self.clock.runs_alone:
             master_time = time.time_ns() - EPOCH_2000_NS
         else:
             master_time = int(round(t * 1e9))  # drive time
@@ -101,7 +101,7 @@ class LinkedClock:
         if not self.configured:
             return None
         t = self.now()
-        if self.clock.real_time:
+        if self.clock.runs_alone:
             self.run_sync0(t)
         self._at(t)
         present = [esc for esc in self.escs if esc.present]
@@ -117,7 +117,7 @@ class LinkedClock:
     def after_frame(self) -> None:
         """Drive time: a SYNC0 cycle of it passes, with the SYNC0 that takes this frame's
         outputs and samples the inputs the next frame reads."""
-        if self.clock.real_time or not self.configured:
+        if self.clock.runs_alone or not self.configured:
             return
         cycle = next((esc.dc.cycle_time for esc in self.escs if esc.dc.sync0_active), 0)
         if cycle:
