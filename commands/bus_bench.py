@@ -43,6 +43,7 @@ def _stage(text: str) -> None:
 
 
 def _lockstep_in_process(cycles: int) -> float:
+    from driver.clock import clock_for
     from model.parameters import Payload, load_model
     from sim_bus.canopen_node import CanOpenNode
     from sim_bus.device import Cia402Device
@@ -52,7 +53,7 @@ def _lockstep_in_process(cycles: int) -> float:
     channel = f"virtual:bench-{random.getrandbits(32)}"
     sim_network = open_network(channel)
     sim = CanOpenNode(sim_network, 2, Cia402Device(model, Payload(), SensorNoise(), node_id=2),
-                      lockstep=True)
+                      clock=clock_for(lockstep=True))
     sim.boot()
     master = CanOpenDrive(open_network(channel), 2, velocity_limit=model.limits.velocity_max,
                           lockstep=True)

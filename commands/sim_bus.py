@@ -36,6 +36,7 @@ from commands.sim_options import (
     parse_fault,
     with_truth_effects,
 )
+from driver.clock import WallClock
 from model.parameters import ActuatorModel, ModelFileError, Payload
 from protocol.bus_spec import BusSpecError, is_ethercat
 from robot.wiring import describe_bus, open_can_network
@@ -244,7 +245,9 @@ def main(argv: list[str] | None = None) -> int:
                         seed=args.seed)
     device = Cia402Device(model, payload, noise, eds_path=args.eds,
                           initial_position=args.initial_position, node_id=args.node_id)
-    node = CanOpenNode(network, args.node_id, device, silence_timeout=_silence_timeout(args))
+    # a drive on a bus keeps its own clock, as hardware does: the wall clock
+    node = CanOpenNode(network, args.node_id, device, clock=WallClock(),
+                       silence_timeout=_silence_timeout(args))
     for fault, seconds in schedule:
         device.schedule(fault, seconds)
     stop = threading.Event()

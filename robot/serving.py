@@ -86,6 +86,7 @@ def serve_robot(robot: RobotSpec, *, seed: int, current_noise: float, torque_noi
     what python-can or the raw socket raises (CanError, OSError, ImportError), with whatever
     was opened released."""
     from driver.canopen_transport import open_network
+    from driver.clock import WallClock
     from sim_bus.embedded import make_device, power_on
 
     def noise_of(joint: JointSpec) -> SensorNoise:
@@ -109,7 +110,8 @@ def serve_robot(robot: RobotSpec, *, seed: int, current_noise: float, torque_noi
             for joint in joints:
                 served.nodes.append(power_on(served.networks[-1], joint.model, Payload(),
                                              noise_of(joint), joint.address,
-                                             eds_path=joint.eds, commissioned=True,
+                                             clock=WallClock(), eds_path=joint.eds,
+                                             commissioned=True,
                                              silence_timeout=silence_timeout))
                 served.served.append((joint.name, served.nodes[-1].device))
         for line in served.lines:

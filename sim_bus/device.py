@@ -548,12 +548,12 @@ class Cia402Device:
             self._alone = None
 
     def run_alone(self, now: float) -> None:
-        """Real time only, from the exposing node's idle loop (`now`: its monotonic clock, s):
-        a drive whose master is gone keeps its own control loop running, one cycle a period,
-        so its quick stop ends in switch on disabled once the motor stands still and a loaded
-        joint moves as it would, without anyone sending a SYNC or a frame. Cycles the bus
-        drives (a new master's) take precedence: while they come nothing runs here. Lock-step
-        never calls this: its drive time is the bus's cycles only."""
+        """From the exposing node's watch (`now`: the drive's own time, s): a drive whose
+        master is gone keeps its own control loop running, one cycle a period, so its quick
+        stop ends in switch on disabled once the motor stands still and a loaded joint moves
+        as it would, without anyone sending a SYNC or a frame. Cycles the bus drives (a new
+        master's) take precedence: while they come nothing runs here, so on lock-step drive
+        time, which only the bus's cycles advance, nothing ever does."""
         self._settle()
         if self.master_loss is None and self._alone is None:
             return  # the every-frame case, without the lock

@@ -14,6 +14,7 @@ import pytest
 
 from driver import ProfileError
 from driver.canopen_drive import CanOpenDrive
+from driver.clock import DriveClock, WallClock
 from model.parameters import Payload, load_model
 from protocol import cia301, eds_path, objects
 from protocol.cia402 import State
@@ -96,7 +97,8 @@ def test_a_standard_cst_drive_in_another_process_is_driven_with_standard_objects
 
 
 def test_a_drive_without_a_torque_mode_is_refused_naming_what_is_missing():
-    sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(), 2, eds_path=POSITION_VELOCITY_ONLY)
+    sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(), 2, clock=WallClock(),
+                        eds_path=POSITION_VELOCITY_ONLY)
     frames = []
     sim.network.subscribe(cia301.NMT_COB_ID, lambda *frame: frames.append(frame))
     try:
@@ -111,7 +113,7 @@ def test_a_drive_without_a_torque_mode_is_refused_naming_what_is_missing():
 
 
 def embedded_operational(eds=None) -> tuple[EmbeddedDrive, list[int]]:
-    sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(), 2, lockstep=True, eds_path=eds)
+    sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(), 2, clock=DriveClock(), eds_path=eds)
     emcys: list[int] = []
     sim.master_network.subscribe(cia301.EMCY_BASE + 2,
                                  lambda _, data, __: emcys.append(struct.unpack("<H",
@@ -157,7 +159,8 @@ def test_the_default_pdo_mapping_of_the_eds_is_live_at_boot():
 
 def test_a_nmt_reset_leaves_the_power_stage_off_and_the_brake_holds_the_load():
     heavy = Payload(30.0, 0.0, 0.05)  # the paper's heaviest: 25 N.m of gravity at -1.5 rad
-    sim = EmbeddedDrive(MODEL, heavy, SensorNoise(), 2, lockstep=True, initial_position=-1.5)
+    sim = EmbeddedDrive(MODEL, heavy, SensorNoise(), 2, clock=DriveClock(),
+                        initial_position=-1.5)
     drive = CanOpenDrive(sim.master_network, 2, velocity_limit=MODEL.limits.velocity_max,
                          lockstep=True)
     try:
@@ -194,7 +197,8 @@ def test_a_fresh_drive_has_its_physics_compiled_before_it_boots():
 def test_without_an_echo_a_tpdo_from_before_the_sync_is_not_taken_for_its_answer():
     """A standard drive does not echo the SYNC counter: the synchronous window decides. A
     frame stamped before SYNC k (a late answer to k-1 crossing it) is refused."""
-    sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(), 2, eds_path=CST_STANDARD)
+    sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(), 2, clock=WallClock(),
+                        eds_path=CST_STANDARD)
     drive = CanOpenDrive(sim.master_network, 2, velocity_limit=MODEL.limits.velocity_max,
                          drive_gain=MODEL.parameters.drive_gain, eds=CST_STANDARD)
     stale = struct.pack("<Hi", 0x0237, 12345)
