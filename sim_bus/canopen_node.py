@@ -46,11 +46,12 @@ NMT_STATE_NAMES = {cia301.NMT_BOOT_UP: "INITIALISING", cia301.NMT_STOPPED: "STOP
 class _Pdo:
     """One enabled PDO as configured in the dictionary: COB-ID, codec, the objects' keys."""
 
-    __slots__ = ("cob_id", "codec", "keys", "values_of", "every", "synchronous")
+    __slots__ = ("cob_id", "codec", "pack", "keys", "values_of", "every", "synchronous")
 
     def __init__(self, cob_id: int, layout: PdoLayout, transmission: int):
         self.cob_id = cob_id
         self.codec = layout.struct
+        self.pack = self.codec.pack
         self.keys = tuple((o.index, o.subindex) for o in layout.objects)
         getter = operator.itemgetter(*self.keys)
         # the values of the mapped objects from the device's value table, always as a tuple
@@ -215,20 +216,28 @@ class CanOpenNode:
             if not self._sync_length_reported:
                 self._sync_length_reported = True
                 self._send_emcy(cia301.EMCY_SYNC_LENGTH, cia301.ERROR_REGISTER_COMMUNICATION)
-        else:
+        elif self._sync_length_reported:
             self._sync_length_reported = False
-        for pdo, values in self._latched:
-            device.write_outputs(pdo.keys, values)
-        self._latched = []
-        self.sync_count += 1
+        latched = self._latched
+        if latched:
+            for pdo, values in latched:
+                device.write_outputs(pdo.keys, values)
+            latched.clear()
+        self.sync_count = count = self.sync_count + 1
         self._reboot_in_cycle = False
         device.cycle(data[0] if data else 0)
         self.time.tick(device.period)
         if self._silent or self._reboot_in_cycle:
             return
         table = device.values
-        frames = [(pdo.cob_id, pdo.codec.pack(*pdo.values_of(table)))
-                  for pdo in self._tpdos if self.sync_count % pdo.every == 0]
+        if not (self._twice_once or self._late_once):  # every cycle: no list, no copies
+            send = self.network.send_message
+            for pdo in self._tpdos:
+                if pdo.every == 1 or count % pdo.every == 0:
+                    send(pdo.cob_id, pdo.pack(*pdo.values_of(table)))
+            return
+        frames = [(pdo.cob_id, pdo.pack(*pdo.values_of(table)))
+                  for pdo in self._tpdos if count % pdo.every == 0]
         if self._twice_once:
             self._twice_once = False
             frames = frames * 2
