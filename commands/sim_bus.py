@@ -44,6 +44,7 @@ from sim_bus.canopen_node import CanOpenNode
 from sim_bus.canopen_watchdogs import DEFAULT_SILENCE_TIMEOUT
 from sim_bus.device import Cia402Device
 from sim_bus.faults import Fault
+from sim_bus.multicast import MulticastNetwork, MulticastReceiver
 from sim_bus.plant import SensorNoise
 from sim_bus.priority import answer_like_hardware
 
@@ -233,10 +234,17 @@ def main(argv: list[str] | None = None) -> int:
     if interface is not None:
         return _serve_line(args, interface, model, payload, schedule)
 
-    where = describe_bus(bus_config(args))
+    config = bus_config(args)
+    where = describe_bus(config)
     can_log = open_can_log(args) if args.can_log else None
+    receiver = None
     try:
-        network = open_can_network(bus_config(args), can_log)
+        if config.get("interface") == "udp_multicast" and can_log is None:
+            # the lean path for the bus that stands in for CAN here (`sim_bus.multicast`)
+            network = MulticastNetwork(config)
+            receiver = MulticastReceiver([network])
+        else:
+            network = open_can_network(config, can_log)
     except Exception as exc:  # python-can raises per interface: CanError, OSError, ImportError
         if can_log is not None:
             can_log.stop()
@@ -253,6 +261,8 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    if receiver is not None:
+        receiver.start()
     node.boot()
     answer_like_hardware()
     print(f"sim-bus: node {args.node_id} on {where} ready ({model.name or model.source}, "
@@ -260,6 +270,8 @@ def main(argv: list[str] | None = None) -> int:
     stop.wait()
     print(f"sim-bus: stopped after {device.cycle_count} SYNC cycles, drive state "
           f"'{device.state.value}' at {device.plant.position:.3f} rad", flush=True)
+    if receiver is not None:
+        receiver.stop()
     node.close()
     network.disconnect()
     if can_log is not None:
