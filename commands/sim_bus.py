@@ -2,10 +2,12 @@
 until SIGINT/SIGTERM."""
 
 import argparse
+import contextlib
+import logging
 import signal
 import sys
 import threading
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 from commands.bus_options import (
     add_bus_arguments,
@@ -36,7 +38,7 @@ from commands.sim_options import (
     parse_fault,
     with_truth_effects,
 )
-from driver.clock import WallClock
+from driver.clock import WallClock, collector_off_the_cycle, lock_memory
 from model.parameters import ActuatorModel, ModelFileError, Payload
 from protocol.bus_spec import BusSpecError, is_ethercat
 from robot.wiring import describe_bus, open_can_network
@@ -49,6 +51,7 @@ from sim_bus.plant import SensorNoise
 from sim_bus.priority import answer_like_hardware
 
 PROG = "sim-bus"
+log = logging.getLogger(PROG)
 
 
 def build_parser() -> CommandParser:
@@ -125,10 +128,10 @@ def _serve_robot(args) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    answer_like_hardware()  # once every drive is ready: their answers are the hardware's
-    print(f"sim-bus: {len(served.served)} drives of {robot.name} on "
-          f"{', '.join(robot.buses())} ready", flush=True)
-    served.serve_until(stop)
+    with _like_hardware():  # once every drive is ready: their answers are the hardware's
+        print(f"sim-bus: {len(served.served)} drives of {robot.name} on "
+              f"{', '.join(robot.buses())} ready", flush=True)
+        served.serve_until(stop)
     print("sim-bus: stopped; " + ", ".join(
         f"{name} {device.cycle_count} cycles '{device.state.value}' at "
         f"{device.plant.position:.3f} rad" for name, device in served.served), flush=True)
@@ -195,6 +198,21 @@ def _serve_line(args: argparse.Namespace, interface: str, model: ActuatorModel,
                          if report["master_loss"] else ""))
     print(f"sim-bus: stopped after {segment.frames} frames; " + "; ".join(states), flush=True)
     return 0
+
+
+@contextlib.contextmanager
+def _like_hardware() -> Iterator[None]:
+    """Serve as the hardware the drives stand in for answers, whatever the host does: at
+    real-time priority (`answer_like_hardware`), the process's pages locked in memory, and
+    Python's collector kept off what exists by now (`driver.clock`: a full collection walks
+    every long-lived object, tens of ms during which no frame is answered, and a master
+    declares the drives lost). Each refusal is one warning; the drives still serve."""
+    for what, refused in (("real-time priority", answer_like_hardware()),
+                          ("locked memory", lock_memory())):
+        if refused is not None:
+            log.warning("%s refused (%s): answers may come late on a busy host", what, refused)
+    with collector_off_the_cycle():
+        yield
 
 
 def _silence_timeout(args) -> float | None:
@@ -264,10 +282,10 @@ def main(argv: list[str] | None = None) -> int:
     if receiver is not None:
         receiver.start()
     node.boot()
-    answer_like_hardware()
-    print(f"sim-bus: node {args.node_id} on {where} ready ({model.name or model.source}, "
-          f"payload {payload.mass} kg at ({payload.x}, {payload.y}) m)", flush=True)
-    stop.wait()
+    with _like_hardware():
+        print(f"sim-bus: node {args.node_id} on {where} ready ({model.name or model.source}, "
+              f"payload {payload.mass} kg at ({payload.x}, {payload.y}) m)", flush=True)
+        stop.wait()
     print(f"sim-bus: stopped after {device.cycle_count} SYNC cycles, drive state "
           f"'{device.state.value}' at {device.plant.position:.3f} rad", flush=True)
     if receiver is not None:
