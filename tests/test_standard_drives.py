@@ -183,15 +183,18 @@ def test_a_nmt_reset_leaves_the_power_stage_off_and_the_brake_holds_the_load():
 
 def test_a_fresh_drive_has_its_physics_compiled_before_it_boots():
     """Nothing is compiled on the bus path (a fresh sim-bus answered its first SYNC 0.3-0.5 s
-    late): building the device compiles, or loads, the integrator."""
-    probe = ("from model import dynamics; from model.parameters import load_model; "
+    late): building the device compiles, or loads, the integrator. The cycle's integrator is
+    the compiled period of `sim_bus.sensing` (physics and sensors in one call), the sample at
+    a reset its `sample`."""
+    probe = ("from sim_bus import sensing; from model.parameters import load_model; "
              "from sim_bus.device import Cia402Device; "
-             "assert not dynamics.step_sensed.signatures; Cia402Device(load_model()); "
-             "print(len(dynamics.step_sensed.signatures))")
+             "kernels = (sensing.advance_and_sample, sensing.sample); "
+             "assert not any(k.signatures for k in kernels); Cia402Device(load_model()); "
+             "print(*(len(k.signatures) for k in kernels))")
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
                          timeout=120)
     assert out.returncode == 0, out.stderr
-    assert int(out.stdout) == 1
+    assert out.stdout.split() == ["1", "1"]
 
 
 def test_without_an_echo_a_tpdo_from_before_the_sync_is_not_taken_for_its_answer():
