@@ -350,25 +350,20 @@ _SINGLE_JOINT_OPTIONS = (("--model", "model", None), ("--bus", "bus", None),
 def _robot_problems(args: argparse.Namespace, robot) -> list:
     """One optimal control problem per joint: the command line's horizon, step and weights,
     the robot file's weights and reference for the joint on top."""
+    from robot.problems import joint_problems
+
     common = parse_assignments(args.weight, Weights.__dataclass_fields__, "--weight")
     if not 2 <= args.horizon <= MAX_HORIZON:
         raise ValueError(f"--horizon {args.horizon}: expected 2..{MAX_HORIZON} steps")
-    problems = []
-    for joint in robot.joints:
+    try:
+        problems = joint_problems(robot, OcpSettings(horizon=args.horizon, dt=args.dt), common)
+    except ValueError as exc:
+        raise ValueError(f"--weight/--dt for {exc}") from None
+    for joint, problem in zip(robot.joints, problems, strict=True):
         try:
-            settings = OcpSettings(horizon=args.horizon, dt=args.dt).with_weights(
-                **{**common, **joint.weights})
-            if joint.friction_sharpness is not None:
-                settings = dataclasses.replace(settings,
-                                               friction_sharpness=joint.friction_sharpness)
-            settings.check_weights()
-        except ValueError as exc:
-            raise ValueError(f"--weight/--dt for joint {joint.name}: {exc}") from None
-        try:
-            _check_resolution(settings, joint.model, args.period_us)
+            _check_resolution(problem.settings, joint.model, args.period_us)
         except ValueError as exc:
             raise ValueError(f"joint {joint.name}: {exc}") from None
-        problems.append(JointProblem(joint.model, settings, reference=joint.reference))
     return problems
 
 
@@ -380,7 +375,8 @@ def _robot_parameters(robot, problems: list) -> dict:
          "limits": vars(joint.model.limits), "provenance": joint.model.provenance,
          "settings": {"horizon": problem.settings.horizon, "dt": problem.settings.dt,
                       "weights": vars(problem.settings.weights),
-                      "friction_sharpness": problem.settings.friction_sharpness},
+                      "friction_sharpness": problem.settings.friction_sharpness,
+                      "friction_sharpness_solved": problem.friction_sharpness_solved},
          "reference": {"kind": type(joint.reference).__name__.lower(), **vars(joint.reference)}}
         for joint, problem in zip(robot.joints, problems, strict=True)]}
 

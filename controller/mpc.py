@@ -41,7 +41,14 @@ from controller.ilqr import (
     store_stage,
 )
 from controller.policy import Decision, PlanSnapshot
-from controller.problem import C_DT, N_COST, OcpSettings, pack_cost
+from controller.problem import (
+    C_DT,
+    C_FRICTION_SHARPNESS,
+    N_COST,
+    OcpSettings,
+    pack_cost,
+    resolvable_friction_sharpness,
+)
 from controller.reference import Reference, Sinusoid, check_reference, reference_at
 from controller.safety import holding_current
 from controller.workspace import COLD, JIT, RESAMPLE, SKIP, WARM
@@ -196,6 +203,13 @@ class JointProblem:
     payload: Payload = field(default_factory=Payload)
     reference: Reference = field(default_factory=Sinusoid)
 
+    @property
+    def friction_sharpness_solved(self) -> float:
+        """The beta of tanh(beta qd) the solver will use for this joint (see
+        `JointRow.friction_sharpness_solved`), for reports made before the batch exists."""
+        parameters = self.model.parameters.with_payload(self.payload).packed()
+        return resolvable_friction_sharpness(self.settings, parameters)
+
 
 class JointRow:
     """Python's side of one joint's workspace row: its problem and named views into the row
@@ -219,6 +233,12 @@ class JointRow:
     @property
     def mode(self) -> int:
         return int(self.row[ws.MODE])
+
+    @property
+    def friction_sharpness_solved(self) -> float:
+        """The beta of tanh(beta qd) the solver uses: the settings' one, or the sharpest
+        this step resolves (`controller.problem.resolvable_friction_sharpness`)."""
+        return float(self.row[ws.COST_VECTOR + C_FRICTION_SHARPNESS])
 
     def start_cold(self) -> None:
         self.row[ws.MODE] = COLD

@@ -176,7 +176,8 @@ class RequestHandler:
                 "settings": {"horizon": joint.settings.horizon, "dt": joint.settings.dt,
                              "weights": vars(joint.settings.weights),
                              "sharpness": vars(joint.settings.sharpness),
-                             "friction_sharpness": joint.settings.friction_sharpness},
+                             "friction_sharpness": joint.settings.friction_sharpness,
+                             "friction_sharpness_solved": joint.friction_sharpness_solved},
                 "reference": {"kind": type(joint.reference).__name__.lower(),
                               **vars(joint.reference)}}
 

@@ -7,7 +7,6 @@ master's, not the harness's, and needs no root or hardware.
 Joints are the elbow's model on one EtherCAT line (the shipped model: the bench needs no
 robot file); the robot's cycle is `controller.loop.ControlLoop`, in lock-step."""
 
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +18,7 @@ from driver.clock import DriveClock
 from model import dynamics
 from model.parameters import load_model
 from robot.description import JointSpec, RobotSpec, default_reference, load_robot
+from robot.problems import joint_problems
 from robot.wiring import open_robot
 
 # the robot whose own problem `bench` times beside the elbow-like joints: its lighter joints
@@ -73,11 +73,6 @@ def robot_problems(path: Path = TALOS) -> tuple[list[JointProblem], np.ndarray]:
     """A robot file's joints as `actuatord --robot` poses them at its default horizon and
     step (each joint's model, weights, friction sharpness and reference), and where the
     virtual drives start them: at rest (`model.dynamics.rest_position`)."""
-    problems = []
-    for joint in load_robot(path).joints:
-        settings = OcpSettings().with_weights(**joint.weights)
-        if joint.friction_sharpness is not None:
-            settings = replace(settings, friction_sharpness=joint.friction_sharpness)
-        problems.append(JointProblem(joint.model, settings, reference=joint.reference))
+    problems = joint_problems(load_robot(path))
     return problems, np.array([dynamics.rest_position(p.model.parameters.packed())
                                for p in problems])

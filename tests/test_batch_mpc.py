@@ -128,3 +128,15 @@ def test_the_wrist_tracks_with_one_simulation_most_ticks():
     rollouts = np.array([decisions[0].rollouts for decisions in history[600:]])
     assert all(decisions[0].ok for decisions in history)
     assert np.mean(rollouts > 2) < 0.05, np.bincount(rollouts)
+
+
+def test_the_reports_give_the_friction_sharpness_the_solver_uses_beside_the_set_one():
+    """A wrist set to the paper's beta is solved with the softened one: the parameters
+    reports say both, the batch's row and the problem alike, so a user reading 1000 is not
+    misled about what the MPC models."""
+    problem = JointProblem(WRIST, OcpSettings())
+    batch = BatchMpc([problem])
+    solved = resolvable_friction_sharpness(problem.settings, WRIST.parameters.packed())
+    assert solved < problem.settings.friction_sharpness == 1000.0
+    assert problem.friction_sharpness_solved == batch.joints[0].friction_sharpness_solved
+    assert batch.joints[0].friction_sharpness_solved == pytest.approx(solved)
