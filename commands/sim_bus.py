@@ -2,10 +2,12 @@
 until SIGINT/SIGTERM."""
 
 import argparse
+import contextlib
+import logging
 import signal
 import sys
 import threading
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 from commands.bus_options import (
     add_bus_arguments,
@@ -36,6 +38,7 @@ from commands.sim_options import (
     parse_fault,
     with_truth_effects,
 )
+from driver.clock import WallClock, collector_off_the_cycle, lock_memory
 from model.parameters import ActuatorModel, ModelFileError, Payload
 from protocol.bus_spec import BusSpecError, is_ethercat
 from robot.wiring import describe_bus, open_can_network
@@ -43,10 +46,12 @@ from sim_bus.canopen_node import CanOpenNode
 from sim_bus.canopen_watchdogs import DEFAULT_SILENCE_TIMEOUT
 from sim_bus.device import Cia402Device
 from sim_bus.faults import Fault
+from sim_bus.multicast import MulticastNetwork, MulticastReceiver
 from sim_bus.plant import SensorNoise
 from sim_bus.priority import answer_like_hardware
 
 PROG = "sim-bus"
+log = logging.getLogger(PROG)
 
 
 def build_parser() -> CommandParser:
@@ -123,10 +128,10 @@ def _serve_robot(args) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    answer_like_hardware()  # once every drive is ready: their answers are the hardware's
-    print(f"sim-bus: {len(served.served)} drives of {robot.name} on "
-          f"{', '.join(robot.buses())} ready", flush=True)
-    served.serve_until(stop)
+    with _like_hardware():  # once every drive is ready: their answers are the hardware's
+        print(f"sim-bus: {len(served.served)} drives of {robot.name} on "
+              f"{', '.join(robot.buses())} ready", flush=True)
+        served.serve_until(stop)
     print("sim-bus: stopped; " + ", ".join(
         f"{name} {device.cycle_count} cycles '{device.state.value}' at "
         f"{device.plant.position:.3f} rad" for name, device in served.served), flush=True)
@@ -195,6 +200,21 @@ def _serve_line(args: argparse.Namespace, interface: str, model: ActuatorModel,
     return 0
 
 
+@contextlib.contextmanager
+def _like_hardware() -> Iterator[None]:
+    """Serve as the hardware the drives stand in for answers, whatever the host does: at
+    real-time priority (`answer_like_hardware`), the process's pages locked in memory, and
+    Python's collector kept off what exists by now (`driver.clock`: a full collection walks
+    every long-lived object, tens of ms during which no frame is answered, and a master
+    declares the drives lost). Each refusal is one warning; the drives still serve."""
+    for what, refused in (("real-time priority", answer_like_hardware()),
+                          ("locked memory", lock_memory())):
+        if refused is not None:
+            log.warning("%s refused (%s): answers may come late on a busy host", what, refused)
+    with collector_off_the_cycle():
+        yield
+
+
 def _silence_timeout(args) -> float | None:
     """The CAN drive's master-silence time (s, None: off): --silence-timeout (left None when
     not given, so that giving it with EtherCAT can be refused), else the default."""
@@ -232,10 +252,17 @@ def main(argv: list[str] | None = None) -> int:
     if interface is not None:
         return _serve_line(args, interface, model, payload, schedule)
 
-    where = describe_bus(bus_config(args))
+    config = bus_config(args)
+    where = describe_bus(config)
     can_log = open_can_log(args) if args.can_log else None
+    receiver = None
     try:
-        network = open_can_network(bus_config(args), can_log)
+        if config.get("interface") == "udp_multicast" and can_log is None:
+            # the lean path for the bus that stands in for CAN here (`sim_bus.multicast`)
+            network = MulticastNetwork(config)
+            receiver = MulticastReceiver([network])
+        else:
+            network = open_can_network(config, can_log)
     except Exception as exc:  # python-can raises per interface: CanError, OSError, ImportError
         if can_log is not None:
             can_log.stop()
@@ -244,19 +271,25 @@ def main(argv: list[str] | None = None) -> int:
                         seed=args.seed)
     device = Cia402Device(model, payload, noise, eds_path=args.eds,
                           initial_position=args.initial_position, node_id=args.node_id)
-    node = CanOpenNode(network, args.node_id, device, silence_timeout=_silence_timeout(args))
+    # a drive on a bus keeps its own clock, as hardware does: the wall clock
+    node = CanOpenNode(network, args.node_id, device, clock=WallClock(),
+                       silence_timeout=_silence_timeout(args))
     for fault, seconds in schedule:
         device.schedule(fault, seconds)
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    if receiver is not None:
+        receiver.start()
     node.boot()
-    answer_like_hardware()
-    print(f"sim-bus: node {args.node_id} on {where} ready ({model.name or model.source}, "
-          f"payload {payload.mass} kg at ({payload.x}, {payload.y}) m)", flush=True)
-    stop.wait()
+    with _like_hardware():
+        print(f"sim-bus: node {args.node_id} on {where} ready ({model.name or model.source}, "
+              f"payload {payload.mass} kg at ({payload.x}, {payload.y}) m)", flush=True)
+        stop.wait()
     print(f"sim-bus: stopped after {device.cycle_count} SYNC cycles, drive state "
           f"'{device.state.value}' at {device.plant.position:.3f} rad", flush=True)
+    if receiver is not None:
+        receiver.stop()
     node.close()
     network.disconnect()
     if can_log is not None:

@@ -10,8 +10,9 @@ import contextlib
 import gc
 import math
 import os
+import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
@@ -135,6 +136,11 @@ class WallClock:
         while time.perf_counter() < deadline:
             pass
 
+    @staticmethod
+    def timers() -> "WallTimers":
+        """The own time of a party on this clock (a virtual drive): the wall clock."""
+        return WallTimers()
+
 
 class DriveClock:
     """Lock-step: drive time (s), which passes only as the drives cycle: the bus that sends a
@@ -162,6 +168,109 @@ class DriveClock:
 
     def sleep_until(self, deadline: float) -> None:
         self._now = max(self._now, deadline)
+
+    @staticmethod
+    def timers() -> "DriveTimers":
+        """The own time of a party on this clock (a virtual drive): its cycles, which
+        `DriveTimers.tick` counts."""
+        return DriveTimers()
+
+
+Job = Callable[[float], None]  # a periodic job, given the time it runs at (s)
+
+
+class WallTimers:
+    """A party's own time in real time (a virtual drive's, as a real drive keeps its own
+    clock whatever its master does): the monotonic wall clock, each periodic job a daemon
+    thread of its own, which runs whether or not any cycle comes."""
+
+    now = staticmethod(time.monotonic)
+
+    def tick(self, period: float) -> None:
+        """A cycle of the party's (a SYNC it took): the wall clock moves by itself."""
+
+    @staticmethod
+    def every(interval: float, job: Job, name: str) -> Callable[[], None]:
+        """Run `job(now)` every `interval` s from now on, until the returned stop is called."""
+        stop = threading.Event()
+
+        def run() -> None:
+            while not stop.wait(interval):
+                job(time.monotonic())
+
+        threading.Thread(target=run, daemon=True, name=name).start()
+        return stop.set
+
+    @staticmethod
+    def later(delay: float, job: Callable[[], None]) -> None:
+        """Run `job()` once, `delay` s from now, in a thread of its own: what a device does
+        in its own time after a request (a reset's boot-up), so the requester, which turns to
+        waiting for the answer after its send returns, is not outrun by it."""
+        timer = threading.Timer(delay, job)
+        timer.daemon = True
+        timer.start()
+
+
+class DriveTimers:
+    """A party's own time in lock-step (a virtual drive's): the cycles it took, `tick`ed one
+    period each (integer ns: a beat every 100 ms falls on every 100th cycle of 1 ms, never on
+    the 101st by a rounding of float sums). A periodic job runs inside the `tick` that
+    reaches its time, in the thread that ticks, so it falls on the same cycle in every run;
+    between ticks nothing runs and no time passes, however long the host stalls."""
+
+    def __init__(self) -> None:
+        self._ns = 0
+        self._jobs: list[list] = []  # [due ns, interval ns, job or None once stopped]
+        self._next_due = math.inf
+        self._lock = threading.Lock()
+
+    def now(self) -> float:
+        return self._ns * 1e-9
+
+    def tick(self, period: float) -> None:
+        """One cycle of `period` s passed; the jobs due by now run (each once)."""
+        self._ns += round(period * 1e9)
+        if self._ns >= self._next_due:
+            self._run_due()
+
+    def every(self, interval: float, job: Job, name: str) -> Callable[[], None]:
+        """Run `job(now)` at each tick that reaches another `interval` s from now on, until
+        the returned stop is called (`name` names a thread on the wall clock; none here)."""
+        step = max(1, round(interval * 1e9))
+        entry = [self._ns + step, step, job]
+        with self._lock:
+            self._jobs.append(entry)
+            self._next_due = min(self._next_due, entry[0])
+
+        def stop() -> None:
+            with self._lock:
+                entry[2] = None
+                if entry in self._jobs:
+                    self._jobs.remove(entry)
+                self._next_due = min((e[0] for e in self._jobs), default=math.inf)
+
+        return stop
+
+    @staticmethod
+    def later(delay: float, job: Callable[[], None]) -> None:
+        """Run `job()` now: no drive time passes between two cycles, and a lock-step
+        requester (a master resetting the drive) waits for the answer before it cycles
+        again, so what the device does in its own time after a request is done before
+        anyone can look."""
+        job()
+
+    def _run_due(self) -> None:
+        now = self._ns
+        with self._lock:
+            due = [entry for entry in self._jobs if entry[0] <= now]
+            for entry in due:
+                while entry[0] <= now:  # a job shorter than the cycle runs once a cycle
+                    entry[0] += entry[1]
+            self._next_due = min((e[0] for e in self._jobs), default=math.inf)
+        for entry in due:
+            job = entry[2]
+            if job is not None:
+                job(now * 1e-9)
 
 
 Clock = WallClock | DriveClock

@@ -54,6 +54,7 @@ class ServedRobot:
     lines: list[LineThread] = field(default_factory=list)
     nodes: list = field(default_factory=list)  # sim_bus.canopen_node.CanOpenNode
     networks: list = field(default_factory=list)  # canopen.Network, one per CAN bus
+    receiver: threading.Thread | None = None  # sim_bus.multicast's, for the udp_multicast buses
 
     def failed_line(self) -> LineThread | None:
         """The first EtherCAT line that stopped answering, if any."""
@@ -73,6 +74,8 @@ class ServedRobot:
         for line in self.lines:
             if line.ident is not None:  # started
                 line.join()
+        if self.receiver is not None:
+            self.receiver.stop()
         for node in self.nodes:
             node.close()
         for network in self.networks:
@@ -86,7 +89,9 @@ def serve_robot(robot: RobotSpec, *, seed: int, current_noise: float, torque_noi
     what python-can or the raw socket raises (CanError, OSError, ImportError), with whatever
     was opened released."""
     from driver.canopen_transport import open_network
+    from driver.clock import WallClock
     from sim_bus.embedded import make_device, power_on
+    from sim_bus.multicast import MulticastNetwork, MulticastReceiver
 
     def noise_of(joint: JointSpec) -> SensorNoise:
         return SensorNoise(current=current_noise, joint_torque=torque_noise,
@@ -105,13 +110,24 @@ def serve_robot(robot: RobotSpec, *, seed: int, current_noise: float, torque_noi
                 served.lines.append(LineThread(bus, parse_bus_spec(bus)["channel"], devices,
                                                served.stop))
                 continue
-            served.networks.append(open_network(bus, robot.bitrates.get(bus)))
+            config = parse_bus_spec(bus)
+            # udp_multicast, which stands in for CAN on machines without SocketCAN: the lean
+            # path (`sim_bus.multicast`), else python-can's and canopen's own
+            served.networks.append(
+                MulticastNetwork(config)
+                if config["interface"] == "udp_multicast"
+                else open_network(bus, robot.bitrates.get(bus)))
             for joint in joints:
                 served.nodes.append(power_on(served.networks[-1], joint.model, Payload(),
                                              noise_of(joint), joint.address,
-                                             eds_path=joint.eds, commissioned=True,
+                                             clock=WallClock(), eds_path=joint.eds,
+                                             commissioned=True,
                                              silence_timeout=silence_timeout))
                 served.served.append((joint.name, served.nodes[-1].device))
+        multicast = [n for n in served.networks if isinstance(n, MulticastNetwork)]
+        if multicast:
+            served.receiver = MulticastReceiver(multicast)
+            served.receiver.start()
         for line in served.lines:
             line.start()
         for line in served.lines:

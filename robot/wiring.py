@@ -168,12 +168,13 @@ def open_embedded_drive(model: ActuatorModel, sim_model: ActuatorModel, payload:
     that knows `model`; the link's frames logged to `can_log` (owned as by `open_can_drive`).
     Raises DriveOpenError (exit 1)."""
     from driver.canopen_drive import CanOpenDrive
+    from driver.clock import clock_for
     from sim_bus.embedded import EmbeddedDrive
     from sim_bus.plant import SensorNoise
 
     options = _can_master_options(model, lockstep, timing)
     sim = EmbeddedDrive(sim_model, payload, SensorNoise(seed=seed), node_id,
-                        lockstep=lockstep, eds_path=eds)
+                        clock=clock_for(lockstep), eds_path=eds)
     if can_log is not None:
         tap_link(sim.master_network, sim.network, can_log,
                  (lambda: sim.device.period) if lockstep else None)
@@ -256,10 +257,11 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
                 continue
             addresses = {j.name: j.address for j in joints}
             if sim:
+                from driver.clock import clock_for
                 from sim_bus.embedded import EmbeddedBus
                 from sim_bus.plant import SensorNoise
 
-                link = EmbeddedBus(lockstep=lockstep)
+                link = EmbeddedBus(clock=clock_for(lockstep))
                 embedded.append(link)
                 for joint in joints:
                     index = robot.joints.index(joint)
@@ -357,11 +359,12 @@ def open_joint(robot: RobotSpec, joint: JointSpec, sim_model: ActuatorModel,
                         where=joint.bus, address=f"node {joint.address}")
         except Exception as exc:
             raise DriveOpenError(f"cannot use bus {joint.bus}: {exc}") from exc
+    from driver.clock import clock_for
     from sim_bus.embedded import EmbeddedBus
     from sim_bus.plant import SensorNoise
 
     node_id = 1 if joint.on_ethercat else joint.address
-    link = EmbeddedBus(lockstep=lockstep)
+    link = EmbeddedBus(clock=clock_for(lockstep))
     try:
         device = link.add_drive(sim_model, payload, SensorNoise(seed=seed), node_id,
                                 eds_path=joint.eds, commissioned=True)

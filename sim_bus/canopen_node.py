@@ -5,8 +5,9 @@ Every handler runs in the thread that delivers the frame (the network's receive 
 sender's with the embedded link), so a SYNC is handled completely before the next frame is
 looked at: lock-step comes for free when the master waits for the TPDOs.
 
-The heartbeats and the watch over the master are in `sim_bus.canopen_watchdogs` (why they
-count cycles in lock-step is explained there). A SYNC whose length disagrees with the
+The heartbeats and the watch over the master are in `sim_bus.canopen_watchdogs`; they run on
+the drive's own time, made from the clock the node is given (why that is the SYNCs it took in
+lock-step is explained there). A SYNC whose length disagrees with the
 synchronous counter overflow value 0x1019 (a counter byte while it is 0, none while it is set)
 is answered with EMCY 0x8240, once until the SYNCs are right again, and still runs the cycle.
 """
@@ -24,7 +25,12 @@ from canopen.sdo import SdoAbortedError, SdoServer
 from protocol import cia301, objects
 from protocol.dictionary import has, mappable_object
 from protocol.pdo import PdoLayout
-from sim_bus.canopen_watchdogs import DEFAULT_SILENCE_TIMEOUT, HeartbeatProducer, MasterWatch
+from sim_bus.canopen_watchdogs import (
+    DEFAULT_SILENCE_TIMEOUT,
+    Clock,
+    HeartbeatProducer,
+    MasterWatch,
+)
 from sim_bus.device import Cia402Device, DeviceAccessError
 from sim_bus.faults import FLOOD_COB_ID, FLOOD_SECONDS, TPDO_DELAY, Fault
 
@@ -40,11 +46,12 @@ NMT_STATE_NAMES = {cia301.NMT_BOOT_UP: "INITIALISING", cia301.NMT_STOPPED: "STOP
 class _Pdo:
     """One enabled PDO as configured in the dictionary: COB-ID, codec, the objects' keys."""
 
-    __slots__ = ("cob_id", "codec", "keys", "values_of", "every", "synchronous")
+    __slots__ = ("cob_id", "codec", "pack", "keys", "values_of", "every", "synchronous")
 
     def __init__(self, cob_id: int, layout: PdoLayout, transmission: int):
         self.cob_id = cob_id
         self.codec = layout.struct
+        self.pack = self.codec.pack
         self.keys = tuple((o.index, o.subindex) for o in layout.objects)
         getter = operator.itemgetter(*self.keys)
         # the values of the mapped objects from the device's value table, always as a tuple
@@ -56,19 +63,19 @@ class _Pdo:
 class CanOpenNode:
     """CANopen node `node_id` on `network`, serving `device`.
 
-    `lockstep`: the watchdogs count cycles; `silence_timeout` (s, None: off): SYNC/RPDO
-    silence after which the master counts as lost (real time only).
+    `clock` (`driver.clock.clock_for`) makes the drive's own time (`time`), on which its
+    watchdogs and resets run and which each SYNC it takes advances; `silence_timeout` (s,
+    None: off): SYNC/RPDO silence after which the master counts as lost.
     """
 
     def __init__(self, network: canopen.Network, node_id: int, device: Cia402Device, *,
-                 lockstep: bool = False,
-                 silence_timeout: float | None = DEFAULT_SILENCE_TIMEOUT):
+                 clock: Clock, silence_timeout: float | None = DEFAULT_SILENCE_TIMEOUT):
         if not 1 <= node_id <= 127:
             raise ValueError(f"node id {node_id} outside 1..127")
         self.network = network
         self.node_id = node_id
         self.device = device
-        self.lockstep = lockstep
+        self.time = clock.timers()
         self.object_dictionary: ObjectDictionary = device.dictionary  # for canopen's SdoServer
         self.sdo = SdoServer(cia301.SDO_RX_BASE + node_id, cia301.SDO_TX_BASE + node_id, self)
         self.sdo.network = network
@@ -81,11 +88,11 @@ class CanOpenNode:
         self._rpdos: dict[int, _Pdo] = {}
         self._latched: list[tuple[_Pdo, tuple[int, ...]]] = []  # synchronous RPDOs
         self._heartbeat = HeartbeatProducer(network.send_message, node_id,
-                                            lambda: self.nmt_state, lockstep)
+                                            lambda: self.nmt_state, self.time)
         self.master_watch = MasterWatch(
             network.subscribe, device.read,
             has(device.dictionary, objects.CONSUMER_HEARTBEAT, 1), device.master_lost,
-            lockstep, silence_timeout, f"node {node_id}", on_idle=device.run_alone)
+            self.time, silence_timeout, f"node {node_id}", on_idle=device.run_alone)
         self._counting = has(device.dictionary, objects.SYNC_COUNTER_OVERFLOW)
         self._sync_length_reported = False
         self._late_once = self._twice_once = self._reboot_in_cycle = False
@@ -107,20 +114,16 @@ class CanOpenNode:
         self._restart()
 
     def _restart(self) -> None:
-        """Initialisation, then the boot-up message. In real time it takes RESET_TIME, as a
-        device's reset does: a master that sends the reset and then starts waiting for the
-        boot-up (canopen's documented `wait_for_bootup`) is not outrun by it."""
+        """Initialisation, then the boot-up message, RESET_TIME later in the drive's own time
+        (`later`), as a device's reset takes: a master that sends the reset and then starts
+        waiting for the boot-up (canopen's documented `wait_for_bootup`) is not outrun by
+        it."""
         self._heartbeat.stop()
         self._stop_pdos()
         self.master_watch.rearm()
-        self.master_watch.configure(self.device.period)
+        self.master_watch.configure()
         self.nmt_state = cia301.NMT_BOOT_UP
-        if self.lockstep:
-            self._boot_up()
-        else:
-            timer = threading.Timer(RESET_TIME, self._boot_up)
-            timer.daemon = True
-            timer.start()
+        self.time.later(RESET_TIME, self._boot_up)
 
     def _boot_up(self) -> None:
         if self._silent:
@@ -131,7 +134,7 @@ class CanOpenNode:
         self._start_heartbeat()
 
     def _start_heartbeat(self) -> None:
-        self._heartbeat.start(self.device.read(objects.PRODUCER_HEARTBEAT_MS), self.device.period)
+        self._heartbeat.start(self.device.read(objects.PRODUCER_HEARTBEAT_MS))
 
     def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if self._silent or len(data) != 2 or data[1] not in (0, self.node_id):
@@ -213,22 +216,28 @@ class CanOpenNode:
             if not self._sync_length_reported:
                 self._sync_length_reported = True
                 self._send_emcy(cia301.EMCY_SYNC_LENGTH, cia301.ERROR_REGISTER_COMMUNICATION)
-        else:
+        elif self._sync_length_reported:
             self._sync_length_reported = False
-        for pdo, values in self._latched:
-            device.write_outputs(pdo.keys, values)
-        self._latched = []
-        self.sync_count += 1
+        latched = self._latched
+        if latched:
+            for pdo, values in latched:
+                device.write_outputs(pdo.keys, values)
+            latched.clear()
+        self.sync_count = count = self.sync_count + 1
         self._reboot_in_cycle = False
         device.cycle(data[0] if data else 0)
-        if self.lockstep:
-            self._heartbeat.count_cycle()
-            self.master_watch.count_cycle()
+        self.time.tick(device.period)
         if self._silent or self._reboot_in_cycle:
             return
         table = device.values
-        frames = [(pdo.cob_id, pdo.codec.pack(*pdo.values_of(table)))
-                  for pdo in self._tpdos if self.sync_count % pdo.every == 0]
+        if not (self._twice_once or self._late_once):  # every cycle: no list, no copies
+            send = self.network.send_message
+            for pdo in self._tpdos:
+                if pdo.every == 1 or count % pdo.every == 0:
+                    send(pdo.cob_id, pdo.pack(*pdo.values_of(table)))
+            return
+        frames = [(pdo.cob_id, pdo.pack(*pdo.values_of(table)))
+                  for pdo in self._tpdos if count % pdo.every == 0]
         if self._twice_once:
             self._twice_once = False
             frames = frames * 2
@@ -266,7 +275,7 @@ class CanOpenNode:
         if index == objects.PRODUCER_HEARTBEAT_MS:
             self._start_heartbeat()
         elif index == objects.CONSUMER_HEARTBEAT or index == objects.CYCLE_PERIOD_US:
-            self.master_watch.configure(self.device.period)
+            self.master_watch.configure()
 
     def _check_mapping_write(self, index: int, subindex: int, data: bytes) -> None:
         """What CAN adds to the device's own checks: no remapping while the PDOs run, and at

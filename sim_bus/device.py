@@ -25,6 +25,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import NamedTuple
 
+import numpy as np
 from canopen.objectdictionary import datatypes
 
 from model.parameters import ActuatorModel, Payload
@@ -38,6 +39,7 @@ from protocol.dictionary import (
     mappable_object,
     variable,
 )
+from sim_bus import sensing
 from sim_bus.faults import ENCODER_JUMP, Fault
 from sim_bus.plant import Plant, SensorNoise
 
@@ -73,6 +75,9 @@ _VELOCITY_ACTUAL = (objects.VELOCITY_ACTUAL, 0)
 _MOTOR_CURRENT_ACTUAL = (objects.MOTOR_CURRENT_ACTUAL, 0)
 _CURRENT_ACTUAL = (objects.CURRENT_ACTUAL, 0)
 _TORQUE_ACTUAL = (objects.TORQUE_ACTUAL, 0)
+_CONTROLWORD = (objects.CONTROLWORD, 0)
+_TARGET_TORQUE = (objects.TARGET_TORQUE, 0)
+_TARGET_CURRENT = (objects.TARGET_CURRENT, 0)
 _STATUSWORDS = {state: cia402.statusword_for(state) for state in State}
 # a line's batch (`line_terms`): what the command is, the readings each cycle samples (in
 # this order) and the objects it writes back, echo and statusword first
@@ -109,11 +114,6 @@ class LineTerms(NamedTuple):
     readings: tuple  # each LIVE_READINGS object's value now
 _WRITABLE = frozenset(("rw", "wo", "rww", "rwr"))
 _READABLE = frozenset(("rw", "ro", "const", "rww", "rwr"))
-
-
-def _saturate(value: float, bounds: tuple[int, int]) -> int:
-    low, high = bounds
-    return low if not value > low else high if not value < high else round(value)
 
 
 def _value_range(dictionary, key: tuple[int, int]) -> tuple[int, int]:
@@ -166,9 +166,16 @@ class Cia402Device:
         self.model = model
         self.eds_path = Path(eds_path) if eds_path is not None else shipped_eds_path()
         self.dictionary = load_dictionary(self.eds_path, node_id)
-        self._reading_range = {key: _value_range(self.dictionary, key) for key in (
-            _POSITION_ACTUAL, _VELOCITY_ACTUAL, _MOTOR_CURRENT_ACTUAL, _JOINT_TORQUE_SENSOR,
-            _CURRENT_ACTUAL, _TORQUE_ACTUAL)}
+        self._reading_range = {key: _value_range(self.dictionary, key)
+                               for key in LIVE_READINGS}
+        # what the compiled period (`sim_bus.sensing`) reads and writes, made once: the
+        # drive's terms (from `_configure` and the plant's parameters), the readings' ranges,
+        # the readings of the last sample
+        self._terms = np.zeros(sensing.N_TERMS)
+        self._ranges = np.array([self._reading_range[key] for key in LIVE_READINGS],
+                                dtype=np.int64)
+        self._readings = np.zeros(sensing.N_READINGS, dtype=np.int64)
+        self._terms_of_plant = -1  # the plant's revision the terms hold
         self._variables = {}
         for obj in self.dictionary.values():
             for var in (obj.values() if hasattr(obj, "values") else (obj,)):
@@ -316,7 +323,8 @@ class Cia402Device:
         self._configure()
         self._mode = self._values.get((objects.MODES_OF_OPERATION, 0), objects.MODE_NONE)
         self._values[(objects.MODES_OF_OPERATION_DISPLAY, 0)] = self._mode
-        self._sample(self.plant.measure())
+        self.plant.sample(self._sensing_terms(), self._ranges, self._readings)
+        self._sample()
 
     def _configure(self) -> None:
         """Cache what the cycle needs from the dictionary (after a reset or a write to it)."""
@@ -342,6 +350,27 @@ class Cia402Device:
             low / self.increments_per_rad if low is not None else float("-inf"),
             high / self.increments_per_rad if high is not None else float("inf"))
         self.drive_gain = self.model.parameters.drive_gain
+        # the readings a drive without a rating leaves as they are (see `sensing`)
+        self._readings[4] = v.get(_CURRENT_ACTUAL, 0)
+        self._readings[5] = v.get(_TORQUE_ACTUAL, 0)
+        self._terms_of_plant = -1
+
+    def _sensing_terms(self) -> np.ndarray:
+        """The terms of the compiled period, read again when the configuration or the
+        plant's parameters changed."""
+        plant = self.plant
+        if self._terms_of_plant != plant.revision:
+            self._terms_of_plant = plant.revision
+            t = self._terms
+            t[sensing.T_PERIOD] = self._period
+            t[sensing.T_PER_RAD] = self.increments_per_rad
+            t[sensing.T_RATED_CURRENT] = self.rated_current
+            t[sensing.T_RATED_TORQUE] = self.rated_torque
+            t[sensing.T_DRIVE_GAIN] = self.drive_gain
+            t[sensing.T_SENSOR_GAIN] = plant.parameters.torque_sensor_gain
+            t[sensing.T_NOISE_CURRENT] = plant.noise.current
+            t[sensing.T_NOISE_TORQUE] = plant.noise.joint_torque
+        return self._terms
 
     # --- object access ----------------------------------------------------------------------
 
@@ -459,11 +488,28 @@ class Cia402Device:
 
     def write_outputs(self, keys: tuple[tuple[int, int], ...], values: tuple[int, ...]) -> None:
         """Act on a received output PDO's values (already in their types' ranges: the PDO
-        codec made them), without the per-object checks of an SDO write."""
-        self._settle()
+        codec made them), without the per-object checks of an SDO write. A master repeats
+        its controlword and, holding, its target every cycle: a value the drive holds and
+        has acted on already changes nothing, and is passed over."""
+        if self._line is not None:
+            self._settle()
         with self._lock:
-            for (index, subindex), value in zip(keys, values, strict=True):
-                self._act(index, subindex, value)
+            v = self._values
+            for key, value in zip(keys, values, strict=True):
+                if v.get(key) == value and self._acted_on(key, value):
+                    continue
+                self._act(key[0], key[1], value)
+
+    def _acted_on(self, key: tuple[int, int], value: int) -> bool:
+        """Whether `value` of the output `key` (the value it holds) is in force: writing it
+        again would change nothing (`_act`, `_apply_controlword`)."""
+        if key == _CONTROLWORD:
+            return value == self._controlword and self._state is self._commanded_state
+        if key == _TARGET_TORQUE:
+            return value == self._target_torque_permille
+        if key == _TARGET_CURRENT:
+            return value / objects.MILLI == self._target_current
+        return False
 
     @property
     def values(self) -> Mapping[tuple[int, int], int]:
@@ -548,12 +594,12 @@ class Cia402Device:
             self._alone = None
 
     def run_alone(self, now: float) -> None:
-        """Real time only, from the exposing node's idle loop (`now`: its monotonic clock, s):
-        a drive whose master is gone keeps its own control loop running, one cycle a period,
-        so its quick stop ends in switch on disabled once the motor stands still and a loaded
-        joint moves as it would, without anyone sending a SYNC or a frame. Cycles the bus
-        drives (a new master's) take precedence: while they come nothing runs here. Lock-step
-        never calls this: its drive time is the bus's cycles only."""
+        """From the exposing node's watch (`now`: the drive's own time, s): a drive whose
+        master is gone keeps its own control loop running, one cycle a period, so its quick
+        stop ends in switch on disabled once the motor stands still and a loaded joint moves
+        as it would, without anyone sending a SYNC or a frame. Cycles the bus drives (a new
+        master's) take precedence: while they come nothing runs here, so on lock-step drive
+        time, which only the bus's cycles advance, nothing ever does."""
         self._settle()
         if self.master_loss is None and self._alone is None:
             return  # the every-frame case, without the lock
@@ -587,21 +633,28 @@ class Cia402Device:
         """One communication cycle: latch the command, advance the physics one period, sample
         the sensors, fire the faults due. `counter` is the cycle's number as the bus gives it
         (the SYNC counter byte), echoed in 0x2004 where the drive has it."""
-        self._settle()
+        if self._line is not None:
+            self._settle()
         with self._lock:
             self._values[_SYNC_ECHO] = counter
             command = self._commanded_current()
             if abs(command) > self.trip_current:
                 self._fault(cia301.EMCY_OVERCURRENT, cia301.ERROR_REGISTER_CURRENT)
                 command = 0.0
-            self._applied_current = max(-self.max_current, min(self.max_current, command))
-            self.plant.advance(self._applied_current, self._period, self.brake_engaged)
+            limit = self.max_current
+            self._applied_current = applied = -limit if command < -limit else (
+                limit if command > limit else command)
+            # the readings are of the plant at the period's end, whatever the checks below
+            # make of the drive's state (a fault shows in the next sample's statusword)
+            position = self.plant.advance_sampled(
+                applied, self._state is not State.OPERATION_ENABLED, self._sensing_terms(),
+                self._ranges, self._readings)
             self._cycle_count += 1
             low, high = self.position_window
-            if self._state is not State.FAULT and not low <= self.plant.position <= high:
+            if self._state is not State.FAULT and not low <= position <= high:
                 self._fault(cia301.EMCY_POSITION_LIMIT, cia301.ERROR_REGISTER_GENERIC)
             self._finish_quick_stop()
-            self._sample(self.plant.measure())
+            self._sample()
             while self._schedule and self._schedule[0][0] <= self._cycle_count:
                 self.inject(self._schedule.pop(0)[1])
             if self._once:
@@ -655,29 +708,13 @@ class Cia402Device:
         self._target_current = target_current
         self._target_torque_permille = target_torque_permille
 
-    def _sample(self, m) -> None:
-        """The sensors' reading and the statusword, in the dictionary's units, as the input
-        process data carries them: latched here, so a fault due later in the same cycle shows
-        in the next sample (its emergency goes out at once)."""
+    def _sample(self) -> None:
+        """The last sensors' reading (`_readings`, the compiled period's) and the statusword,
+        latched into the objects an input process data carries: a fault due later in the
+        same cycle shows in the next sample (its emergency goes out at once)."""
         v = self._values
         v[_STATUSWORD] = self._statusword
-        # round() of a float is already an int; each reading saturates at what its object
-        # holds, as a sensor's converter does (an absurd model must not overflow the PDO)
-        per_rad = self.increments_per_rad
-        current = m.motor_current
-        r = self._reading_range
-        v[_POSITION_ACTUAL] = _saturate(m.position * per_rad, r[_POSITION_ACTUAL])
-        v[_VELOCITY_ACTUAL] = _saturate(m.velocity * per_rad, r[_VELOCITY_ACTUAL])
-        v[_MOTOR_CURRENT_ACTUAL] = _saturate(current * objects.MILLI, r[_MOTOR_CURRENT_ACTUAL])
-        v[_JOINT_TORQUE_SENSOR] = _saturate(m.joint_torque_reading * objects.MILLI,
-                                            r[_JOINT_TORQUE_SENSOR])
-        if self.rated_current > 0:
-            v[_CURRENT_ACTUAL] = _saturate(current / self.rated_current * objects.MILLI,
-                                           r[_CURRENT_ACTUAL])
-        if self.rated_torque > 0:
-            v[_TORQUE_ACTUAL] = _saturate(
-                self.drive_gain * current / self.rated_torque * objects.MILLI,
-                r[_TORQUE_ACTUAL])
+        v.update(zip(LIVE_READINGS, self._readings.tolist(), strict=True))
 
     # --- faults -----------------------------------------------------------------------------
 

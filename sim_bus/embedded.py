@@ -16,7 +16,7 @@ import canopen
 from model.dynamics import rest_position
 from model.parameters import ActuatorModel, Payload
 from sim_bus.canopen_node import CanOpenNode
-from sim_bus.canopen_watchdogs import DEFAULT_SILENCE_TIMEOUT
+from sim_bus.canopen_watchdogs import DEFAULT_SILENCE_TIMEOUT, Clock
 from sim_bus.commissioning import drive_settings
 from sim_bus.device import Cia402Device
 from sim_bus.plant import SensorNoise
@@ -77,12 +77,13 @@ class EmbeddedBus:
     should use, and a `Cia402Device` exposed by a `CanOpenNode` per drive. Several nodes on
     one network share its frames as on a real bus: one SYNC reaches them all.
 
-    `lockstep`: the drives' heartbeats (and every other watchdog of their nodes) count cycles,
-    as the master's must then too (`CanOpenDrive(..., lockstep=True)`).
+    `clock` (`driver.clock.clock_for`): each drive's own time is made from it, so its
+    heartbeats and every other watchdog count the SYNCs it took in lock-step (as the master's
+    must then too), the wall clock in real time.
     """
 
-    def __init__(self, *, lockstep: bool = False):
-        self.lockstep = lockstep
+    def __init__(self, *, clock: Clock):
+        self.clock = clock
         self.network = LinkedNetwork()
         self.master_network = LinkedNetwork()
         self.network.peers.append(self.master_network)
@@ -96,7 +97,7 @@ class EmbeddedBus:
         """Power on a drive at `node_id` on this bus (see `power_on`)."""
         # no SYNC-silence watch: the master shares this process, so it cannot die apart from
         # the drive, and a stall of the whole process (GC, a loaded host) is not a lost master
-        node = power_on(self.network, model, payload, noise, node_id, lockstep=self.lockstep,
+        node = power_on(self.network, model, payload, noise, node_id, clock=self.clock,
                         eds_path=eds_path, initial_position=initial_position,
                         commissioned=commissioned, silence_timeout=None)
         self.nodes.append(node)
@@ -109,7 +110,7 @@ class EmbeddedBus:
 
 
 def power_on(network: canopen.Network, model: ActuatorModel, payload: Payload,
-             noise: SensorNoise, node_id: int, *, lockstep: bool = False,
+             noise: SensorNoise, node_id: int, *, clock: Clock,
              eds_path: str | Path | None = None, initial_position: float | None = None,
              commissioned: bool = False,
              silence_timeout: float | None = DEFAULT_SILENCE_TIMEOUT) -> CanOpenNode:
@@ -117,10 +118,10 @@ def power_on(network: canopen.Network, model: ActuatorModel, payload: Payload,
     `commissioned`: its window and currents follow the model's limits
     (`sim_bus.commissioning`) instead of the EDS's elbow values, and the joint starts inside
     its limits (at rest if gravity lets it hang there, else at the middle of its range).
-    `silence_timeout`: see `CanOpenNode`."""
+    `clock`, `silence_timeout`: see `CanOpenNode`."""
     device = make_device(model, payload, noise, node_id=node_id, eds_path=eds_path,
                          initial_position=initial_position, commissioned=commissioned)
-    node = CanOpenNode(network, node_id, device, lockstep=lockstep,
+    node = CanOpenNode(network, node_id, device, clock=clock,
                        silence_timeout=silence_timeout)
     node.boot()
     return node
@@ -154,9 +155,9 @@ class EmbeddedDrive(EmbeddedBus):
     reach it, its values from the EDS as shipped."""
 
     def __init__(self, model: ActuatorModel, payload: Payload, noise: SensorNoise,
-                 node_id: int = 2, *, lockstep: bool = False, eds_path: str | Path | None = None,
+                 node_id: int = 2, *, clock: Clock, eds_path: str | Path | None = None,
                  initial_position: float | None = None):
-        super().__init__(lockstep=lockstep)
+        super().__init__(clock=clock)
         self.device = self.add_drive(model, payload, noise, node_id, eds_path=eds_path,
                                      initial_position=initial_position)
         self.node = self.nodes[0]

@@ -26,41 +26,35 @@ from sim_bus.device import (
     LINE_KEYS,
     Cia402Device,
 )
-from sim_bus.plant import (
+from sim_bus.plant import NOISE_BATCH
+from sim_bus.sensing import (  # the float terms' columns: a row per drive, from line_terms
     CURRENT,
     DRY,
     DRY_LEVEL,
     JOINT_TORQUE,
-    NOISE_BATCH,
+    N_TERMS,
     POSITION,
     STATE_SIZE,
+    T_DRIVE_GAIN,
+    T_MAX_CURRENT,
+    T_PERIOD,
+    T_RATED_TORQUE,
+    T_TRIP,
+    T_WINDOW_HIGH,
+    T_WINDOW_LOW,
     TIME,
     VELOCITY,
+    sense,
 )
 
-# columns of the float terms (a row per drive, from `Cia402Device.line_terms`)
-(T_PERIOD, T_MAX_CURRENT, T_TRIP, T_WINDOW_LOW, T_WINDOW_HIGH, T_PER_RAD, T_RATED_CURRENT,
- T_RATED_TORQUE, T_DRIVE_GAIN, T_SENSOR_GAIN, T_NOISE_CURRENT, T_NOISE_TORQUE) = range(12)
-N_TERMS = 12
 # columns of the integer terms
 I_KIND, I_BRAKED, I_FAULTED = range(3)
 N_FLAGS = 3
 # columns of the values a cycle leaves (`LINE_KEYS` order): echo, statusword, the readings
 V_ECHO, V_STATUSWORD = 0, 1
-V_READINGS = 2  # then LIVE_READINGS: position, velocity, motor current, joint torque sensor,
-V_CURRENT, V_TORQUE = 6, 7  # current actual (per mille) and torque actual (per mille)
+V_READINGS = 2  # then LIVE_READINGS (`sim_bus.sensing` writes them)
 N_VALUES = len(LINE_KEYS)
 _MILLI = objects.MILLI
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _saturate(value: float, low: int, high: int) -> int:
-    """`sim_bus.device._saturate`: NaN and below the range give its low end."""
-    if not value > low:
-        return low
-    if not value < high:
-        return high
-    return np.int64(np.rint(value))  # half to even, as Python's round()
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -124,20 +118,9 @@ def advance_line(rows: np.ndarray, controlwords: np.ndarray, torque_out: np.ndar
         applied[j] = current
         k = cursor[j]
         cursor[j] = k + 2
-        measured = current + t[T_NOISE_CURRENT] * draws[j, k]
-        reading = joint / t[T_SENSOR_GAIN] + t[T_NOISE_TORQUE] * draws[j, k + 1]
-        per_rad = t[T_PER_RAD]
-        v, r = values[j], ranges[j]
-        v[V_ECHO] = counter
-        v[V_READINGS] = _saturate(q * per_rad, r[0, 0], r[0, 1])
-        v[V_READINGS + 1] = _saturate(qd * per_rad, r[1, 0], r[1, 1])
-        v[V_READINGS + 2] = _saturate(measured * _MILLI, r[2, 0], r[2, 1])
-        v[V_READINGS + 3] = _saturate(reading * _MILLI, r[3, 0], r[3, 1])
-        if t[T_RATED_CURRENT] > 0:
-            v[V_CURRENT] = _saturate(measured / t[T_RATED_CURRENT] * _MILLI, r[4, 0], r[4, 1])
-        if t[T_RATED_TORQUE] > 0:
-            v[V_TORQUE] = _saturate(t[T_DRIVE_GAIN] * measured / t[T_RATED_TORQUE] * _MILLI,
-                                    r[5, 0], r[5, 1])
+        values[j, V_ECHO] = counter
+        sense(q, qd, current, joint, draws[j, k], draws[j, k + 1], t, ranges[j],
+              values[j, V_READINGS:])
     return done
 
 

@@ -4,12 +4,22 @@ quantisation is the drive's unit conversion, `sim_bus.device`)."""
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 
 from model import dynamics
 from model.parameters import ActuatorParameters, Payload
+from sim_bus import sensing
+from sim_bus.sensing import (  # noqa: F401 (the state's columns, as a line's rows use them)
+    CURRENT,
+    DRY,
+    DRY_LEVEL,
+    JOINT_TORQUE,
+    POSITION,
+    STATE_SIZE,
+    TIME,
+    VELOCITY,
+)
 
 # assumed: above the motor's rated torque (30 N.m, 0x6076) as holding brakes are sized, and
 # above the 25 N.m the paper's heaviest payload (30 kg at 5 cm) hangs on the joint
@@ -27,18 +37,6 @@ class SensorNoise:
     seed: int | None = 0
 
 
-class Measurement(NamedTuple):
-    """One cycle's sensor readings (a named tuple: one is made per cycle)."""
-
-    position: float  # rad, the encoder's shaft (the drive quantises it)
-    velocity: float  # rad/s
-    motor_current: float  # A, as read by the drive's current sensor
-    joint_torque_reading: float  # N.m before the sensor gain K_j
-
-
-# columns of a plant's state row (`Plant.state`): what one period changes
-POSITION, VELOCITY, DRY, DRY_LEVEL, JOINT_TORQUE, CURRENT, TIME = range(7)
-STATE_SIZE = 7
 
 
 class Plant:
@@ -131,13 +129,18 @@ class Plant:
         """Compile (or load) the integrator now, on a throwaway state: the first SYNC must be
         answered within one period, not after a 0.3-0.5 s compilation (seconds on a busy
         host, far longer than a master waits for its first sample). The results are unused."""
-        dynamics.step_sensed(self.position, 0.0, 0.0, self._packed, self._packed, 1e-3,
-                             dynamics.SUBSTEPS)
+        terms = np.zeros(sensing.N_TERMS)
+        terms[sensing.T_PERIOD] = 1e-3
+        sensing.advance_and_sample(self.state.copy(), 0.0, self._packed, self._packed,
+                                   dynamics.SUBSTEPS, np.zeros(2), np.zeros(1, dtype=np.int64),
+                                   terms, np.zeros((sensing.N_READINGS, 2), dtype=np.int64),
+                                   np.zeros(sensing.N_READINGS, dtype=np.int64))
 
     def advance(self, current: float, dt: float, braked: bool = False) -> None:
-        """One period under `current`. The holding brake sits in the transmission with the
-        other effects, on the motor side of the torque sensor: the joint torque is the
-        unbraked inverse dynamics' joint side, so the sensor does not see the brake."""
+        """One period `dt` under `current`, the sensors not read (`advance_sampled` is a
+        drive's period). The holding brake sits in the transmission with the other effects,
+        on the motor side of the torque sensor: the joint torque is the unbraked inverse
+        dynamics' joint side, so the sensor does not see the brake."""
         x = self.state
         if self._drifts:
             self._set_packed(float(x[TIME]))
@@ -148,22 +151,29 @@ class Plant:
         x[CURRENT] = current
         x[TIME] += dt
 
+    def advance_sampled(self, current: float, braked: bool, terms: np.ndarray,
+                        ranges: np.ndarray, readings: np.ndarray) -> float:
+        """A drive's period: `advance` by terms[T_PERIOD], then the sensors' reading into
+        `readings` (`sim_bus.sensing`: the drive's `terms` and its readings' `ranges`), in
+        one compiled call. Returns the new position (rad)."""
+        if self._drifts:
+            self._set_packed(float(self.state[TIME]))
+        if self.cursor[0] > NOISE_BATCH - 2:
+            self.refill_draws()
+        return sensing.advance_and_sample(
+            self.state, current, self._packed_braked if braked else self._packed,
+            self._packed, dynamics.SUBSTEPS, self.draws, self.cursor, terms, ranges, readings)
+
+    def sample(self, terms: np.ndarray, ranges: np.ndarray, readings: np.ndarray) -> None:
+        """The sensors' reading of the joint as it is (at power-on, after a reset), into
+        `readings` (as `advance`)."""
+        if self.cursor[0] > NOISE_BATCH - 2:
+            self.refill_draws()
+        sensing.sample(self.state, self.draws, self.cursor, terms, ranges, readings)
+
     def refill_draws(self) -> None:
         """The next batch of N(0, 1) draws from the generator (one numpy call per draw cost
-        more than the rest of a measurement); the sequence is the one scalar draws give."""
+        more than the rest of a measurement); the sequence is the one scalar draws give.
+        Every period takes two (current, then torque), so a batch is used up exactly."""
         self._rng.standard_normal(out=self.draws)
         self.cursor[0] = 0
-
-    def _standard_normal(self) -> float:
-        if self.cursor[0] == NOISE_BATCH:
-            self.refill_draws()
-        k = int(self.cursor[0])
-        self.cursor[0] = k + 1
-        return float(self.draws[k])
-
-    def measure(self) -> Measurement:
-        x = self.state
-        current = float(x[CURRENT]) + self.noise.current * self._standard_normal()
-        reading = (float(x[JOINT_TORQUE]) / self.parameters.torque_sensor_gain
-                   + self.noise.joint_torque * self._standard_normal())
-        return Measurement(float(x[POSITION]), float(x[VELOCITY]), current, reading)

@@ -29,7 +29,7 @@ def virtual_pair(payload: Payload = Payload(), noise: SensorNoise = SensorNoise(
     with its TPDOs before `send` returns and no thread scheduling can delay an answer. Lock-step
     by default: both sides' watchdogs count cycles, so a busy host cannot trip them."""
     model = model or load_model()
-    embedded = EmbeddedDrive(model, payload, noise, 2, lockstep=lockstep)
+    embedded = EmbeddedDrive(model, payload, noise, 2, clock=clock_for(lockstep))
     master = CanOpenDrive(embedded.master_network, 2, velocity_limit=model.limits.velocity_max,
                           drive_gain=model.parameters.drive_gain,
                           clock=clock_for(lockstep),

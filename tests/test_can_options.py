@@ -11,6 +11,7 @@ import pytest
 
 from commands import actuatord, sim_bus
 from commands.bus_options import bus_config, check_drive_arguments, open_drive
+from driver.clock import WallClock
 from model.parameters import Payload, load_model
 from protocol import pdo
 from sim_bus.canopen_node import CanOpenNode
@@ -86,7 +87,8 @@ def test_can_log_over_a_python_can_bus_holds_every_frame(no_can_config, tmp_path
 
     network = canopen.Network(sim_network)
     network.connect()
-    sim = CanOpenNode(network, NODE, Cia402Device(load_model(), Payload(), node_id=NODE))
+    sim = CanOpenNode(network, NODE, Cia402Device(load_model(), Payload(), node_id=NODE),
+                      clock=WallClock())
     sim.boot()
     connection = open_drive(args, load_model(), load_model(), Payload(), response_timeout=5.0)
     try:

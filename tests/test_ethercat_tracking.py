@@ -57,7 +57,7 @@ def ethercat_drive(link: VirtualLink):
 
 
 def test_mpc_over_ethercat_tracks_within_ten_percent_of_can(link):
-    sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(seed=0), 2, lockstep=True)
+    sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(seed=0), 2, clock=DriveClock())
     try:
         can_code, can_rms, can_cycles = track(can_drive(sim))
     finally:
@@ -105,7 +105,7 @@ def test_exciting_trajectory_over_ethercat_identifies_the_model_as_over_can(link
             path = tmp_path / f"{bus}-{name}.csv"
             if bus == "can":
                 sim = EmbeddedDrive(MODEL, payload, SensorNoise(seed=len(files)), 2,
-                                    lockstep=True)
+                                    clock=DriveClock())
                 try:
                     record(can_drive(sim), payload, path)
                 finally:

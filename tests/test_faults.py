@@ -104,11 +104,12 @@ def test_a_stall_in_real_time_is_reported_on_the_fault_topic():
     """With the embedded drive the late frames block the sender, so the loop's own clock is
     what notices: 200 ms without a cycle is 200 missed cycles."""
     from driver.canopen_drive import CanOpenDrive
+    from driver.clock import WallClock
     from model.parameters import Payload
     from sim_bus.embedded import EmbeddedDrive
     from sim_bus.plant import SensorNoise
 
-    sim = EmbeddedDrive(MODEL, Payload(), SensorNoise())
+    sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(), clock=WallClock())
     # the master's watch over the drive's heartbeat is not under test: at 1 s producer period
     # it tolerates the drive's heartbeat thread starved by a busy host (at the default 100 ms,
     # beside two CPU hogs, 297 ms of starvation ended the run at its 16th cycle)

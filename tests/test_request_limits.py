@@ -190,7 +190,7 @@ def service():
         cleanup.callback(client.stdin.close)
         # lock-step on both sides: every watchdog counts cycles, so a busy machine does not
         # end the loop while this test measures what requests cost it
-        sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(), lockstep=True)
+        sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(), clock=DriveClock())
         cleanup.callback(sim.close)
         drive = CanOpenDrive(sim.master_network, 2, velocity_limit=MODEL.limits.velocity_max,
                              clock=DriveClock(), response_timeout=1.0)

@@ -14,7 +14,7 @@ import pytest
 
 from driver import ProfileError
 from driver.canopen_drive import CanOpenDrive
-from driver.clock import DriveClock
+from driver.clock import DriveClock, WallClock
 from model.parameters import Payload, load_model
 from protocol import cia301, eds_path, objects
 from protocol.cia402 import State
@@ -97,7 +97,8 @@ def test_a_standard_cst_drive_in_another_process_is_driven_with_standard_objects
 
 
 def test_a_drive_without_a_torque_mode_is_refused_naming_what_is_missing():
-    sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(), 2, eds_path=POSITION_VELOCITY_ONLY)
+    sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(), 2, clock=WallClock(),
+                        eds_path=POSITION_VELOCITY_ONLY)
     frames = []
     sim.network.subscribe(cia301.NMT_COB_ID, lambda *frame: frames.append(frame))
     try:
@@ -112,7 +113,7 @@ def test_a_drive_without_a_torque_mode_is_refused_naming_what_is_missing():
 
 
 def embedded_operational(eds=None) -> tuple[EmbeddedDrive, list[int]]:
-    sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(), 2, lockstep=True, eds_path=eds)
+    sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(), 2, clock=DriveClock(), eds_path=eds)
     emcys: list[int] = []
     sim.master_network.subscribe(cia301.EMCY_BASE + 2,
                                  lambda _, data, __: emcys.append(struct.unpack("<H",
@@ -158,7 +159,8 @@ def test_the_default_pdo_mapping_of_the_eds_is_live_at_boot():
 
 def test_a_nmt_reset_leaves_the_power_stage_off_and_the_brake_holds_the_load():
     heavy = Payload(30.0, 0.0, 0.05)  # the paper's heaviest: 25 N.m of gravity at -1.5 rad
-    sim = EmbeddedDrive(MODEL, heavy, SensorNoise(), 2, lockstep=True, initial_position=-1.5)
+    sim = EmbeddedDrive(MODEL, heavy, SensorNoise(), 2, clock=DriveClock(),
+                        initial_position=-1.5)
     drive = CanOpenDrive(sim.master_network, 2, velocity_limit=MODEL.limits.velocity_max,
                          clock=DriveClock())
     try:
@@ -181,21 +183,25 @@ def test_a_nmt_reset_leaves_the_power_stage_off_and_the_brake_holds_the_load():
 
 def test_a_fresh_drive_has_its_physics_compiled_before_it_boots():
     """Nothing is compiled on the bus path (a fresh sim-bus answered its first SYNC 0.3-0.5 s
-    late): building the device compiles, or loads, the integrator."""
-    probe = ("from model import dynamics; from model.parameters import load_model; "
+    late): building the device compiles, or loads, the integrator. The cycle's integrator is
+    the compiled period of `sim_bus.sensing` (physics and sensors in one call), the sample at
+    a reset its `sample`."""
+    probe = ("from sim_bus import sensing; from model.parameters import load_model; "
              "from sim_bus.device import Cia402Device; "
-             "assert not dynamics.step_sensed.signatures; Cia402Device(load_model()); "
-             "print(len(dynamics.step_sensed.signatures))")
+             "kernels = (sensing.advance_and_sample, sensing.sample); "
+             "assert not any(k.signatures for k in kernels); Cia402Device(load_model()); "
+             "print(*(len(k.signatures) for k in kernels))")
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
                          timeout=120)
     assert out.returncode == 0, out.stderr
-    assert int(out.stdout) == 1
+    assert out.stdout.split() == ["1", "1"]
 
 
 def test_without_an_echo_a_tpdo_from_before_the_sync_is_not_taken_for_its_answer():
     """A standard drive does not echo the SYNC counter: the synchronous window decides. A
     frame stamped before SYNC k (a late answer to k-1 crossing it) is refused."""
-    sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(), 2, eds_path=CST_STANDARD)
+    sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(), 2, clock=WallClock(),
+                        eds_path=CST_STANDARD)
     drive = CanOpenDrive(sim.master_network, 2, velocity_limit=MODEL.limits.velocity_max,
                          drive_gain=MODEL.parameters.drive_gain, eds=CST_STANDARD)
     stale = struct.pack("<Hi", 0x0237, 12345)

@@ -15,6 +15,7 @@ import threading
 import canopen
 
 from commands.model_options import parse_payload
+from driver.clock import WallClock
 from model.parameters import load_model
 from protocol.bus_spec import parse_bus_spec
 from sim_bus.canopen_node import CanOpenNode
@@ -35,7 +36,7 @@ def main() -> int:
     network.connect(**parse_bus_spec(args.bus))
     device = Cia402Device(load_model(), parse_payload(args.payload_mass, args.payload_position),
                           SensorNoise(), eds_path=args.eds, node_id=args.node_id)
-    node = CanOpenNode(network, args.node_id, device)
+    node = CanOpenNode(network, args.node_id, device, clock=WallClock())
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     node.boot()

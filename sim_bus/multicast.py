@@ -1,0 +1,119 @@
+"""Virtual drives on python-can's `udp_multicast` buses, lean: the process that stands in for
+hardware must answer every frame within the cycle, on a host that runs the master too.
+
+Through python-can and canopen a frame cost the drives' process about 20 us to send (a
+`can.Message`, its checks, a msgpack dict, a socket timeout set) and 20 us to receive (a
+`select`, an ioctl for the timestamp, msgpack, a checked `can.Message`, the notifier's
+listeners, canopen's node scanner), plus the echo of every frame it sent itself, which
+udp_multicast delivers back: talos_arm's four buses (two drives each, nine frames a cycle)
+took about 1.5 ms of CPU a millisecond, more than a core, and the master waited for its
+samples ("late sample"). Here a frame is one msgpack call and one socket call each way, a
+received frame nobody on the network subscribes to (the drives' own echoes: two thirds of
+them) is dropped after decoding, and one thread receives for every bus of the process.
+
+The datagrams are python-can's own (`can.interfaces.udp_multicast.utils.pack_message`: a
+msgpack map of the message's fields), so a python-can master on the same group reads them as
+it reads its own. The socket is the one python-can's bus made (group joined, loopback on),
+used through its file descriptor.
+"""
+
+import logging
+import os
+import select
+import socket
+import threading
+import time
+
+import can
+import canopen
+import msgpack
+
+log = logging.getLogger(__name__)
+
+POLL_TIMEOUT = 0.05  # s: how long closing waits for the receive thread at most
+DATAGRAM_MAX = 4096  # bytes: a CAN FD frame's msgpack map is well below
+
+
+class MulticastNetwork(canopen.Network):
+    """A canopen Network of virtual drives on the udp_multicast bus python-can's `config`
+    names (interface "udp_multicast", its group as channel, its port). Its frames are received
+    by a `MulticastReceiver` (one for all of a process's buses)."""
+
+    def __init__(self, config: dict):
+        super().__init__(None)
+        self.bus = can.Bus(ignore_config=True, **config)
+        self.channel = config["channel"]
+        # the bus's socket (its options, its group) through a descriptor of our own; it is
+        # bound to the group's port, where the frames go
+        self._socket = socket.socket(fileno=os.dup(self.bus.fileno()))
+        self._socket.setblocking(False)
+        self._destination = (self.channel, self._socket.getsockname()[1])
+        self._send_lock = threading.Lock()
+
+    def fileno(self) -> int:
+        return self._socket.fileno()
+
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        """One classic CAN frame, as python-can's `pack_message` writes it."""
+        data = bytes(data)
+        datagram = msgpack.packb({
+            "timestamp": time.time(), "arbitration_id": can_id, "is_extended_id": False,
+            "is_remote_frame": remote, "is_error_frame": False, "channel": None,
+            "dlc": len(data), "data": data, "is_fd": False, "bitrate_switch": False,
+            "error_state_indicator": False}, use_bin_type=True)
+        with self._send_lock:  # nodes send from their own threads (heartbeats)
+            self._socket.sendto(datagram, self._destination)
+
+    def receive_ready(self) -> None:
+        """Dispatch every datagram waiting on the socket to this network's subscribers, as
+        canopen's listener does (error and remote frames ignored)."""
+        recv, subscribers = self._socket.recv, self.subscribers
+        while True:
+            try:
+                datagram = recv(DATAGRAM_MAX)
+            except BlockingIOError:
+                return
+            try:
+                frame = msgpack.unpackb(datagram, raw=False)
+                can_id = frame["arbitration_id"]
+                callbacks = subscribers.get(can_id)
+                if not callbacks or frame["is_error_frame"] or frame["is_remote_frame"]:
+                    continue
+                data = frame["data"]
+            except (ValueError, KeyError, TypeError) as exc:  # not a python-can datagram
+                log.warning("bus %s: datagram dropped: %s", self.channel, exc)
+                continue
+            now = time.time()
+            for callback in callbacks:
+                try:
+                    callback(can_id, data, now)
+                except Exception:  # one handler's failure must not stop the bus
+                    log.exception("bus %s: handler of 0x%03X failed", self.channel, can_id)
+
+    def disconnect(self) -> None:
+        self._socket.close()
+        self.bus.shutdown()
+
+
+class MulticastReceiver(threading.Thread):
+    """One thread receiving for every `MulticastNetwork` of the process, until `stop`: a
+    thread per bus would contend for the interpreter each frame."""
+
+    def __init__(self, networks: list[MulticastNetwork]):
+        super().__init__(daemon=True, name="multicast-receiver")
+        self._networks = {network.fileno(): network for network in networks}
+        self._stopping = threading.Event()
+
+    def run(self) -> None:
+        poll = select.poll()
+        for fd in self._networks:
+            poll.register(fd, select.POLLIN)
+        timeout_ms = int(POLL_TIMEOUT * 1e3)
+        while not self._stopping.is_set():
+            for fd, _ in poll.poll(timeout_ms):
+                self._networks[fd].receive_ready()
+
+    def stop(self) -> None:
+        self._stopping.set()
+        if self.ident is not None:
+            self.join()

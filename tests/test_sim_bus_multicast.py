@@ -1,0 +1,65 @@
+"""The virtual drives' lean udp_multicast path (`sim_bus.multicast`) speaks python-can's
+datagrams: a canopen master on python-can's own udp_multicast bus reads a drive served through
+it (SDO, NMT, SYNC -> TPDOs) as it reads any other, and one thread receives for several buses."""
+
+import threading
+
+import canopen
+
+from driver.clock import WallClock
+from model.parameters import Payload, load_model
+from protocol import cia301, objects
+from protocol.bus_spec import parse_bus_spec
+from sim_bus.canopen_node import CanOpenNode
+from sim_bus.device import Cia402Device
+from sim_bus.multicast import MulticastNetwork, MulticastReceiver
+from tests.conftest import udp_bus_spec
+
+
+def test_a_drive_served_through_it_answers_sdo_and_sync_on_two_buses_from_one_thread():
+    specs = [udp_bus_spec(), udp_bus_spec()]
+    networks = [MulticastNetwork(parse_bus_spec(spec)) for spec in specs]
+    receiver = MulticastReceiver(networks)
+    nodes = [CanOpenNode(network, node_id, Cia402Device(load_model(), Payload(),
+                                                        node_id=node_id), clock=WallClock())
+             for network, node_id in zip(networks, (3, 5), strict=True)]
+    masters = []
+    try:
+        receiver.start()
+        for spec, node in zip(specs, nodes, strict=True):
+            master = canopen.Network()
+            master.connect(**parse_bus_spec(spec))
+            masters.append(master)
+            remote = master.add_node(node.node_id, str(node.device.eds_path))
+            booted = threading.Event()
+            master.subscribe(cia301.HEARTBEAT_BASE + node.node_id,
+                             lambda can_id, data, ts, booted=booted: data[0] == 0 and booted.set())
+            node.boot()
+            assert booted.wait(2), "no boot-up message through the lean path"
+            # an SDO upload: request in through the receiver, answer out through sendto
+            assert remote.sdo.upload(objects.STATUSWORD, 0) == node.device.read_bytes(
+                objects.STATUSWORD, 0)
+            tpdos: list[tuple[int, bytes]] = []
+            got = threading.Event()
+
+            def on_tpdo(can_id, data, ts, tpdos=tpdos, got=got):
+                tpdos.append((can_id, bytes(data)))
+                got.set()
+
+            master.subscribe(cia301.TPDO_BASES[0] + node.node_id, on_tpdo)
+            master.nmt.send_command(cia301.NMT_START)
+            master.sync.transmit()
+            assert got.wait(2), "no TPDO after the SYNC"
+            assert node.sync_count == 1
+            can_id, data = tpdos[0]
+            assert can_id == cia301.TPDO_BASES[0] + node.node_id
+            statusword = int.from_bytes(data[:2], "little")
+            assert statusword == node.device.read(objects.STATUSWORD)
+    finally:
+        for master in masters:
+            master.disconnect()
+        receiver.stop()
+        for node in nodes:
+            node.close()
+        for network in networks:
+            network.disconnect()
