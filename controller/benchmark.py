@@ -164,7 +164,8 @@ def measure_joints(joints: int, ticks: int, threads: int,
     model in closed loop, with the vectorised kernel (joints in SIMD lanes) and the scalar one
     (joint after joint): tick median and p99 (us), the cold first solve excluded. The two run
     in alternating blocks of ticks, so a change in the host's load hits both alike; `threads`
-    is the lane blocks of the vectorised kernel and numba's thread count for both. The
+    is the threads that share the vectorised kernel's chunks and numba's thread count for
+    both. The
     problems are `joint_problems` from their references' start unless `problems` gives them
     with their start positions (a robot's: `robot.bench.robot_problems`)."""
     if problems is None:
@@ -186,7 +187,7 @@ def measure_joints(joints: int, ticks: int, threads: int,
     finally:
         numba.set_num_threads(previous)
     result: dict = {"ticks": ticks, "threads": threads,
-                    "lane_blocks": len(loops["lanes"].batch.lane_blocks())}
+                    "lane_threads": loops["lanes"].batch.lane_threads()}
     for kernel, name in (("lanes", "vectorised"), ("scalar", "scalar")):
         measured = np.concatenate(times[kernel])
         result[f"{name}_median_us"] = round(float(np.median(measured)), 2)

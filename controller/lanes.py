@@ -44,6 +44,7 @@ import os
 import llvmlite.binding as llvm
 import numba
 import numpy as np
+from llvmlite import ir
 from numba import literally, types
 from numba.extending import intrinsic, register_jitable
 
@@ -126,9 +127,10 @@ DONE, WARM_SWEEP, FIRST_ROLLOUT, SWEEP, SEARCH = range(5)
  ROLLOUTS) = range(9)
 STATE = 9
 PADDING = -1  # STATUS of a lane that is skipped this tick or holds no joint
-# columns of current[block, column]: which trajectory is the current one, and the ring slot
-# of step 0 (both trajectories and the gains are rings of n + 1 steps)
+# columns of current[chunk, column]: which trajectory is the current one, and the ring slot
+# of step 0 (both trajectories and the gains are rings of n + 1 steps); a row is 64 bytes
 WHICH, RING = 0, 1
+CURRENT = 8
 
 
 def has_effects(packed_parameters: np.ndarray) -> bool:
@@ -164,24 +166,19 @@ def chunks(joints: int) -> int:
     return -(-joints // width(joints))
 
 
-def allocate(joints: int, n: int, blocks: int) -> tuple[np.ndarray, ...]:
-    """The lane workspace of a batch: (trajectories, gains, scratch, state, current), where
-    current[b] says which of the two trajectories is the current one in block b and where its
-    step 0 sits in the ring (at most one block per chunk). Separate arrays, so a loop's reads
-    and writes fall in few groups the compiler can check for overlap once."""
+def allocate(joints: int, n: int) -> tuple[np.ndarray, ...]:
+    """The lane workspace of a batch: (trajectories, gains, scratch, state, current, claims),
+    where current[c] says which of the two trajectories is chunk c's current one and where its
+    step 0 sits in the ring, and claims[0] counts the chunks the threads of a tick have taken.
+    Separate arrays, so a loop's reads and writes fall in few groups the compiler can check
+    for overlap once. A chunk's row of `current` is 64 bytes, as is `claims`: the threads
+    write them, each for the chunks it ticks."""
     count = chunks(joints)
     lanes = width(joints)
     return (np.zeros((2, count, n + 1, TRAJECTORY_FIELDS, lanes)),
             np.zeros((count, n + 1, GAIN_FIELDS, lanes)), np.zeros((count, SCRATCH, lanes)),
             np.zeros((count, STATE, lanes), dtype=np.int64),
-            np.zeros((min(max(blocks, 1), count), 2), dtype=np.int64))
-
-
-def block_of(joint: int, joints: int, blocks: int) -> int:
-    """The block whose thread ticks this joint (blocks are runs of whole chunks)."""
-    count = chunks(joints)
-    chunk = joint // width(joints)
-    return next(b for b in range(blocks) if chunk < (b + 1) * count // blocks)
+            np.zeros((count, CURRENT), dtype=np.int64), np.zeros(CURRENT, dtype=np.int64))
 
 
 def _costs_reader():
@@ -484,31 +481,27 @@ def _shift(current, gains, scratch, n, r, c0, c1, width, effects):
 
 
 @numba.njit(**JIT)
-def _take(trajectories, scratch, current, block, n, joints, c0, c1, width):
-    """The trial becomes the current solution of the lanes with scratch[TAKES] set: the two
-    trajectories swap roles when every joint of the block takes it, the takers' lanes are
+def _take(trajectories, scratch, current, n, joints, c, width):
+    """The trial becomes the current solution of chunk c's lanes with scratch[TAKES] set: the
+    two trajectories swap roles when every joint of the chunk takes it, the takers' lanes are
     copied otherwise."""
     literally(width)  # a compile-time lane count: one compiled kernel per width
     S = _rows(scratch, width)
     takers = 0
-    for c in range(c0, c1):
-        for w in range(width):
-            takers += S[c, TAKES, w] != 0.0
+    for w in range(width):
+        takers += S[c, TAKES, w] != 0.0
     if takers == 0:
         return
-    if takers == min(c1 * width, joints) - c0 * width:
-        current[block, WHICH] = 1 - current[block, WHICH]
+    if takers == min((c + 1) * width, joints) - c * width:
+        current[c, WHICH] = 1 - current[c, WHICH]
         return
-    Tc = _steps(trajectories[current[block, WHICH]], TRAJECTORY_FIELDS, width)
-    Tt = _steps(trajectories[1 - current[block, WHICH]], TRAJECTORY_FIELDS, width)
-    for c in range(c0, c1):
-        if not _any(S, c, TAKES, width):
-            continue
-        for k in range(n + 1):
-            for f in range(TRAJECTORY_FIELDS):
-                for w in range(width):
-                    takes = S[c, TAKES, w] != 0.0
-                    Tc[c, k, f, w] = Tt[c, k, f, w] if takes else Tc[c, k, f, w]
+    Tc = _steps(trajectories[current[c, WHICH]], TRAJECTORY_FIELDS, width)
+    Tt = _steps(trajectories[1 - current[c, WHICH]], TRAJECTORY_FIELDS, width)
+    for k in range(n + 1):
+        for f in range(TRAJECTORY_FIELDS):
+            for w in range(width):
+                takes = S[c, TAKES, w] != 0.0
+                Tc[c, k, f, w] = Tt[c, k, f, w] if takes else Tc[c, k, f, w]
 
 
 @numba.njit(**JIT)
@@ -788,64 +781,94 @@ def _simulates(scratch, state, c0, c1, width):
 
 
 @numba.njit(**JIT)
-def tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n, c0, c1, width,
-               effects):
-    """Every joint of chunks [c0, c1) at time t0: rounds of one masked backward pass and one
-    simulation until each joint's iLQR has ended (see the module docstring)."""
+def tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, width, effects):
+    """Every joint of chunk c at time t0: rounds of one masked backward pass and one simulation
+    until each joint's iLQR has ended (see the module docstring). A chunk's tick reads and
+    writes only its own lanes, its row of `current` and its joints' rows: any thread may run
+    it."""
     literally(width)  # a compile-time lane count: one compiled kernel per width
     literally(effects)
-    r = current[block, RING] + 1  # every mode wants the stored steps moved up by one
+    r = current[c, RING] + 1  # every mode wants the stored steps moved up by one
     r = 0 if r > n else r
-    current[block, RING] = r
-    if _begin(rows, trajectories[current[block, WHICH]], gains, scratch, state, t0, n, r, c0,
-              c1, width):
-        _shift(trajectories[current[block, WHICH]], gains, scratch, n, r, c0, c1, width,
-               effects)
+    current[c, RING] = r
+    c1 = c + 1
+    if _begin(rows, trajectories[current[c, WHICH]], gains, scratch, state, t0, n, r, c, c1,
+              width):
+        _shift(trajectories[current[c, WHICH]], gains, scratch, n, r, c, c1, width, effects)
     while True:
-        cur = trajectories[current[block, WHICH]]
-        swept = _before_sweep(scratch, state, c0, c1, width)
+        cur = trajectories[current[c, WHICH]]
+        swept = _before_sweep(scratch, state, c, c1, width)
         if swept:
-            _backward(cur, gains, scratch, n, r, c0, c1, width)
-            _after_sweep(cur, gains, scratch, state, n, r, c0, c1, width)
-        simulates = _simulates(scratch, state, c0, c1, width)
+            _backward(cur, gains, scratch, n, r, c, c1, width)
+            _after_sweep(cur, gains, scratch, state, n, r, c, c1, width)
+        simulates = _simulates(scratch, state, c, c1, width)
         if simulates:
-            _rollout(cur, trajectories[1 - current[block, WHICH]], gains, scratch, n, r, c0, c1,
+            _rollout(cur, trajectories[1 - current[c, WHICH]], gains, scratch, n, r, c, c1,
                      width, effects)
-            _after_rollout(gains, scratch, state, n, c0, c1, width)
-            _take(trajectories, scratch, current, block, n, rows.shape[0], c0, c1, width)
+            _after_rollout(gains, scratch, state, n, c, c1, width)
+            _take(trajectories, scratch, current, n, rows.shape[0], c, width)
         if not swept and not simulates:
             break
-    _end(rows, trajectories[current[block, WHICH]], gains, state, scratch, n, r, c0, c1, width)
+    _end(rows, trajectories[current[c, WHICH]], gains, state, scratch, n, r, c, c1, width)
+
+
+@intrinsic
+def _take_next(typingctx, claims):
+    """claims[0] += 1 as one atomic step (a sequentially consistent fetch-and-add), returning
+    the value before: the index of the chunk the calling thread ticks next."""
+    if not (isinstance(claims, types.Array) and claims.dtype == types.int64):
+        return None
+
+    def codegen(context, builder, signature, args):
+        data = context.make_array(signature.args[0])(context, builder, args[0]).data
+        return builder.atomic_rmw("add", data, ir.Constant(ir.IntType(64), 1), "seq_cst")
+
+    return types.int64(claims), codegen
+
+
+@numba.njit(**JIT)
+def _tick_claimed(rows, trajectories, gains, scratch, state, current, claims, t0, n, effects):
+    """Tick chunks one after the other, each the next one no thread has taken yet, until none
+    is left. A thread that starts late (woken late, or its core busy) takes fewer chunks and
+    the others take the rest: no thread waits for a half that another has not begun."""
+    count = gains.shape[0]
+    while True:
+        c = _take_next(claims)
+        if c >= count:
+            return
+        if effects:
+            tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, WIDTH, True)
+        else:
+            tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, WIDTH, False)
 
 
 @numba.njit(parallel=True, **JIT)
-def tick_lanes(rows, trajectories, gains, scratch, state, current, t0, n, effects):
-    """Every joint's MPC step at time t0, the chunks of lanes split in len(current) blocks, one
-    per thread (one block: no thread team is woken). A joint alone is a chunk of one lane.
-    `effects`: some joint's model carries an extra effect (`has_effects`); each branch below
-    names its kernel by constants (a prange in a called function would run serially)."""
+def tick_lanes(rows, trajectories, gains, scratch, state, current, claims, t0, n, effects,
+               threads):
+    """Every joint's MPC step at time t0, chunk after chunk, on up to `threads` threads (one:
+    no thread team is woken). A joint alone is a chunk of one lane. `effects`: some joint's
+    model carries an extra effect (`has_effects`); each branch below names its kernel by
+    constants (a prange in a called function would run serially). With more threads than
+    one, each takes the next untaken chunk until none is left (`_tick_claimed`): one parallel
+    region a tick, each thread running whole ticks of its chunks."""
     count = gains.shape[0]
-    blocks = current.shape[0]
-    if blocks == 1:
-        if gains.shape[3] == 1:
-            if effects:
-                tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count,
-                           1, True)
+    if threads == 1 or count == 1:
+        for c in range(count):
+            if gains.shape[3] == 1:
+                if effects:
+                    tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, 1,
+                               True)
+                else:
+                    tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, 1,
+                               False)
+            elif effects:
+                tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, WIDTH,
+                           True)
             else:
-                tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count,
-                           1, False)
-        elif effects:
-            tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count,
-                       WIDTH, True)
-        else:
-            tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count,
-                       WIDTH, False)
+                tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, WIDTH,
+                           False)
         return
-    for block in numba.prange(blocks):
-        c0, c1 = block * count // blocks, (block + 1) * count // blocks
-        if effects:
-            tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n, c0, c1,
-                       WIDTH, True)
-        else:
-            tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n, c0, c1,
-                       WIDTH, False)
+    claims[0] = 0
+    for _ in numba.prange(min(threads, count)):
+        _tick_claimed(rows, trajectories, gains, scratch, state, current, claims, t0, n,
+                      effects)

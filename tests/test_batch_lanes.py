@@ -166,11 +166,12 @@ def test_a_line_search_that_fails_falls_back_alike():
         twins.tick(k)
 
 
-def test_two_lane_blocks_decide_as_one():
-    """Threads split the joints into blocks of whole chunks; the decisions do not change."""
+def test_two_threads_decide_as_one():
+    """Two threads share the chunks of lanes, each taking the next untaken one; which thread
+    ticks a chunk changes from tick to tick, the decisions do not."""
     one, two = BatchMpc(problems(20), kernel="lanes", threads=1), BatchMpc(
         problems(20), kernel="lanes", threads=2)
-    assert len(two.lane_blocks()) == 2 and len(one.lane_blocks()) == 1
+    assert two.lane_threads() == 2 and one.lane_threads() == 1
     positions, velocities = np.linspace(-0.4, -1.8, 20), np.zeros(20)
     for k in range(30):
         first, second = (batch.tick(k * DT, positions, velocities) for batch in (one, two))
