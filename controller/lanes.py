@@ -19,7 +19,7 @@ thus goes through exactly the sequence of passes and decisions it goes through a
 `tick_joint`: its own mode (cold, warm, resample, skip), regularisation, and line search that
 accepts or rejects its own step. A simulation writes every lane of the trial trajectory; the
 joints that accept it take it as their current solution (the two trajectories swap roles when
-every joint of the block takes it, as in the scalar solver; otherwise the takers' lanes are
+every joint of the chunk takes it, as in the scalar solver; otherwise the takers' lanes are
 copied), and the trial lanes of the others are scratch. A round costs the same whatever the
 number of joints still working in a chunk (a chunk is as slow as its slowest joint), and
 nothing for a chunk none of whose joints works in it: that chunk's sweep, simulation and copy
@@ -34,9 +34,14 @@ and width. The cost algebra and the discrete step are shared with the scalar ker
 (`model.effects`) added by their own code in a batch whose models switch one on (`has_effects`:
 that batch's loops over lanes are not vectorised, their terms branching and calling libm).
 
-Threads: the chunks are split in contiguous blocks, one per thread of a numba prange; each
-block runs the whole tick on its own lanes. One block is the default where the machine has two
-cores or fewer (see `default_threads`).
+Threads: a chunk's tick is whole in itself (its own rounds, ring and current trajectory), so
+any thread may run it. With threads, one parallel region a tick (a numba prange over the
+threads) and each thread ticks the next chunk no thread has taken yet (`_tick_claimed`), until
+none is left. Not fixed halves: waking the second thread costs the first 10-17 us on this
+virtual machine and the second starts 15-30 us into the tick (paced at 1 kHz; far later, or on
+the first thread's core, under load), and with halves the tick waited for it: 32 joints took
+142 us on two threads against 105 us on one (SCHED_RR, load 5.8). One thread is the default
+where the machine has two cores or fewer (see `default_threads`).
 """
 
 import os
@@ -46,6 +51,7 @@ import numba
 import numpy as np
 from llvmlite import ir
 from numba import literally, types
+from numba.core import cgutils
 from numba.extending import intrinsic, register_jitable
 
 from controller import workspace as ws
@@ -131,6 +137,8 @@ PADDING = -1  # STATUS of a lane that is skipped this tick or holds no joint
 # of step 0 (both trajectories and the gains are rings of n + 1 steps); a row is 64 bytes
 WHICH, RING = 0, 1
 CURRENT = 8
+# items of claims[]: the chunks the threads of a tick have taken, and those they have ticked
+TAKEN, TICKED = 0, 1
 
 
 def has_effects(packed_parameters: np.ndarray) -> bool:
@@ -169,7 +177,7 @@ def chunks(joints: int) -> int:
 def allocate(joints: int, n: int) -> tuple[np.ndarray, ...]:
     """The lane workspace of a batch: (trajectories, gains, scratch, state, current, claims),
     where current[c] says which of the two trajectories is chunk c's current one and where its
-    step 0 sits in the ring, and claims[0] counts the chunks the threads of a tick have taken.
+    step 0 sits in the ring, and `claims` counts the chunks a tick's threads took and ticked.
     Separate arrays, so a loop's reads and writes fall in few groups the compiler can check
     for overlap once. A chunk's row of `current` is 64 bytes, as is `claims`: the threads
     write them, each for the chunks it ticks."""
@@ -813,33 +821,71 @@ def tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, wid
 
 
 @intrinsic
-def _take_next(typingctx, claims):
-    """claims[0] += 1 as one atomic step (a sequentially consistent fetch-and-add), returning
-    the value before: the index of the chunk the calling thread ticks next."""
-    if not (isinstance(claims, types.Array) and claims.dtype == types.int64):
+def _fetch_add(typingctx, counters, i):
+    """counters[i] += 1 as one atomic step (sequentially consistent), returning the value
+    before."""
+    if not (isinstance(counters, types.Array) and counters.dtype == types.int64
+            and isinstance(i, types.Integer)):
         return None
 
     def codegen(context, builder, signature, args):
-        data = context.make_array(signature.args[0])(context, builder, args[0]).data
-        return builder.atomic_rmw("add", data, ir.Constant(ir.IntType(64), 1), "seq_cst")
+        array = context.make_array(signature.args[0])(context, builder, args[0])
+        item = builder.gep(array.data, [args[1]])
+        return builder.atomic_rmw("add", item, ir.Constant(ir.IntType(64), 1), "seq_cst")
 
-    return types.int64(claims), codegen
+    return types.int64(counters, i), codegen
+
+
+@intrinsic
+def _load(typingctx, counters, i):
+    """counters[i] read as one atomic step (acquire: what the writer did before its
+    `_fetch_add` is seen after)."""
+    if not (isinstance(counters, types.Array) and counters.dtype == types.int64
+            and isinstance(i, types.Integer)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        array = context.make_array(signature.args[0])(context, builder, args[0])
+        item = builder.gep(array.data, [args[1]])
+        return builder.load_atomic(item, "acquire", 8)
+
+    return types.int64(counters, i), codegen
+
+
+@intrinsic
+def _pause(typingctx):
+    """The spin-wait hint (x86 PAUSE): a waiting loop yields the core's resources."""
+    def codegen(context, builder, signature, args):
+        pause = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), []),
+                                               "llvm.x86.sse2.pause")
+        builder.call(pause, [])
+        return context.get_dummy_value()
+
+    return types.void(), codegen
 
 
 @numba.njit(**JIT)
 def _tick_claimed(rows, trajectories, gains, scratch, state, current, claims, t0, n, effects):
     """Tick chunks one after the other, each the next one no thread has taken yet, until none
     is left. A thread that starts late (woken late, or its core busy) takes fewer chunks and
-    the others take the rest: no thread waits for a half that another has not begun."""
+    the others take the rest: no thread waits for a half that another has not begun. The
+    calling thread then waits, spinning, for the chunks others are still ticking: at the
+    region's end it would sleep (OpenMP's passive wait) and be woken 20-30 us after the last
+    chunk ended (measured here, SCHED_RR); a spin lasts at most one chunk's tick, and the other
+    threads sleep at once."""
     count = gains.shape[0]
     while True:
-        c = _take_next(claims)
+        c = _fetch_add(claims, TAKEN)
         if c >= count:
-            return
+            break
         if effects:
             tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, WIDTH, True)
         else:
             tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, WIDTH, False)
+        _fetch_add(claims, TICKED)
+    if numba.get_thread_id() == 0:
+        while _load(claims, TICKED) < count:
+            _pause()
 
 
 @numba.njit(parallel=True, **JIT)
@@ -868,7 +914,8 @@ def tick_lanes(rows, trajectories, gains, scratch, state, current, claims, t0, n
                 tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, WIDTH,
                            False)
         return
-    claims[0] = 0
+    claims[TAKEN] = 0
+    claims[TICKED] = 0
     for _ in numba.prange(min(threads, count)):
         _tick_claimed(rows, trajectories, gains, scratch, state, current, claims, t0, n,
                       effects)
