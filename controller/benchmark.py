@@ -204,7 +204,8 @@ def run(ticks: int = 20_000, numpy_ticks: int = 300, joint_ticks: int = 5_000,
     (N = 5 at 3.3 ms) under `paper_robot`, and the batched MPC under `joints`: for each joint
     count, and for a robot's own problem when `robot` gives it (its name, its problems and
     start positions), one and two threads, the vectorised and the scalar kernel side by side.
-    The host's load average and core count come with the figures (they move them).
+    The host's load average, core count and numba's threading layer come with the figures
+    (they move them).
     `progress` is told each stage as it starts (the whole run takes a quarter of a minute or
     more)."""
     stages = 2 + len(JOINT_COUNTS) + (robot is not None)
@@ -230,6 +231,9 @@ def run(ticks: int = 20_000, numpy_ticks: int = 300, joint_ticks: int = 5_000,
                                                  problems=problems)
             for threads in THREAD_COUNTS}
     result["default_threads"] = default_threads()
+    # which of numba's layers ran the threads (OpenMP, TBB or its own workqueue): their wake-up
+    # and join costs differ by tens of us a tick (controller.lanes' docstring)
+    result["threading_layer"] = numba.threading_layer()
     result["cores"] = os.cpu_count()
     result["load_average"] = [round(load, 2) for load in os.getloadavg()]
     return result

@@ -8,8 +8,9 @@ import numba
 import numpy as np
 import pytest
 
-from controller import ilqr_reference, lane_math
+from controller import ilqr_reference, lane_math, lanes
 from controller import workspace as ws
+from controller.benchmark import measure_joints
 from controller.ilqr import LINE_SEARCH_STEPS
 from controller.mpc import BatchMpc, JointProblem, Mpc
 from controller.problem import OcpSettings, pack_cost
@@ -172,10 +173,13 @@ def test_two_threads_decide_as_one():
     one, two = BatchMpc(problems(20), kernel="lanes", threads=1), BatchMpc(
         problems(20), kernel="lanes", threads=2)
     assert two.lane_threads() == 2 and one.lane_threads() == 1
+    claims = two._lanes[-1]
     positions, velocities = np.linspace(-0.4, -1.8, 20), np.zeros(20)
     for k in range(30):
         first, second = (batch.tick(k * DT, positions, velocities) for batch in (one, two))
         assert first == second
+        # every chunk ticked once; each thread's last look found none left
+        assert claims[lanes.TICKED] == 3 and claims[lanes.TAKEN] == 3 + 2
         positions = positions - 1e-3 * np.array([d.planned_current for d in first])
 
 
@@ -268,3 +272,14 @@ def test_joints_with_extra_effects_run_in_lanes_and_decide_as_the_scalar_kernel(
     both = BatchMpc([chosen[len(names)], chosen[-2]], kernel="lanes")
     loaded, bare = both.tick(0.0, [-0.5, -0.5], [0.0, 0.0])
     assert abs(loaded.planned_current - bare.planned_current) > 1e-3
+
+
+def test_the_bench_reports_both_kernels_and_the_threads_that_share_the_chunks():
+    """`bench --json`'s batched figures: the vectorised and the scalar kernel in the same run,
+    and how many threads took the lanes' chunks (one per chunk at most)."""
+    two, few = measure_joints(9, 4, 2), measure_joints(7, 4, 2)
+    assert two["lane_threads"] == 2 and few["lane_threads"] == 1
+    for result in (two, few):
+        assert result["threads"] == 2 and result["ticks"] == 4
+        assert 0 < result["vectorised_median_us"] <= result["vectorised_p99_us"]
+        assert 0 < result["scalar_median_us"] <= result["scalar_p99_us"]
