@@ -36,12 +36,12 @@ that batch's loops over lanes are not vectorised, their terms branching and call
 
 Threads: a chunk's tick is whole in itself (its own rounds, ring and current trajectory), so
 any thread may run it. With threads, one parallel region a tick (a numba prange over the
-threads) and each thread ticks the next chunk no thread has taken yet (`_tick_claimed`), until
-none is left. Not fixed halves: waking the second thread costs the first 10-17 us on this
-virtual machine and the second starts 15-30 us into the tick (paced at 1 kHz; far later, or on
-the first thread's core, under load), and with halves the tick waited for it: 32 joints took
-142 us on two threads against 105 us on one (SCHED_RR, load 5.8). One thread is the default
-where the machine has two cores or fewer (see `default_threads`).
+threads) and each thread ticks its share of the chunks, then any other that no thread has
+taken yet (`_tick_claimed`). Not fixed halves: waking the second thread costs the first
+10-17 us on this virtual machine and the second starts 15-30 us into the tick (paced at
+1 kHz; far later, or on the first thread's core, under load), and with halves the tick waited
+for it: 32 joints took 142 us on two threads against 105 us on one (SCHED_RR, load 5.8). One
+thread is the default where the machine has two cores or fewer (see `default_threads`).
 """
 
 import os
@@ -133,12 +133,12 @@ DONE, WARM_SWEEP, FIRST_ROLLOUT, SWEEP, SEARCH = range(5)
  ROLLOUTS) = range(9)
 STATE = 9
 PADDING = -1  # STATUS of a lane that is skipped this tick or holds no joint
-# columns of current[chunk, column]: which trajectory is the current one, and the ring slot
-# of step 0 (both trajectories and the gains are rings of n + 1 steps); a row is 64 bytes
-WHICH, RING = 0, 1
+# columns of current[chunk, column]: which trajectory is the current one, the ring slot of
+# step 0 (both trajectories and the gains are rings of n + 1 steps), and whether a thread has
+# taken the chunk in this tick (threads); a row is 64 bytes
+WHICH, RING, TAKEN = 0, 1, 2
 CURRENT = 8
-# items of claims[]: the chunks the threads of a tick have taken, and those they have ticked
-TAKEN, TICKED = 0, 1
+TICKED = 0  # claims[TICKED]: the chunks the threads of a tick have ticked
 
 
 def has_effects(packed_parameters: np.ndarray) -> bool:
@@ -177,7 +177,7 @@ def chunks(joints: int) -> int:
 def allocate(joints: int, n: int) -> tuple[np.ndarray, ...]:
     """The lane workspace of a batch: (trajectories, gains, scratch, state, current, claims),
     where current[c] says which of the two trajectories is chunk c's current one and where its
-    step 0 sits in the ring, and `claims` counts the chunks a tick's threads took and ticked.
+    step 0 sits in the ring, and `claims` counts the chunks a tick's threads have ticked.
     Separate arrays, so a loop's reads and writes fall in few groups the compiler can check
     for overlap once. A chunk's row of `current` is 64 bytes, as is `claims`: the threads
     write them, each for the chunks it ticks."""
@@ -822,8 +822,8 @@ def tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, wid
 
 @intrinsic
 def _fetch_add(typingctx, counters, i):
-    """counters[i] += 1 as one atomic step (sequentially consistent), returning the value
-    before."""
+    """Item i of C-contiguous `counters` (counted through all its dimensions) += 1 as one
+    atomic step (sequentially consistent), returning the value before."""
     if not (isinstance(counters, types.Array) and counters.dtype == types.int64
             and isinstance(i, types.Integer)):
         return None
@@ -838,8 +838,8 @@ def _fetch_add(typingctx, counters, i):
 
 @intrinsic
 def _load(typingctx, counters, i):
-    """counters[i] read as one atomic step (acquire: what the writer did before its
-    `_fetch_add` is seen after)."""
+    """Item i of C-contiguous `counters` read as one atomic step (acquire: what the writer did
+    before its `_fetch_add` is seen after)."""
     if not (isinstance(counters, types.Array) and counters.dtype == types.int64
             and isinstance(i, types.Integer)):
         return None
@@ -865,19 +865,24 @@ def _pause(typingctx):
 
 
 @numba.njit(**JIT)
-def _tick_claimed(rows, trajectories, gains, scratch, state, current, claims, t0, n, effects):
-    """Tick chunks one after the other, each the next one no thread has taken yet, until none
-    is left. A thread that starts late (woken late, or its core busy) takes fewer chunks and
-    the others take the rest: no thread waits for a half that another has not begun. The
-    calling thread then waits, spinning, for the chunks others are still ticking: at the
-    region's end it would sleep (OpenMP's passive wait) and be woken 20-30 us after the last
-    chunk ended (measured here, SCHED_RR); a spin lasts at most one chunk's tick, and the other
-    threads sleep at once."""
+def _tick_claimed(rows, trajectories, gains, scratch, state, current, claims, t0, n, effects,
+                  thread, threads):
+    """Tick every chunk no thread has taken yet, looking from this thread's own share of them
+    (thread x count / threads on) round to the others'. When the threads start together each
+    ticks its own share, the same chunks every tick (their data stays in that core's cache);
+    a thread that starts late (woken late, or its core busy) finds part of its share taken by
+    the others: no thread waits for a share that another has not begun. The calling thread
+    then waits, spinning, for the chunks others are still ticking: at the region's end it
+    would sleep (OpenMP's passive wait) and be woken 20-30 us after the last chunk ended
+    (measured here, SCHED_RR); the spin lasts at most one chunk's tick, and the other threads
+    sleep at once."""
     count = gains.shape[0]
-    while True:
-        c = _fetch_add(claims, TAKEN)
-        if c >= count:
-            break
+    first = thread * count // threads
+    for k in range(count):
+        c = first + k
+        c = c - count if c >= count else c
+        if _fetch_add(current, c * CURRENT + TAKEN) != 0:
+            continue  # another thread's
         if effects:
             tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, WIDTH, True)
         else:
@@ -895,8 +900,8 @@ def tick_lanes(rows, trajectories, gains, scratch, state, current, claims, t0, n
     no thread team is woken). A joint alone is a chunk of one lane. `effects`: some joint's
     model carries an extra effect (`has_effects`); each branch below names its kernel by
     constants (a prange in a called function would run serially). With more threads than
-    one, each takes the next untaken chunk until none is left (`_tick_claimed`): one parallel
-    region a tick, each thread running whole ticks of its chunks."""
+    one, each ticks its share of the chunks and then any other untaken one (`_tick_claimed`):
+    one parallel region a tick, each thread running whole ticks of its chunks."""
     count = gains.shape[0]
     if threads == 1 or count == 1:
         for c in range(count):
@@ -914,8 +919,9 @@ def tick_lanes(rows, trajectories, gains, scratch, state, current, claims, t0, n
                 tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, WIDTH,
                            False)
         return
-    claims[TAKEN] = 0
     claims[TICKED] = 0
-    for _ in numba.prange(min(threads, count)):
+    current[:, TAKEN] = 0
+    team = min(threads, count)
+    for thread in numba.prange(team):
         _tick_claimed(rows, trajectories, gains, scratch, state, current, claims, t0, n,
-                      effects)
+                      effects, thread, team)

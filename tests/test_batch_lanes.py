@@ -178,8 +178,9 @@ def test_two_threads_decide_as_one():
     for k in range(30):
         first, second = (batch.tick(k * DT, positions, velocities) for batch in (one, two))
         assert first == second
-        # every chunk ticked once; each thread's last look found none left
-        assert claims[lanes.TICKED] == 3 and claims[lanes.TAKEN] == 3 + 2
+        # every chunk ticked once, each taken by one thread and looked at by both
+        assert claims[lanes.TICKED] == 3
+        assert (two._lanes[-2][:, lanes.TAKEN] == 2).all()
         positions = positions - 1e-3 * np.array([d.planned_current for d in first])
 
 
