@@ -893,6 +893,16 @@ def _tick_claimed(rows, trajectories, gains, scratch, state, current, claims, t0
             _pause()
 
 
+@numba.njit(**JIT)
+def _untaken(current, claims):
+    """No chunk taken or ticked yet. Not written in `tick_lanes` itself: numba makes a slice
+    assignment in a parallel function a parallel region of its own, and a region costs a
+    wake-up and a join (40 us here)."""
+    for c in range(current.shape[0]):
+        current[c, TAKEN] = 0
+    claims[TICKED] = 0
+
+
 @numba.njit(parallel=True, **JIT)
 def tick_lanes(rows, trajectories, gains, scratch, state, current, claims, t0, n, effects,
                threads):
@@ -919,8 +929,7 @@ def tick_lanes(rows, trajectories, gains, scratch, state, current, claims, t0, n
                 tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, WIDTH,
                            False)
         return
-    claims[TICKED] = 0
-    current[:, TAKEN] = 0
+    _untaken(current, claims)
     team = min(threads, count)
     for thread in numba.prange(team):
         _tick_claimed(rows, trajectories, gains, scratch, state, current, claims, t0, n,
