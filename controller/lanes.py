@@ -149,17 +149,16 @@ def has_effects(packed_parameters: np.ndarray) -> bool:
 
 
 def default_threads() -> int:
-    """One thread on a machine with two cores or fewer, else two. Measured on the two shared
-    cores here (bench --json, 32 joints = 4 chunks, 2 blocks on two threads): one thread
-    135 us, two 152 us at load 8; 88 us against 139 us beside two CPU-bound loops (load 10);
-    again with chunks skipped when idle: 167 against 257 us at load 4.5, 107 against 123 us
-    beside two loops (load 8), and talos_32's problem 132 against 303 us, 97 against 148 us.
-    The pure fork and join of two blocks (every joint skipped) took 52 and 657 us median in
-    two runs at load 6 with OpenMP's passive wait; spinning (GOMP_SPINCOUNT) made the whole
-    tick 1-2 ms there, numba's workqueue layer 210-240 us against 140-166 us with OpenMP.
-    The second thread must be woken each tick and competes with whatever holds the other core;
-    on a robot PC with two cores that is the bus and the telemetry. Two on larger machines is
-    not measured here; fewer than 9 joints are one chunk, one block, whatever the count."""
+    """One thread on a machine with two cores or fewer, else two. On the two shared cores here
+    (a KVM guest; 32 joints = 4 chunks, one and two threads alternating in one process, load
+    4-6 from other work) two threads took 0.95-1.02 times one thread's tick under SCHED_RR and
+    1.12-1.20 times at normal priority, against 1.22-1.47 and 1.20-2.0 with fixed halves
+    before: under load the woken thread is often put on the caller's own core (the second
+    core is busy) and the tick runs in turn anyway. The second thread costs its wake-up each
+    tick (15-30 us here at 1 kHz, the futex wake 10-17 us of the caller's time) and competes
+    with whatever holds the other core; on a robot PC with two cores that is the bus and the
+    telemetry. Two on larger machines is not measured here; fewer than 9 joints are one
+    chunk, one thread, whatever the count."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return 1 if (cores or 1) <= 2 else 2
 
