@@ -10,7 +10,7 @@ import pytest
 
 from controller import ilqr_reference, lane_math, lanes
 from controller import workspace as ws
-from controller.benchmark import measure_joints
+from controller.benchmark import measure_joints, measure_threads
 from controller.ilqr import LINE_SEARCH_STEPS
 from controller.mpc import BatchMpc, JointProblem, Mpc
 from controller.problem import OcpSettings, pack_cost
@@ -275,12 +275,17 @@ def test_joints_with_extra_effects_run_in_lanes_and_decide_as_the_scalar_kernel(
     assert abs(loaded.planned_current - bare.planned_current) > 1e-3
 
 
-def test_the_bench_reports_both_kernels_and_the_threads_that_share_the_chunks():
-    """`bench --json`'s batched figures: the vectorised and the scalar kernel in the same run,
-    and how many threads took the lanes' chunks (one per chunk at most)."""
-    two, few = measure_joints(9, 4, 2), measure_joints(7, 4, 2)
-    assert two["lane_threads"] == 2 and few["lane_threads"] == 1
-    for result in (two, few):
-        assert result["threads"] == 2 and result["ticks"] == 4
+def test_the_bench_reports_both_kernels_on_one_and_two_threads():
+    """`bench --json`'s batched figures: the vectorised and the scalar kernel on one and two
+    threads in the same run, how many threads took the lanes' chunks (one per chunk at most),
+    and two threads' tick against one thread's."""
+    both, few = measure_threads(9, 4), measure_joints(7, 4, 2)
+    assert set(both) == {"threads_1", "threads_2"}
+    one, two = both["threads_1"], both["threads_2"]
+    assert (one["lane_threads"], two["lane_threads"], few["lane_threads"]) == (1, 2, 1)
+    assert two["vectorised_over_1_thread"] == round(
+        two["vectorised_median_us"] / one["vectorised_median_us"], 3)
+    for result in (one, two, few):
+        assert result["ticks"] == 4
         assert 0 < result["vectorised_median_us"] <= result["vectorised_p99_us"]
         assert 0 < result["scalar_median_us"] <= result["scalar_p99_us"]
