@@ -49,6 +49,7 @@ workqueue layer 74, 70 and 23 us (SCHED_RR, load 4-5).
 """
 
 import os
+import platform
 
 import llvmlite.binding as llvm
 import numba
@@ -855,13 +856,18 @@ def _load(typingctx, counters, i):
     return types.int64(counters, i), codegen
 
 
+_X86 = platform.machine().lower() in ("x86_64", "amd64", "i386", "i686")
+
+
 @intrinsic
 def _pause(typingctx):
-    """The spin-wait hint (x86 PAUSE): a waiting loop yields the core's resources."""
+    """The spin-wait hint (x86 PAUSE): a waiting loop yields the core's resources (nothing
+    elsewhere)."""
     def codegen(context, builder, signature, args):
-        pause = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), []),
-                                               "llvm.x86.sse2.pause")
-        builder.call(pause, [])
+        if _X86:
+            pause = cgutils.get_or_insert_function(
+                builder.module, ir.FunctionType(ir.VoidType(), []), "llvm.x86.sse2.pause")
+            builder.call(pause, [])
         return context.get_dummy_value()
 
     return types.void(), codegen
