@@ -160,40 +160,60 @@ def reference_starts(problems: list[JointProblem]) -> np.ndarray:
 def measure_joints(joints: int, ticks: int, threads: int,
                    settings: OcpSettings = OcpSettings(),
                    problems: tuple[list[JointProblem], np.ndarray] | None = None) -> dict:
+    """`measure_threads` on one thread count: that count's figures."""
+    return measure_threads(joints, ticks, (threads,), settings, problems)[f"threads_{threads}"]
+
+
+def measure_threads(joints: int, ticks: int, thread_counts: tuple[int, ...] = THREAD_COUNTS,
+                    settings: OcpSettings = OcpSettings(),
+                    problems: tuple[list[JointProblem], np.ndarray] | None = None) -> dict:
     """The batched MPC of `joints` joints in one compiled call per cycle, each joint on its exact
     model in closed loop, with the vectorised kernel (joints in SIMD lanes) and the scalar one
-    (joint after joint): tick median and p99 (us), the cold first solve excluded. The two run
-    in alternating blocks of ticks, so a change in the host's load hits both alike; `threads`
-    is the lane blocks of the vectorised kernel and numba's thread count for both. The
-    problems are `joint_problems` from their references' start unless `problems` gives them
-    with their start positions (a robot's: `robot.bench.robot_problems`)."""
+    (joint after joint), on each of `thread_counts` threads (those that share the vectorised
+    kernel's chunks, and numba's thread count for both): tick median and p99 (us) under
+    `threads_<count>`, the cold first solve excluded. All of them run in alternating blocks of
+    ticks, so a change in the host's load hits each alike: on a shared host the ratios (two
+    threads against one, vectorised against scalar) are the figures to trust. The problems
+    are `joint_problems` from their references' start unless `problems` gives them with their
+    start positions (a robot's: `robot.bench.robot_problems`)."""
     if problems is None:
         chosen = joint_problems(joints, settings)
         problems = chosen, reference_starts(chosen)
     previous = numba.get_num_threads()
-    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    loops: dict[tuple[int, str], _ClosedLoop] = {}
+    times: dict[tuple[int, str], list[np.ndarray]] = {}
     try:
-        loops = {kernel: _ClosedLoop(*problems, kernel, threads)
-                 for kernel in ("lanes", "scalar")}
+        for threads in thread_counts:
+            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+            for kernel in ("lanes", "scalar"):
+                loops[threads, kernel] = _ClosedLoop(*problems, kernel, threads)
+                times[threads, kernel] = []
         block = max(1, min(50, ticks // 100))  # 100 turns each: bursts of load average out
-        times: dict[str, list[np.ndarray]] = {kernel: [] for kernel in loops}
         done = 0
         while done < ticks:
             count = min(block, ticks - done)
-            for kernel, loop in loops.items():
-                times[kernel].append(loop.ticks(count))
+            for (threads, kernel), loop in loops.items():
+                numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+                times[threads, kernel].append(loop.ticks(count))
             done += count
     finally:
         numba.set_num_threads(previous)
-    result: dict = {"ticks": ticks, "threads": threads,
-                    "lane_blocks": len(loops["lanes"].batch.lane_blocks())}
-    for kernel, name in (("lanes", "vectorised"), ("scalar", "scalar")):
-        measured = np.concatenate(times[kernel])
-        result[f"{name}_median_us"] = round(float(np.median(measured)), 2)
-        result[f"{name}_p99_us"] = round(float(np.percentile(measured, 99)), 2)
-    result["vectorised_over_scalar"] = round(result["vectorised_median_us"]
-                                             / result["scalar_median_us"], 3)
-    return result
+    results: dict = {}
+    for threads in thread_counts:
+        result: dict = {"ticks": ticks, "threads": threads,
+                        "lane_threads": loops[threads, "lanes"].batch.lane_threads()}
+        for kernel, name in (("lanes", "vectorised"), ("scalar", "scalar")):
+            measured = np.concatenate(times[threads, kernel])
+            result[f"{name}_median_us"] = round(float(np.median(measured)), 2)
+            result[f"{name}_p99_us"] = round(float(np.percentile(measured, 99)), 2)
+        result["vectorised_over_scalar"] = round(result["vectorised_median_us"]
+                                                 / result["scalar_median_us"], 3)
+        if threads != thread_counts[0]:
+            first = results[f"threads_{thread_counts[0]}"]["vectorised_median_us"]
+            result[f"vectorised_over_{thread_counts[0]}_thread"] = round(
+                result["vectorised_median_us"] / first, 3)
+        results[f"threads_{threads}"] = result
+    return results
 
 
 def run(ticks: int = 20_000, numpy_ticks: int = 300, joint_ticks: int = 5_000,
@@ -203,7 +223,8 @@ def run(ticks: int = 20_000, numpy_ticks: int = 300, joint_ticks: int = 5_000,
     (N = 5 at 3.3 ms) under `paper_robot`, and the batched MPC under `joints`: for each joint
     count, and for a robot's own problem when `robot` gives it (its name, its problems and
     start positions), one and two threads, the vectorised and the scalar kernel side by side.
-    The host's load average and core count come with the figures (they move them).
+    The host's load average, core count and numba's threading layer come with the figures
+    (they move them).
     `progress` is told each stage as it starts (the whole run takes a quarter of a minute or
     more)."""
     stages = 2 + len(JOINT_COUNTS) + (robot is not None)
@@ -217,18 +238,17 @@ def run(ticks: int = 20_000, numpy_ticks: int = 300, joint_ticks: int = 5_000,
     for stage, joints in enumerate(JOINT_COUNTS, start=3):
         progress(f"[{stage}/{stages}] batched MPC of {joints} joints: {joint_ticks} ticks on "
                  f"{', '.join(map(str, THREAD_COUNTS))} threads")
-        result["joints"][str(joints)] = {
-            f"threads_{threads}": measure_joints(joints, joint_ticks, threads)
-            for threads in THREAD_COUNTS}
+        result["joints"][str(joints)] = measure_threads(joints, joint_ticks)
     if robot is not None:
         name, problems = robot
         progress(f"[{stages}/{stages}] batched MPC of {name}'s problem: {joint_ticks} ticks on "
                  f"{', '.join(map(str, THREAD_COUNTS))} threads")
-        result["joints"][name] = {
-            f"threads_{threads}": measure_joints(len(problems[0]), joint_ticks, threads,
+        result["joints"][name] = measure_threads(len(problems[0]), joint_ticks,
                                                  problems=problems)
-            for threads in THREAD_COUNTS}
     result["default_threads"] = default_threads()
+    # which of numba's layers ran the threads (OpenMP, TBB or its own workqueue): their wake-up
+    # and join costs differ by tens of us a tick (controller.lanes' docstring)
+    result["threading_layer"] = numba.threading_layer()
     result["cores"] = os.cpu_count()
     result["load_average"] = [round(load, 2) for load in os.getloadavg()]
     return result

@@ -19,7 +19,7 @@ thus goes through exactly the sequence of passes and decisions it goes through a
 `tick_joint`: its own mode (cold, warm, resample, skip), regularisation, and line search that
 accepts or rejects its own step. A simulation writes every lane of the trial trajectory; the
 joints that accept it take it as their current solution (the two trajectories swap roles when
-every joint of the block takes it, as in the scalar solver; otherwise the takers' lanes are
+every joint of the chunk takes it, as in the scalar solver; otherwise the takers' lanes are
 copied), and the trial lanes of the others are scratch. A round costs the same whatever the
 number of joints still working in a chunk (a chunk is as slow as its slowest joint), and
 nothing for a chunk none of whose joints works in it: that chunk's sweep, simulation and copy
@@ -34,17 +34,29 @@ and width. The cost algebra and the discrete step are shared with the scalar ker
 (`model.effects`) added by their own code in a batch whose models switch one on (`has_effects`:
 that batch's loops over lanes are not vectorised, their terms branching and calling libm).
 
-Threads: the chunks are split in contiguous blocks, one per thread of a numba prange; each
-block runs the whole tick on its own lanes. One block is the default where the machine has two
-cores or fewer (see `default_threads`).
+Threads: a chunk's tick is whole in itself (its own rounds, ring and current trajectory), so
+any thread may run it. With threads, one parallel region a tick (a numba prange over the
+threads) and each thread ticks its share of the chunks, then any other that no thread has
+taken yet (`_tick_claimed`). Not fixed halves: waking the second thread costs the first
+10-17 us on this virtual machine and the second starts 15-30 us into the tick (paced at
+1 kHz; far later, or on the first thread's core, under load), and with halves the tick waited
+for it: 32 joints took 142 us on two threads against 105 us on one (SCHED_RR, load 5.8). One
+thread is the default where the machine has two cores or fewer (see `default_threads`).
+numba's TBB layer (the `tbb` wheel, not a dependency: its libtbb.so.12 was not on the loader's
+path here) started the two 40 us iterations of a region at 9 and 13 us and returned 2 us
+after them, paced at 1 kHz, where OpenMP's passive wait took 17, 33 and 23 us; numba's own
+workqueue layer 74, 70 and 23 us (SCHED_RR, load 4-5).
 """
 
 import os
+import platform
 
 import llvmlite.binding as llvm
 import numba
 import numpy as np
+from llvmlite import ir
 from numba import literally, types
+from numba.core import cgutils
 from numba.extending import intrinsic, register_jitable
 
 from controller import workspace as ws
@@ -126,9 +138,12 @@ DONE, WARM_SWEEP, FIRST_ROLLOUT, SWEEP, SEARCH = range(5)
  ROLLOUTS) = range(9)
 STATE = 9
 PADDING = -1  # STATUS of a lane that is skipped this tick or holds no joint
-# columns of current[block, column]: which trajectory is the current one, and the ring slot
-# of step 0 (both trajectories and the gains are rings of n + 1 steps)
-WHICH, RING = 0, 1
+# columns of current[chunk, column]: which trajectory is the current one, the ring slot of
+# step 0 (both trajectories and the gains are rings of n + 1 steps), and whether a thread has
+# taken the chunk in this tick (threads); a row is 64 bytes
+WHICH, RING, TAKEN = 0, 1, 2
+CURRENT = 8
+TICKED = 0  # claims[TICKED]: the chunks the threads of a tick have ticked
 
 
 def has_effects(packed_parameters: np.ndarray) -> bool:
@@ -139,17 +154,16 @@ def has_effects(packed_parameters: np.ndarray) -> bool:
 
 
 def default_threads() -> int:
-    """One thread on a machine with two cores or fewer, else two. Measured on the two shared
-    cores here (bench --json, 32 joints = 4 chunks, 2 blocks on two threads): one thread
-    135 us, two 152 us at load 8; 88 us against 139 us beside two CPU-bound loops (load 10);
-    again with chunks skipped when idle: 167 against 257 us at load 4.5, 107 against 123 us
-    beside two loops (load 8), and talos_32's problem 132 against 303 us, 97 against 148 us.
-    The pure fork and join of two blocks (every joint skipped) took 52 and 657 us median in
-    two runs at load 6 with OpenMP's passive wait; spinning (GOMP_SPINCOUNT) made the whole
-    tick 1-2 ms there, numba's workqueue layer 210-240 us against 140-166 us with OpenMP.
-    The second thread must be woken each tick and competes with whatever holds the other core;
-    on a robot PC with two cores that is the bus and the telemetry. Two on larger machines is
-    not measured here; fewer than 9 joints are one chunk, one block, whatever the count."""
+    """One thread on a machine with two cores or fewer, else two. On the two shared cores here
+    (a KVM guest; 32 joints = 4 chunks, one and two threads alternating in one process, load
+    4-6 from other work) two threads took 0.95-1.02 times one thread's tick under SCHED_RR and
+    1.12-1.20 times at normal priority, against 1.22-1.47 and 1.20-2.0 with fixed halves
+    before: under load the woken thread is often put on the caller's own core (the second
+    core is busy) and the tick runs in turn anyway. The second thread costs its wake-up each
+    tick (15-30 us here at 1 kHz, the futex wake 10-17 us of the caller's time) and competes
+    with whatever holds the other core; on a robot PC with two cores that is the bus and the
+    telemetry. Two on larger machines is not measured here; fewer than 9 joints are one
+    chunk, one thread, whatever the count."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return 1 if (cores or 1) <= 2 else 2
 
@@ -164,24 +178,19 @@ def chunks(joints: int) -> int:
     return -(-joints // width(joints))
 
 
-def allocate(joints: int, n: int, blocks: int) -> tuple[np.ndarray, ...]:
-    """The lane workspace of a batch: (trajectories, gains, scratch, state, current), where
-    current[b] says which of the two trajectories is the current one in block b and where its
-    step 0 sits in the ring (at most one block per chunk). Separate arrays, so a loop's reads
-    and writes fall in few groups the compiler can check for overlap once."""
+def allocate(joints: int, n: int) -> tuple[np.ndarray, ...]:
+    """The lane workspace of a batch: (trajectories, gains, scratch, state, current, claims),
+    where current[c] says which of the two trajectories is chunk c's current one and where its
+    step 0 sits in the ring, and `claims` counts the chunks a tick's threads have ticked.
+    Separate arrays, so a loop's reads and writes fall in few groups the compiler can check
+    for overlap once. A chunk's row of `current` is 64 bytes, as is `claims`: the threads
+    write them, each for the chunks it ticks."""
     count = chunks(joints)
     lanes = width(joints)
     return (np.zeros((2, count, n + 1, TRAJECTORY_FIELDS, lanes)),
             np.zeros((count, n + 1, GAIN_FIELDS, lanes)), np.zeros((count, SCRATCH, lanes)),
             np.zeros((count, STATE, lanes), dtype=np.int64),
-            np.zeros((min(max(blocks, 1), count), 2), dtype=np.int64))
-
-
-def block_of(joint: int, joints: int, blocks: int) -> int:
-    """The block whose thread ticks this joint (blocks are runs of whole chunks)."""
-    count = chunks(joints)
-    chunk = joint // width(joints)
-    return next(b for b in range(blocks) if chunk < (b + 1) * count // blocks)
+            np.zeros((count, CURRENT), dtype=np.int64), np.zeros(CURRENT, dtype=np.int64))
 
 
 def _costs_reader():
@@ -484,31 +493,27 @@ def _shift(current, gains, scratch, n, r, c0, c1, width, effects):
 
 
 @numba.njit(**JIT)
-def _take(trajectories, scratch, current, block, n, joints, c0, c1, width):
-    """The trial becomes the current solution of the lanes with scratch[TAKES] set: the two
-    trajectories swap roles when every joint of the block takes it, the takers' lanes are
+def _take(trajectories, scratch, current, n, joints, c, width):
+    """The trial becomes the current solution of chunk c's lanes with scratch[TAKES] set: the
+    two trajectories swap roles when every joint of the chunk takes it, the takers' lanes are
     copied otherwise."""
     literally(width)  # a compile-time lane count: one compiled kernel per width
     S = _rows(scratch, width)
     takers = 0
-    for c in range(c0, c1):
-        for w in range(width):
-            takers += S[c, TAKES, w] != 0.0
+    for w in range(width):
+        takers += S[c, TAKES, w] != 0.0
     if takers == 0:
         return
-    if takers == min(c1 * width, joints) - c0 * width:
-        current[block, WHICH] = 1 - current[block, WHICH]
+    if takers == min((c + 1) * width, joints) - c * width:
+        current[c, WHICH] = 1 - current[c, WHICH]
         return
-    Tc = _steps(trajectories[current[block, WHICH]], TRAJECTORY_FIELDS, width)
-    Tt = _steps(trajectories[1 - current[block, WHICH]], TRAJECTORY_FIELDS, width)
-    for c in range(c0, c1):
-        if not _any(S, c, TAKES, width):
-            continue
-        for k in range(n + 1):
-            for f in range(TRAJECTORY_FIELDS):
-                for w in range(width):
-                    takes = S[c, TAKES, w] != 0.0
-                    Tc[c, k, f, w] = Tt[c, k, f, w] if takes else Tc[c, k, f, w]
+    Tc = _steps(trajectories[current[c, WHICH]], TRAJECTORY_FIELDS, width)
+    Tt = _steps(trajectories[1 - current[c, WHICH]], TRAJECTORY_FIELDS, width)
+    for k in range(n + 1):
+        for f in range(TRAJECTORY_FIELDS):
+            for w in range(width):
+                takes = S[c, TAKES, w] != 0.0
+                Tc[c, k, f, w] = Tt[c, k, f, w] if takes else Tc[c, k, f, w]
 
 
 @numba.njit(**JIT)
@@ -788,64 +793,153 @@ def _simulates(scratch, state, c0, c1, width):
 
 
 @numba.njit(**JIT)
-def tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n, c0, c1, width,
-               effects):
-    """Every joint of chunks [c0, c1) at time t0: rounds of one masked backward pass and one
-    simulation until each joint's iLQR has ended (see the module docstring)."""
+def tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, width, effects):
+    """Every joint of chunk c at time t0: rounds of one masked backward pass and one simulation
+    until each joint's iLQR has ended (see the module docstring). A chunk's tick reads and
+    writes only its own lanes, its row of `current` and its joints' rows: any thread may run
+    it."""
     literally(width)  # a compile-time lane count: one compiled kernel per width
     literally(effects)
-    r = current[block, RING] + 1  # every mode wants the stored steps moved up by one
+    r = current[c, RING] + 1  # every mode wants the stored steps moved up by one
     r = 0 if r > n else r
-    current[block, RING] = r
-    if _begin(rows, trajectories[current[block, WHICH]], gains, scratch, state, t0, n, r, c0,
-              c1, width):
-        _shift(trajectories[current[block, WHICH]], gains, scratch, n, r, c0, c1, width,
-               effects)
+    current[c, RING] = r
+    c1 = c + 1
+    if _begin(rows, trajectories[current[c, WHICH]], gains, scratch, state, t0, n, r, c, c1,
+              width):
+        _shift(trajectories[current[c, WHICH]], gains, scratch, n, r, c, c1, width, effects)
     while True:
-        cur = trajectories[current[block, WHICH]]
-        swept = _before_sweep(scratch, state, c0, c1, width)
+        cur = trajectories[current[c, WHICH]]
+        swept = _before_sweep(scratch, state, c, c1, width)
         if swept:
-            _backward(cur, gains, scratch, n, r, c0, c1, width)
-            _after_sweep(cur, gains, scratch, state, n, r, c0, c1, width)
-        simulates = _simulates(scratch, state, c0, c1, width)
+            _backward(cur, gains, scratch, n, r, c, c1, width)
+            _after_sweep(cur, gains, scratch, state, n, r, c, c1, width)
+        simulates = _simulates(scratch, state, c, c1, width)
         if simulates:
-            _rollout(cur, trajectories[1 - current[block, WHICH]], gains, scratch, n, r, c0, c1,
+            _rollout(cur, trajectories[1 - current[c, WHICH]], gains, scratch, n, r, c, c1,
                      width, effects)
-            _after_rollout(gains, scratch, state, n, c0, c1, width)
-            _take(trajectories, scratch, current, block, n, rows.shape[0], c0, c1, width)
+            _after_rollout(gains, scratch, state, n, c, c1, width)
+            _take(trajectories, scratch, current, n, rows.shape[0], c, width)
         if not swept and not simulates:
             break
-    _end(rows, trajectories[current[block, WHICH]], gains, state, scratch, n, r, c0, c1, width)
+    _end(rows, trajectories[current[c, WHICH]], gains, state, scratch, n, r, c, c1, width)
+
+
+@intrinsic
+def _fetch_add(typingctx, counters, i):
+    """Item i of C-contiguous `counters` (counted through all its dimensions) += 1 as one
+    atomic step (sequentially consistent), returning the value before."""
+    if not (isinstance(counters, types.Array) and counters.dtype == types.int64
+            and isinstance(i, types.Integer)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        array = context.make_array(signature.args[0])(context, builder, args[0])
+        item = builder.gep(array.data, [args[1]])
+        return builder.atomic_rmw("add", item, ir.Constant(ir.IntType(64), 1), "seq_cst")
+
+    return types.int64(counters, i), codegen
+
+
+@intrinsic
+def _load(typingctx, counters, i):
+    """Item i of C-contiguous `counters` read as one atomic step (acquire: what the writer did
+    before its `_fetch_add` is seen after)."""
+    if not (isinstance(counters, types.Array) and counters.dtype == types.int64
+            and isinstance(i, types.Integer)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        array = context.make_array(signature.args[0])(context, builder, args[0])
+        item = builder.gep(array.data, [args[1]])
+        return builder.load_atomic(item, "acquire", 8)
+
+    return types.int64(counters, i), codegen
+
+
+_X86 = platform.machine().lower() in ("x86_64", "amd64", "i386", "i686")
+
+
+@intrinsic
+def _pause(typingctx):
+    """The spin-wait hint (x86 PAUSE): a waiting loop yields the core's resources (nothing
+    elsewhere)."""
+    def codegen(context, builder, signature, args):
+        if _X86:
+            pause = cgutils.get_or_insert_function(
+                builder.module, ir.FunctionType(ir.VoidType(), []), "llvm.x86.sse2.pause")
+            builder.call(pause, [])
+        return context.get_dummy_value()
+
+    return types.void(), codegen
+
+
+@numba.njit(**JIT)
+def _tick_claimed(rows, trajectories, gains, scratch, state, current, claims, t0, n, effects,
+                  thread, threads):
+    """Tick every chunk no thread has taken yet, looking from this thread's own share of them
+    (thread x count / threads on) round to the others'. When the threads start together each
+    ticks its own share, the same chunks every tick (their data stays in that core's cache);
+    a thread that starts late (woken late, or its core busy) finds part of its share taken by
+    the others: no thread waits for a share that another has not begun. The calling thread
+    then waits, spinning, for the chunks others are still ticking: at the region's end it
+    would sleep (OpenMP's passive wait) and be woken 20-30 us after the last chunk ended
+    (measured here, SCHED_RR); the spin lasts at most one chunk's tick, and the other threads
+    sleep at once."""
+    count = gains.shape[0]
+    first = thread * count // threads
+    for k in range(count):
+        c = first + k
+        c = c - count if c >= count else c
+        if _fetch_add(current, c * CURRENT + TAKEN) != 0:
+            continue  # another thread's
+        if effects:
+            tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, WIDTH, True)
+        else:
+            tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, WIDTH, False)
+        _fetch_add(claims, TICKED)
+    if numba.get_thread_id() == 0:
+        while _load(claims, TICKED) < count:
+            _pause()
+
+
+@numba.njit(**JIT)
+def _untaken(current, claims):
+    """No chunk taken or ticked yet. Not written in `tick_lanes` itself: numba makes a slice
+    assignment in a parallel function a parallel region of its own, and a region costs a
+    wake-up and a join (40 us here)."""
+    for c in range(current.shape[0]):
+        current[c, TAKEN] = 0
+    claims[TICKED] = 0
 
 
 @numba.njit(parallel=True, **JIT)
-def tick_lanes(rows, trajectories, gains, scratch, state, current, t0, n, effects):
-    """Every joint's MPC step at time t0, the chunks of lanes split in len(current) blocks, one
-    per thread (one block: no thread team is woken). A joint alone is a chunk of one lane.
-    `effects`: some joint's model carries an extra effect (`has_effects`); each branch below
-    names its kernel by constants (a prange in a called function would run serially)."""
+def tick_lanes(rows, trajectories, gains, scratch, state, current, claims, t0, n, effects,
+               threads):
+    """Every joint's MPC step at time t0, chunk after chunk, on up to `threads` threads (one:
+    no thread team is woken). A joint alone is a chunk of one lane. `effects`: some joint's
+    model carries an extra effect (`has_effects`); each branch below names its kernel by
+    constants (a prange in a called function would run serially). With more threads than
+    one, each ticks its share of the chunks and then any other untaken one (`_tick_claimed`):
+    one parallel region a tick, each thread running whole ticks of its chunks."""
     count = gains.shape[0]
-    blocks = current.shape[0]
-    if blocks == 1:
-        if gains.shape[3] == 1:
-            if effects:
-                tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count,
-                           1, True)
+    if threads == 1 or count == 1:
+        for c in range(count):
+            if gains.shape[3] == 1:
+                if effects:
+                    tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, 1,
+                               True)
+                else:
+                    tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, 1,
+                               False)
+            elif effects:
+                tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, WIDTH,
+                           True)
             else:
-                tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count,
-                           1, False)
-        elif effects:
-            tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count,
-                       WIDTH, True)
-        else:
-            tick_block(rows, trajectories, gains, scratch, state, current, 0, t0, n, 0, count,
-                       WIDTH, False)
+                tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, WIDTH,
+                           False)
         return
-    for block in numba.prange(blocks):
-        c0, c1 = block * count // blocks, (block + 1) * count // blocks
-        if effects:
-            tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n, c0, c1,
-                       WIDTH, True)
-        else:
-            tick_block(rows, trajectories, gains, scratch, state, current, block, t0, n, c0, c1,
-                       WIDTH, False)
+    _untaken(current, claims)
+    team = min(threads, count)
+    for thread in numba.prange(team):
+        _tick_claimed(rows, trajectories, gains, scratch, state, current, claims, t0, n,
+                      effects, thread, team)

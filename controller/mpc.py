@@ -307,8 +307,8 @@ class BatchMpc:
     joints side by side in SIMD lanes (controller.lanes), "scalar" runs each joint's scalar
     iLQR in turn (tick_joint, the reference). The default is "lanes", with the extra effects'
     terms computed when a joint's model switches one on. `threads` splits the lanes
-    in that many blocks, one per thread (default `lanes.default_threads()`); the scalar kernel
-    uses numba's thread count, as before."""
+    among that many threads, each taking the next untaken chunk of lanes (default
+    `lanes.default_threads()`); the scalar kernel uses numba's thread count, as before."""
 
     def __init__(self, problems: Sequence[JointProblem], kernel: str | None = None,
                  threads: int | None = None):
@@ -333,8 +333,7 @@ class BatchMpc:
         # one joint with an extra effect puts the batch on the lane kernel that computes them
         self._effects = any(lanes.has_effects(joint.packed_parameters) for joint in self.joints)
         self.kernel = self._kernel_asked or "lanes"
-        blocks = min(self.threads, lanes.chunks(len(problems)))
-        self._lanes = lanes.allocate(len(problems), n, blocks)
+        self._lanes = lanes.allocate(len(problems), n)
         # load the compiled code now, not in the first control cycle: one iteration each
         for joint in self.joints:
             joint.row[ws.COLD_ITERATIONS] = 1
@@ -348,15 +347,12 @@ class BatchMpc:
     def __len__(self) -> int:
         return len(self.joints)
 
-    def lane_blocks(self) -> list[range]:
-        """The joints each thread of the lanes kernel ticks (empty for the scalar kernel): runs
-        of whole chunks of lanes, so fewer blocks than threads when there are few joints."""
+    def lane_threads(self) -> int:
+        """How many threads tick the lanes kernel's chunks (0 for the scalar kernel): at most one
+        per chunk, so one for fewer than 9 joints whatever `threads` says."""
         if self.kernel != "lanes":
-            return []
-        joints = len(self.joints)
-        count, blocks, width = lanes.chunks(joints), len(self._lanes[-1]), lanes.width(joints)
-        return [range(b * count // blocks * width, min((b + 1) * count // blocks * width, joints))
-                for b in range(blocks)]
+            return 0
+        return min(self.threads, lanes.chunks(len(self.joints)))
 
     def prepare(self, joint: JointRow, position: float, velocity: float) -> None:
         """Write one joint's measured state for the next tick; a cold start begins from the
@@ -374,7 +370,8 @@ class BatchMpc:
     def run(self, t: float) -> None:
         """Tick every joint at time t (one compiled call)."""
         if self.kernel == "lanes":
-            lanes.tick_lanes(self.rows, *self._lanes, t, self.horizon, self._effects)
+            lanes.tick_lanes(self.rows, *self._lanes, t, self.horizon, self._effects,
+                             self.threads)
         else:
             tick_joints(self.rows, t, self.horizon)
 
@@ -397,9 +394,9 @@ class BatchMpc:
     def plan(self, joint: JointRow, t: float) -> PlanSnapshot:
         if self.kernel == "lanes":
             j = self.joints.index(joint)
-            trajectories, gains, _, _, current = self._lanes
-            which, ring = current[lanes.block_of(j, len(self.joints), len(current))]
+            trajectories, gains, _, _, current, _ = self._lanes
             chunk, lane = divmod(j, lanes.width(len(self.joints)))
+            which, ring = current[chunk, lanes.WHICH], current[chunk, lanes.RING]
             # the steps in order from the ring (np.roll copies)
             solution = np.roll(trajectories[which, chunk, :, :, lane], -ring, axis=0)
             reference = np.roll(gains[chunk, :, lanes.REFERENCE_Q, lane], -ring)

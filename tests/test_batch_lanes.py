@@ -8,8 +8,9 @@ import numba
 import numpy as np
 import pytest
 
-from controller import ilqr_reference, lane_math
+from controller import ilqr_reference, lane_math, lanes
 from controller import workspace as ws
+from controller.benchmark import measure_joints, measure_threads
 from controller.ilqr import LINE_SEARCH_STEPS
 from controller.mpc import BatchMpc, JointProblem, Mpc
 from controller.problem import OcpSettings, pack_cost
@@ -166,15 +167,20 @@ def test_a_line_search_that_fails_falls_back_alike():
         twins.tick(k)
 
 
-def test_two_lane_blocks_decide_as_one():
-    """Threads split the joints into blocks of whole chunks; the decisions do not change."""
+def test_two_threads_decide_as_one():
+    """Two threads share the chunks of lanes, each taking the next untaken one; which thread
+    ticks a chunk changes from tick to tick, the decisions do not."""
     one, two = BatchMpc(problems(20), kernel="lanes", threads=1), BatchMpc(
         problems(20), kernel="lanes", threads=2)
-    assert len(two.lane_blocks()) == 2 and len(one.lane_blocks()) == 1
+    assert two.lane_threads() == 2 and one.lane_threads() == 1
+    claims = two._lanes[-1]
     positions, velocities = np.linspace(-0.4, -1.8, 20), np.zeros(20)
     for k in range(30):
         first, second = (batch.tick(k * DT, positions, velocities) for batch in (one, two))
         assert first == second
+        # every chunk ticked once, each taken by one thread and looked at by both
+        assert claims[lanes.TICKED] == 3
+        assert (two._lanes[-2][:, lanes.TAKEN] == 2).all()
         positions = positions - 1e-3 * np.array([d.planned_current for d in first])
 
 
@@ -267,3 +273,19 @@ def test_joints_with_extra_effects_run_in_lanes_and_decide_as_the_scalar_kernel(
     both = BatchMpc([chosen[len(names)], chosen[-2]], kernel="lanes")
     loaded, bare = both.tick(0.0, [-0.5, -0.5], [0.0, 0.0])
     assert abs(loaded.planned_current - bare.planned_current) > 1e-3
+
+
+def test_the_bench_reports_both_kernels_on_one_and_two_threads():
+    """`bench --json`'s batched figures: the vectorised and the scalar kernel on one and two
+    threads in the same run, how many threads took the lanes' chunks (one per chunk at most),
+    and two threads' tick against one thread's."""
+    both, few = measure_threads(9, 4), measure_joints(7, 4, 2)
+    assert set(both) == {"threads_1", "threads_2"}
+    one, two = both["threads_1"], both["threads_2"]
+    assert (one["lane_threads"], two["lane_threads"], few["lane_threads"]) == (1, 2, 1)
+    assert two["vectorised_over_1_thread"] == round(
+        two["vectorised_median_us"] / one["vectorised_median_us"], 3)
+    for result in (one, two, few):
+        assert result["ticks"] == 4
+        assert 0 < result["vectorised_median_us"] <= result["vectorised_p99_us"]
+        assert 0 < result["scalar_median_us"] <= result["scalar_p99_us"]
