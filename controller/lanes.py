@@ -148,7 +148,7 @@ TICKED = 0  # claims[TICKED]: the chunks the threads of a tick have ticked
 
 def has_effects(packed_parameters: np.ndarray) -> bool:
     """Whether a joint's model switches on an extra effect (`model.effects`): a batch with one
-    runs the lane kernel that computes their terms (`tick_lanes`' `effects`)."""
+    runs the lane kernel that computes their terms (`tick_kernel`'s `effects`)."""
     first = min(EFFECT_OFFSET.values(), default=P_LINK_INERTIA)
     return bool(np.any(packed_parameters[first:P_LINK_INERTIA]))
 
@@ -904,42 +904,76 @@ def _tick_claimed(rows, trajectories, gains, scratch, state, current, claims, t0
 
 @numba.njit(**JIT)
 def _untaken(current, claims):
-    """No chunk taken or ticked yet. Not written in `tick_lanes` itself: numba makes a slice
-    assignment in a parallel function a parallel region of its own, and a region costs a
-    wake-up and a join (40 us here)."""
+    """No chunk taken or ticked yet. Not written in the parallel kernels themselves: numba
+    makes a slice assignment in a parallel function a parallel region of its own, and a
+    region costs a wake-up and a join (40 us here)."""
     for c in range(current.shape[0]):
         current[c, TAKEN] = 0
     claims[TICKED] = 0
 
 
+# The serial kernels, one compiled entry point per lane width and effects: numba compiles a
+# function with all its branches, and every tick_chunk variant is the bulk of the compile
+# (with the branches in one function a fresh install compiled all six variants, about 60 s of
+# CPU here, before its first cycle; now a run compiles the one its joints need)
+
+
+@numba.njit(**JIT)
+def _tick_alone(rows, trajectories, gains, scratch, state, current, claims, t0, n, threads):
+    """A joint alone: a chunk of one lane."""
+    tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, 0, 1, False)
+
+
+@numba.njit(**JIT)
+def _tick_alone_effects(rows, trajectories, gains, scratch, state, current, claims, t0, n,
+                        threads):
+    tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, 0, 1, True)
+
+
+@numba.njit(**JIT)
+def _tick_serial(rows, trajectories, gains, scratch, state, current, claims, t0, n, threads):
+    """Chunk after chunk, on this thread."""
+    for c in range(gains.shape[0]):
+        tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, WIDTH, False)
+
+
+@numba.njit(**JIT)
+def _tick_serial_effects(rows, trajectories, gains, scratch, state, current, claims, t0, n,
+                         threads):
+    for c in range(gains.shape[0]):
+        tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, WIDTH, True)
+
+
 @numba.njit(parallel=True, **JIT)
-def tick_lanes(rows, trajectories, gains, scratch, state, current, claims, t0, n, effects,
-               threads):
-    """Every joint's MPC step at time t0, chunk after chunk, on up to `threads` threads (one:
-    no thread team is woken). A joint alone is a chunk of one lane. `effects`: some joint's
-    model carries an extra effect (`has_effects`); each branch below names its kernel by
-    constants (a prange in a called function would run serially). With more threads than
-    one, each ticks its share of the chunks and then any other untaken one (`_tick_claimed`):
-    one parallel region a tick, each thread running whole ticks of its chunks."""
-    count = gains.shape[0]
-    if threads == 1 or count == 1:
-        for c in range(count):
-            if gains.shape[3] == 1:
-                if effects:
-                    tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, 1,
-                               True)
-                else:
-                    tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, 1,
-                               False)
-            elif effects:
-                tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, WIDTH,
-                           True)
-            else:
-                tick_chunk(rows, trajectories, gains, scratch, state, current, t0, n, c, WIDTH,
-                           False)
-        return
+def _tick_parallel_plain(rows, trajectories, gains, scratch, state, current, claims, t0, n,
+                         threads):
+    """The chunks shared by up to `threads` threads (`_tick_claimed`)."""
     _untaken(current, claims)
-    team = min(threads, count)
+    team = min(threads, gains.shape[0])
     for thread in numba.prange(team):
-        _tick_claimed(rows, trajectories, gains, scratch, state, current, claims, t0, n,
-                      effects, thread, team)
+        _tick_claimed(rows, trajectories, gains, scratch, state, current, claims, t0, n, False,
+                      thread, team)
+
+
+@numba.njit(parallel=True, **JIT)
+def _tick_parallel_effects(rows, trajectories, gains, scratch, state, current, claims, t0, n,
+                           threads):
+    _untaken(current, claims)
+    team = min(threads, gains.shape[0])
+    for thread in numba.prange(team):
+        _tick_claimed(rows, trajectories, gains, scratch, state, current, claims, t0, n, True,
+                      thread, team)
+
+
+def tick_kernel(joints: int, effects: bool, threads: int):
+    """The compiled tick for `joints` joints: `kernel(rows, *allocate(...), t0, n, threads)`
+    steps every joint's MPC at time t0, chunk after chunk, on up to `threads` threads (one: no
+    thread team is woken). `effects`: some joint's model carries an extra effect
+    (`has_effects`). With more threads than one, each ticks its share of the chunks and then
+    any other untaken one (`_tick_claimed`): one parallel region a tick, each thread running
+    whole ticks of its chunks."""
+    if joints == 1:
+        return _tick_alone_effects if effects else _tick_alone
+    if threads == 1 or chunks(joints) == 1:
+        return _tick_serial_effects if effects else _tick_serial
+    return _tick_parallel_effects if effects else _tick_parallel_plain

@@ -331,9 +331,10 @@ class BatchMpc:
         self.rows = np.zeros((len(problems), ws.row_size(n)))
         self.joints = [JointRow(problem, self.rows[j], n) for j, problem in enumerate(problems)]
         # one joint with an extra effect puts the batch on the lane kernel that computes them
-        self._effects = any(lanes.has_effects(joint.packed_parameters) for joint in self.joints)
+        effects = any(lanes.has_effects(joint.packed_parameters) for joint in self.joints)
         self.kernel = self._kernel_asked or "lanes"
         self._lanes = lanes.allocate(len(problems), n)
+        self._tick_lanes = lanes.tick_kernel(len(problems), effects, self.threads)
         # load the compiled code now, not in the first control cycle: one iteration each
         for joint in self.joints:
             joint.row[ws.COLD_ITERATIONS] = 1
@@ -370,8 +371,7 @@ class BatchMpc:
     def run(self, t: float) -> None:
         """Tick every joint at time t (one compiled call)."""
         if self.kernel == "lanes":
-            lanes.tick_lanes(self.rows, *self._lanes, t, self.horizon, self._effects,
-                             self.threads)
+            self._tick_lanes(self.rows, *self._lanes, t, self.horizon, self.threads)
         else:
             tick_joints(self.rows, t, self.horizon)
 
