@@ -58,7 +58,7 @@ def _in_process(cycles: int) -> float:
                       clock=clock_for(lockstep=True))
     sim.boot()
     master = CanOpenDrive(open_network(channel), 2, velocity_limit=model.limits.velocity_max,
-                          lockstep=True)
+                          clock=clock_for(lockstep=True))
     try:
         master.start()
         start = time.perf_counter()
@@ -153,10 +153,11 @@ def main(argv: list[str] | None = None) -> int:
     which = parser.add_mutually_exclusive_group()
     which.add_argument("--no-ethercat", action="store_true", help="the CAN figures only")
     which.add_argument("--ethercat-only", action="store_true", help="the EtherCAT figures only")
-    parser.add_argument("--sync", choices=("free_run", "dc"), default="free_run",
+    parser.add_argument("--sync", choices=("free_run", "dc"),
                         help="the EtherCAT lines' synchronization: free run (SM-synchronous) "
-                             "or distributed clocks (SYNC0 every 1 ms, the master following "
-                             "the reference clock; default: %(default)s)")
+                             "or distributed clocks (SYNC0 every period, the master following "
+                             "the reference clock; default: free_run, with --robot the robot "
+                             "file's)")
     parser.add_argument("--slaves", type=int_range(1, 64), metavar="N",
                         help="one EtherCAT line of N slaves instead of the lines of "
                              f"{' and '.join(map(str, ETHERCAT_LINES))}")
@@ -175,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
         from sim_bus.ethercat.netns import LinkUnavailable
 
         try:
-            result.update(robot_real_time(args.robot, args.duration, args.starts))
+            result.update(robot_real_time(args.robot, args.duration, args.starts, args.sync))
         except RobotFileError as exc:
             return usage_error(parser.prog, str(exc))
         except LinkUnavailable as exc:
@@ -193,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
                    "cycles ...")
             result["udp_multicast_two_processes"] = _two_processes(args.cycles)
         if not args.no_ethercat:
-            lines = _ethercat(args.cycles, args.sync,
+            lines = _ethercat(args.cycles, args.sync or "free_run",
                               ETHERCAT_LINES if args.slaves is None else (args.slaves,),
                               args.period_us * 1e-6)
             if lines is None and args.ethercat_only:

@@ -33,8 +33,9 @@ def stage(text: str) -> None:
     print(f"bus-bench: {text}", file=sys.stderr, flush=True)
 
 
-def run(robot_path: str, duration: float, starts: int) -> dict:
-    """Everything `bus-bench --robot` prints (one JSON object)."""
+def run(robot_path: str, duration: float, starts: int, sync: str | None = None) -> dict:
+    """Everything `bus-bench --robot` prints (one JSON object); `sync` ("free_run" or "dc"):
+    every EtherCAT line of the robot on it instead of the robot file's own choice."""
     robot = load_robot(robot_path)
     stage(f"this machine's floor: a bare 1 kHz loop at real-time priority for {duration:g} s")
     floor = bare_loop(duration)
@@ -42,7 +43,7 @@ def run(robot_path: str, duration: float, starts: int) -> dict:
     runs = []
     with tempfile.TemporaryDirectory(prefix="bus-bench-") as folder, \
             contextlib.ExitStack() as stack:
-        path = _with_buses_here(Path(robot_path), Path(folder))
+        path = _with_buses_here(Path(robot_path), Path(folder), sync)
         pair = stack.enter_context(NamespacePair(lines)) if lines else None
         for start in range(1, starts + 1):
             stage(f"start {start}/{starts}: {len(robot.joints)} joints of {robot.name}, "
@@ -52,6 +53,8 @@ def run(robot_path: str, duration: float, starts: int) -> dict:
     cycles = round(duration * 1e6 / robot.period_us)
     return {
         "robot": robot.name, "joints": len(robot.joints), "duration_s": duration,
+        "ethercat_sync": {bus: sync or robot.sync(bus) for bus in robot.buses()
+                          if is_ethercat(bus)},
         "floor": {"cycles": cycles, "missed": floor.missed_cycles,
                   "missed_percent": round(100 * floor.missed_cycles / cycles, 3),
                   "jitter_p99_us": round(floor.jitter_us.percentile(99), 1),
@@ -110,10 +113,10 @@ def _one_start(pair: NamespacePair | None, path: Path, duration: float, report: 
     return out
 
 
-def _with_buses_here(path: Path, folder: Path) -> Path:
+def _with_buses_here(path: Path, folder: Path, sync: str | None = None) -> Path:
     """The robot file rewritten into `folder` for this machine: each CAN bus on a
     udp_multicast group and port of its own, model and EDS paths made absolute (they were
-    relative to the original's folder)."""
+    relative to the original's folder), every EtherCAT line on `sync` when given."""
     doc = tomllib.loads(path.read_text(encoding="utf-8-sig"))
     home = path.resolve().parent
     buses: dict[str, str] = {}
@@ -129,6 +132,9 @@ def _with_buses_here(path: Path, folder: Path) -> Path:
                 joint[key] = str(home / joint[key])
     if "buses" in doc:
         doc["buses"] = {buses.get(bus, bus): settings for bus, settings in doc["buses"].items()}
+    if sync is not None:
+        for bus in {joint["bus"] for joint in doc["joints"] if is_ethercat(joint["bus"])}:
+            doc.setdefault("buses", {}).setdefault(bus, {})["sync"] = sync
     rewritten = folder / path.name
     rewritten.write_text(tomli_w.dumps(doc))
     return rewritten

@@ -8,6 +8,7 @@ import canopen
 
 from driver.canopen_transport import DEFAULT_HEARTBEAT_MS, CanOpenTransport, open_network
 from driver.cia402_drive import Cia402Drive
+from driver.clock import Clock
 from protocol.dictionary import StartupParameter
 
 __all__ = ["CanOpenDrive", "open_network"]
@@ -18,18 +19,19 @@ class CanOpenDrive(Cia402Drive):
 
     `velocity_limit` (rad/s, the joint's) sets the encoder-glitch guard; `drive_gain` (N.m/A,
     the model's) converts currents for drives commanded in torque; `eds` is the drive's EDS
-    (default: the shipped elbow drive); `lockstep` makes every watchdog count cycles;
-    `startup` are objects written in PRE-OPERATIONAL and read back (see `Cia402Drive`).
+    (default: the shipped elbow drive); `clock` is what the bus's watchdogs measure time on
+    (`driver.clock`: drive time in lock-step; default the wall clock); `startup` are objects
+    written in PRE-OPERATIONAL and read back (see `Cia402Drive`).
     ProfileError if the EDS lacks what the loop needs (nothing is sent to the drive then).
     """
 
     def __init__(self, network: canopen.Network, node_id: int = 2, *, velocity_limit: float,
                  period: float = 1e-3, drive_gain: float | None = None,
                  current_max: float | None = None,
-                 eds: str | Path | None = None, lockstep: bool = False,
+                 eds: str | Path | None = None, clock: Clock | None = None,
                  response_timeout: float = 1.0, heartbeat_ms: int = DEFAULT_HEARTBEAT_MS,
                  startup: Sequence[StartupParameter] = ()):
-        transport = CanOpenTransport(network, node_id, eds=eds, lockstep=lockstep,
+        transport = CanOpenTransport(network, node_id, eds=eds, clock=clock,
                                      response_timeout=response_timeout,
                                      heartbeat_ms=heartbeat_ms)
         try:

@@ -1,6 +1,7 @@
 """The CANopen transport (canopen + python-can): `driver.transport.Transport` for one drive,
-made of its bring-up (`canopen_bringup`), its cycle (`canopen_cycle`) and its health watch
-(`canopen_health`)."""
+made of its bring-up (`canopen_bringup`), its row of the bus's cycle (`canopen_cycle`) and its
+health watch (`canopen_health`). The bus's jobs (the cycle, frame counts, heartbeats) are the
+bus's, once per bus, whatever the number of drives on it."""
 
 import time
 from collections.abc import Sequence
@@ -10,8 +11,9 @@ import can
 import canopen
 
 from driver.canopen_bringup import SdoAccess, plan_pdos, write_pdos
-from driver.canopen_cycle import PlannedPdo, SyncCycle
+from driver.canopen_cycle import BusCycle, PlannedPdo
 from driver.canopen_health import MASTER_HEARTBEAT_CONSUMER_MS, Health, master_node_id
+from driver.clock import Clock, WallClock
 from driver.interface import DriveError, DriveLost, ForeignMaster
 from driver.transport import Transport
 from protocol import cia301, cia402, eds_path, objects
@@ -26,6 +28,7 @@ FOREIGN_TRAFFIC_WINDOW = 0.1  # s of listening for another master before resetti
 # s: the most the listening waits for the receive thread to catch up when the drive does not
 # answer (a silent bus waits it all: only a drive that is off or stopped pays it)
 FOREIGN_TRAFFIC_LIMIT = 1.0
+CATCH_UP_STEP = 0.005  # s between looks at how far the receive thread has come
 
 
 def open_network(bus_spec: str, bitrate: int | None = None) -> canopen.Network:
@@ -45,12 +48,13 @@ class CanOpenTransport(Transport):
     `owns_network` (one drive on its bus) the transport disconnects the network on close;
     drives sharing a bus leave that to whoever owns it (`driver.drive_group.CanOpenBus`).
 
-    `lockstep`: watchdogs count cycles (see `driver.canopen_health`); `response_timeout` (s)
-    bounds the wait for a cycle's TPDOs.
+    `clock`: what the bus's watchdogs measure time on (`driver.clock`: the wall clock, or
+    drive time in lock-step; the first drive on a bus gives the bus its clock);
+    `response_timeout` (s) bounds the wait for a cycle's TPDOs.
     """
 
     def __init__(self, network: canopen.Network, node_id: int, *,
-                 eds: str | Path | None = None, lockstep: bool = False,
+                 eds: str | Path | None = None, clock: Clock | None = None,
                  response_timeout: float = 1.0, heartbeat_ms: int = DEFAULT_HEARTBEAT_MS,
                  owns_network: bool = True):
         if not 1 <= node_id <= 127:
@@ -63,19 +67,18 @@ class CanOpenTransport(Transport):
         self.node = canopen.RemoteNode(node_id, self.dictionary)
         network.add_node(self.node)
         self.heartbeat_ms = heartbeat_ms
-        self.lockstep = lockstep
         self.master_id = master_node_id(node_id)
         self.period = 0.0
         self._warnings: list[str] = []
         self.sdo = SdoAccess(self.node, self.name)
-        self.sync_cycle = SyncCycle(network, self.name, lockstep=lockstep,
-                                    response_timeout=response_timeout, warnings=self._warnings)
-        self.health = Health(network, self.node, self.name, lockstep=lockstep,
-                             on_failure=self.sync_cycle.fail,
-                             on_emergency=lambda code, register: self.on_emergency(code,
-                                                                                   register),
+        self.bus_cycle = BusCycle.of(network, clock if clock is not None else WallClock(),
+                                     response_timeout)
+        self.clock = self.bus_cycle.clock
+        self.row = self.bus_cycle.join(self.name, self._warnings)
+        self.health = Health(network, self.node, self.name, clock=self.clock,
+                             on_failure=self._fail, on_emergency=self._emergency,
                              warnings=self._warnings)
-        self._plan: tuple[list[PlannedPdo], list[PlannedPdo], bool, int] | None = None
+        self._plan: tuple[list[PlannedPdo], list[PlannedPdo], bool] | None = None
         self._closed = False
 
     # --- acyclic ----------------------------------------------------------------------------
@@ -92,13 +95,21 @@ class CanOpenTransport(Transport):
         if not self.health.booted.wait(timeout):
             raise DriveLost(f"{self.name}: no boot-up message within {timeout} s "
                             "(is the drive powered and on this bus?)")
-        self.sync_cycle.failure = None
+        self.bus_cycle.clear(self.row)
+
+    def _fail(self, error: DriveError) -> None:
+        self.bus_cycle.fail(self.row, error)
+
+    def _emergency(self, code: int, register: int) -> None:
+        self.bus_cycle.alarm = True  # the bus's segment looks at its drives' faults
+        self.on_emergency(code, register)
 
     def _refuse_if_driven(self) -> None:
         """ForeignMaster if someone else is driving the drive: its SYNC or the drive's RPDOs
         on the bus while we listen (a master cycling at 10 Hz or faster is heard), or the
-        drive already past switch on disabled. A lock-step link has one master by
-        construction, so it is not listened to (its drive's state is still checked)."""
+        drive already past switch on disabled. The listening lasts FOREIGN_TRAFFIC_WINDOW on
+        the bus's clock: in lock-step (an in-process link, one master by construction) drive
+        time gets there at once."""
         watched = {cia301.SYNC_COB_ID} | {base + self.node_id for base in cia301.RPDO_BASES}
         for n in range(objects.PDO_CHANNELS):
             if has(self.dictionary, objects.RPDO_COMM + n, 1):
@@ -110,11 +121,10 @@ class CanOpenTransport(Transport):
         def count(can_id: int, data: bytes, timestamp: float) -> None:
             seen[can_id] = seen.get(can_id, 0) + 1
 
-        listening = () if self.lockstep else watched
-        for cob_id in listening:
+        for cob_id in watched:
             self.network.subscribe(cob_id, count)
         try:
-            time.sleep(FOREIGN_TRAFFIC_WINDOW if listening else 0.0)
+            self.clock.sleep_until(self.clock.now() + FOREIGN_TRAFFIC_WINDOW)
             # the drive's answer comes through the same receive thread as every frame
             # before it: once it is in, whatever another master sent in the window was
             # counted, however late a busy host ran that thread
@@ -126,10 +136,9 @@ class CanOpenTransport(Transport):
                 # another master runs would stop that master's joint), listen until a frame
                 # stamped after now has come through, or the limit
                 statusword = None
-                if listening:
-                    self._catch_up(time.time(), FOREIGN_TRAFFIC_LIMIT)
+                self._catch_up(time.time(), FOREIGN_TRAFFIC_LIMIT)
         finally:
-            for cob_id in listening:
+            for cob_id in watched:
                 self.network.unsubscribe(cob_id, count)
         if seen:
             kinds = {cia301.SYNC_COB_ID: "SYNC"}
@@ -149,11 +158,12 @@ class CanOpenTransport(Transport):
 
     def _catch_up(self, stamp: float, limit: float) -> None:
         """Wait until the receive thread has passed a frame stamped `stamp` or later (the
-        bus's frames up to then are counted), at most `limit` s: a silent bus never does."""
-        bus = self.health.bus
-        deadline = time.monotonic() + limit
-        while bus.last_stamp < stamp and time.monotonic() < deadline:
-            time.sleep(0.005)
+        bus's frames up to then are counted), at most `limit` s of the bus's clock: a silent
+        bus never does."""
+        bus, clock = self.health.bus, self.clock
+        deadline = clock.now() + limit
+        while bus.last_stamp < stamp and clock.now() < deadline:
+            clock.sleep_until(clock.now() + CATCH_UP_STEP)
 
     def read(self, index: int, subindex: int = 0) -> int:
         return self.sdo.read(index, subindex)
@@ -179,14 +189,14 @@ class CanOpenTransport(Transport):
         tpdos = plan_pdos(self.dictionary, self.node_id, inputs, False, echo, self.name)
         write_pdos(self.sdo, rpdos, True, cia301.TRANSMISSION_ASYNC)
         write_pdos(self.sdo, tpdos, False, cia301.TRANSMISSION_SYNC)
-        self._plan = (rpdos, tpdos, counting, len(inputs))
+        self._plan = (rpdos, tpdos, counting)
 
     def start(self, period: float) -> None:
         """Cycle period, synchronous window and heartbeats by SDO, then NMT operational; the
         heartbeat consumer starts watching."""
         if self._plan is None:
             raise DriveError(f"{self.name}: start before map_process_data")
-        rpdos, tpdos, counting, inputs = self._plan
+        rpdos, tpdos, counting = self._plan
         self.period = period
         period_us = int(round(period * 1e6))
         if has(self.dictionary, objects.CYCLE_PERIOD_US):
@@ -194,52 +204,41 @@ class CanOpenTransport(Transport):
         window = None
         if has(self.dictionary, objects.SYNC_WINDOW_US):
             # the response timeout, for the reason in driver.canopen_cycle
-            window = self.sync_cycle.response_timeout
+            window = self.bus_cycle.response_timeout
             self.write(objects.SYNC_WINDOW_US, 0, int(round(window * 1e6)))
         heartbeat_ms = 0
         if has(self.dictionary, objects.PRODUCER_HEARTBEAT_MS):
             self.write(objects.PRODUCER_HEARTBEAT_MS, 0, self.heartbeat_ms)
             heartbeat_ms = self.heartbeat_ms
-        self.health.start_producing(self.master_id, period)
+        self.health.start_producing(self.master_id)
         if has(self.dictionary, objects.CONSUMER_HEARTBEAT, 1):
             self.write(objects.CONSUMER_HEARTBEAT, 1,
                        self.master_id << cia301.HEARTBEAT_CONSUMER_NODE_SHIFT
                        | MASTER_HEARTBEAT_CONSUMER_MS)
-        self.sync_cycle.configure(rpdos, tpdos, inputs, counting, window)
+        self.bus_cycle.configure(self.row, rpdos, tpdos, counting, window, period)
         try:
             self.node.nmt.state = "OPERATIONAL"
         except (can.CanError, OSError) as exc:
             raise DriveError(f"{self.name}: cannot send NMT: {exc}") from exc
-        self.health.watch(heartbeat_ms)
+        self.health.watch(heartbeat_ms, period)
 
     def send(self, outputs: Sequence[int]) -> None:
         try:
-            self.sync_cycle.send(outputs)
+            self.bus_cycle.send(self.row, outputs)
         except (can.CanError, OSError) as exc:
             raise DriveError(f"{self.name}: cannot send RPDO: {exc}") from exc
 
     def exchange(self) -> tuple[int, ...]:
+        """One cycle of the bus (its SYNC reaches every drive on it); this drive's inputs."""
         try:
-            values = self.sync_cycle.exchange()
+            self.bus_cycle.exchange()
         except (can.CanError, OSError) as exc:
             raise DriveError(f"{self.name}: cannot send SYNC: {exc}") from exc
-        self.health.count_cycle(self.period)
-        return values
-
-    def arm(self) -> bytes:
-        """`exchange` in two halves around a SYNC the caller sends for every drive on the bus
-        (`driver.drive_group.CanOpenBus`): returns the SYNC's data this drive expects."""
-        return self.sync_cycle.arm()
-
-    def collect(self) -> tuple[int, ...]:
-        """The second half: this drive's inputs answering the shared SYNC."""
-        values = self.sync_cycle.collect()
-        self.health.count_cycle(self.period)
-        return values
+        return self.bus_cycle.inputs(self.row)
 
     @property
     def failure(self) -> DriveError | None:
-        return self.sync_cycle.failure
+        return self.bus_cycle.rows[self.row].failure
 
     @property
     def has_warnings(self) -> bool:
@@ -270,6 +269,6 @@ class CanOpenTransport(Transport):
             return
         self._closed = True
         self.health.close()
-        self.sync_cycle.close()
+        self.bus_cycle.leave(self.row)
         if self.owns_network:
             self.network.disconnect()

@@ -226,11 +226,16 @@ class Cia402Drive(Drive):
             except EncoderGlitch as error:
                 self._fault = error
                 raise
-        if cia402.state_from_statusword(sample.statusword) is State.FAULT:
+        self.judge_statusword(sample.statusword)
+        return sample
+
+    def judge_statusword(self, statusword: int) -> None:
+        """A statusword in the fault state makes this drive faulted (named by its emergency
+        when one came): from its own sample, or from a segment's arrays."""
+        if cia402.state_from_statusword(statusword) is State.FAULT:
             with self._lock:
                 if self._fault is None:
                     self._fault = DriveFault(self._fault_text(), self._emergency_code())
-        return sample
 
     def read(self) -> Sample | None:
         return self._latest

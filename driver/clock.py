@@ -102,10 +102,29 @@ class RingStats:
         return np.roll(self._values[:n], -start)
 
 
+# s: two times on a clock closer than this are the same time. Drive time is a sum of periods,
+# each addition rounded, so a deadline that falls exactly on a cycle can come out a few ulp
+# either side of it; a watchdog compares with this margin to judge it on that cycle every run.
+SAME_TIME = 1e-9
+
+
 class WallClock:
-    """Real time: the monotonic wall clock (s, `time.perf_counter`)."""
+    """Real time: the monotonic wall clock (s, `time.perf_counter`). It runs alone: time
+    passes between cycles, so a watchdog must also be looked at while no cycle runs."""
 
     now = staticmethod(time.perf_counter)
+    # time passes between cycles: the watchdogs that time a peer on the wall (an ESC's
+    # process data watchdog, a keeper that sends frames while the cycle is busy) are on
+    runs_alone = True
+
+    @staticmethod
+    def advance(seconds: float) -> None:
+        """The drives cycled: wall time passed on its own."""
+
+    @staticmethod
+    def span(seconds: float, period: float) -> str:
+        """A time span as a report says it on this clock."""
+        return f"{seconds * 1e3:.0f} ms"
 
     @staticmethod
     def sleep_until(deadline: float) -> None:
@@ -124,15 +143,28 @@ class WallClock:
 
 
 class DriveClock:
-    """Lock-step: drive time (s), which passes only as the drives cycle. Waiting for a
-    deadline is the drives cycling up to it, so it returns at once with the clock there: a
-    lock-step loop is never late and runs as fast as the drives answer."""
+    """Lock-step: drive time (s), which passes only as the drives cycle: the bus that sends a
+    SYNC advances it by a period (`advance`), whoever runs the cycle (the loop, or a test
+    calling `sync` itself). Waiting for a deadline is the drives cycling up to it, so it
+    returns at once with the clock there: a lock-step loop is never late and runs as fast as
+    the drives answer. Nothing happens between cycles, so no watchdog needs a thread."""
+
+    runs_alone = False
 
     def __init__(self) -> None:
         self._now = 0.0
 
     def now(self) -> float:
         return self._now
+
+    def advance(self, seconds: float) -> None:
+        """The drives cycled: `seconds` of drive time passed."""
+        self._now += seconds
+
+    @staticmethod
+    def span(seconds: float, period: float) -> str:
+        """A time span as a report says it on this clock: in cycles, then drive seconds."""
+        return f"{round(seconds / period)} cycles ({seconds:.3f} s of drive time)"
 
     def sleep_until(self, deadline: float) -> None:
         self._now = max(self._now, deadline)
@@ -241,7 +273,10 @@ class DriveTimers:
                 job(now * 1e-9)
 
 
-def clock_for(lockstep: bool) -> WallClock | DriveClock:
+Clock = WallClock | DriveClock
+
+
+def clock_for(lockstep: bool) -> Clock:
     """The clock of a run: drive time in lock-step (virtual drives), else the wall clock."""
     return DriveClock() if lockstep else WallClock()
 

@@ -3,8 +3,9 @@ every joint sampled in that cycle, every command sent before the next.
 
 A `DriveGroup` owns the segments (a CAN bus, an EtherCAT line) and, through them, the joints'
 `Cia402Drive`s. A cycle first triggers every segment (so the buses run side by side), then
-collects every joint's sample; commands go out joint by joint right after the controller has
-decided, which is before the next cycle's trigger. A failure on one joint is raised as a
+collects every segment's samples as one array; commands go out segment by segment, each in
+one pass over its joints, right after the controller has decided, which is before the next
+cycle's trigger. A failure on one joint is raised as a
 `JointFailure` naming it; the caller then stops every joint (`quick_stop_all`), because the
 others were planned on the assumption that the whole arm moves together.
 """
@@ -28,13 +29,14 @@ from driver.interface import (
     CommandRangeError,
     DriveError,
     DriveFault,
+    DriveTimeout,
     EncoderGlitch,
     Sample,
 )
+from driver.process_image import FAULT_BITS, FAULT_MASK, decode, encode
 from protocol import cia301, cia402
 
 SAMPLE_COLUMNS = Sample._fields
-FAULT_MASK, FAULT_BITS = 0x004F, 0x0008  # CiA 402 statusword: fault (protocol.cia402's table)
 
 log = logging.getLogger(__name__)
 
@@ -52,9 +54,8 @@ class JointFailure(DriveError):
 class Segment:
     """Drives whose process data travels together. This base covers drives whose transports
     already share one frame a cycle, each `sync()`ed in turn (EtherCAT: the line sends the
-    frame at the first `sync` of a cycle and the others read it; `open_ethercat_drives` on
-    branch `ethercat`), and a drive alone on its CAN bus (its `sync` is the single-joint
-    path exactly)."""
+    frame at the first `sync` of a cycle and the others read it), as a line whose slaves do
+    not share one layout runs, and an EtherCAT joint alone (`single_joint`)."""
 
     def __init__(self, name: str, joints: Sequence[tuple[str, Cia402Drive]]):
         self.name = name
@@ -103,51 +104,143 @@ class Segment:
 
 
 class CanOpenBus(Segment):
-    """Several CANopen drives on one network: one SYNC for all of them per cycle. The bus owns
-    the network (its drives' transports are built with `owns_network=False`)."""
+    """The CANopen drives of one bus, cycled as the bus's process image: one SYNC a cycle for
+    all of them (`driver.canopen_cycle.BusCycle`, the bus's since its first drive joined it),
+    every TPDO's bytes copied into its drive's row of the input image as it arrives, then
+    every joint decoded, scaled to SI, guarded and checked for faults in one compiled call,
+    and every RPDO encoded in another (`driver.process_image`). The per-joint `Cia402Drive`s
+    keep bring-up, acyclic access, the state machine, emergencies and their own words for a
+    failure, which names its joint. With `owns_network` the bus disconnects the network on
+    close (a robot's bus; a drive alone on its bus leaves that to its transport)."""
 
     def __init__(self, name: str, network: canopen.Network,
-                 joints: Sequence[tuple[str, Cia402Drive]]):
+                 joints: Sequence[tuple[str, Cia402Drive]], *, owns_network: bool = True):
         super().__init__(name, joints)
         self.network = network
+        self.owns_network = owns_network
+        self._layout: np.ndarray | None = None  # made when the drives are up
 
     def started(self) -> None:
-        cyclic = 1 + sum(drive.transport.sync_cycle.frames_per_cycle for _, drive in self.joints)
-        for _, drive in self.joints:
-            drive.transport.health.expect_cyclic_frames(cyclic)
-            drive.transport.health.restart_count()
+        drives = [drive for _, drive in self.joints]
+        transports = [drive.transport for drive in drives]
+        self._bus = bus = transports[0].bus_cycle
+        rows = [transport.row for transport in transports]
+        self._joint_of_row = dict(zip(rows, self.joints, strict=True))
+        scaling = [drive.scaling for drive in drives]
+        self._scale = np.array([[s.rad_per_increment, s.amps_per_feedback_unit,
+                                 s.joint_torque_per_unit, drive.guard.max_position_step]
+                                for s, drive in zip(scaling, drives, strict=True)])
+        self._current_limit = np.array([drive.current_limit for drive in drives])
+        self._target_per_amp = np.array([s.target_units_per_amp for s in scaling])
+        self._out_layout, self._frames, size = bus.output_layout(rows)
+        self._out = np.zeros(size, dtype=np.uint8)
+        self._previous = np.full(len(drives), np.nan)
+        self._period = drives[0].period
+        self._cycle = drives[0].cycle
+        self._warnings: list[str] = []
+        self._controlword = cia402.Command.ENABLE_OPERATION.value
+        self._layout = bus.input_layout(rows)
+        bus.watch.restart_count()  # the other drives' bring-up is not load
+
+    def _look_at_drives(self) -> None:
+        """Something happened on the bus (an emergency, a drive failed): the first joint whose
+        drive stops it is raised."""
+        self._bus.alarm = False  # before looking: what comes during the look raises it again
+        for joint, drive in self.joints:
+            if drive.fault is not None:
+                self._bus.alarm = True
+                raise JointFailure(joint, drive.fault)
+
+    def _blame(self, exc: DriveError) -> JointFailure:
+        """The bus's failure as the failure of the joint whose row it concerns; a drive that
+        faulted and then fell silent is named by its fault."""
+        joint, drive = self._joint_of_row.get(self._bus.blamed, self.joints[0])
+        if isinstance(exc, DriveTimeout) and drive._fault is not None:
+            return JointFailure(joint, drive._fault)
+        return JointFailure(joint, exc)
 
     def trigger(self) -> None:
-        sync_data = b""
-        for joint, drive in self.joints:
-            try:
-                drive.check_healthy()
-                expected = drive.transport.arm()
-            except DriveError as exc:
-                raise JointFailure(joint, exc) from exc
-            # every drive arms once a cycle from the same start, so counters agree; a drive
-            # that does not count SYNCs takes any data (CiA 301 ignores the counter then)
-            if expected and sync_data and expected != sync_data:
-                raise JointFailure(joint, DriveError(
-                    f"expects SYNC counter {expected[0]}, the bus is at {sync_data[0]}"))
-            sync_data = expected or sync_data
+        if self._layout is None:  # started drives given straight to a loop (`single_joint`)
+            self.started()
+        if self._bus.alarm:
+            self._look_at_drives()
         try:
-            self.network.send_message(cia301.SYNC_COB_ID, sync_data)
+            self._bus.trigger()
+        except DriveError as exc:
+            raise self._blame(exc) from exc
         except (can.CanError, OSError) as exc:
             raise JointFailure(self.joints[0][0],
                                DriveError(f"cannot send SYNC on {self.name}: {exc}")) from exc
 
     def collect(self) -> np.ndarray:
-        samples = []
-        for joint, drive in self.joints:
+        bus = self._bus
+        try:
+            bus.collect()
+        except DriveError as exc:
+            raise self._blame(exc) from exc
+        self._cycle += 1
+        table = np.empty((len(self.joints), len(SAMPLE_COLUMNS)))
+        glitch, faulted, saturated = decode(bus.image, self._layout, self._scale,
+                                            self._cycle * self._period, self._previous, 1,
+                                            table)
+        if glitch >= 0 or faulted >= 0 or saturated >= 0:
+            self._judge(table, glitch, faulted, saturated)
+        return table
+
+    def _judge(self, table: np.ndarray, glitch: int, faulted: int, saturated: int) -> None:
+        """The rare outcomes of a cycle's decoding, in the drives' own words: an encoder
+        glitch fails its joint now; a drive in fault is raised at the next command (its
+        emergency names it); a saturated torque reading is a warning."""
+        if saturated >= 0:
+            for j in np.flatnonzero(np.isnan(table[:, SAMPLE_JOINT_TORQUE])):
+                joint, drive = self.joints[j]
+                if drive.profile.has_joint_torque:
+                    reading = self._bus.inputs(drive.transport.row)[4]
+                    self._warnings.append(f"joint {joint}: joint torque sensor reading "
+                                          f"saturated ({reading} mN.m)")
+        if faulted >= 0:
+            statuswords = table[:, SAMPLE_STATUSWORD].astype(np.int64)
+            for j in np.flatnonzero((statuswords & FAULT_MASK) == FAULT_BITS):
+                self.joints[j][1].judge_statusword(int(statuswords[j]))
+            self._bus.alarm = True
+        if glitch >= 0:
+            joint, drive = self.joints[glitch]
+            try:  # its own words for it
+                drive.guard.check_step(float(self._previous[glitch]),
+                                       float(table[glitch, SAMPLE_POSITION]), drive.name)
+            except EncoderGlitch as error:
+                drive._fault = error
+                raise JointFailure(joint, error) from error
+
+    def command(self, currents: np.ndarray) -> None:
+        bad = encode(currents, self._current_limit, self._target_per_amp, self._controlword,
+                     self._out_layout, self._out)
+        if bad >= 0:
+            joint, drive = self.joints[bad]
             try:
-                samples.append(drive.take(drive.transport.collect))
-            except DriveError as exc:
+                drive.command_current(float(currents[bad]))  # its own words for the refusal
+            except (CommandRangeError, DriveError) as exc:
                 raise JointFailure(joint, exc) from exc
-        return np.array(samples, dtype=float)
+        if self._bus.alarm:
+            self._look_at_drives()
+        try:
+            self._bus.send_frames(self._out.tobytes(), self._frames)
+        except (can.CanError, OSError) as exc:
+            raise JointFailure(self.joints[0][0],
+                               DriveError(f"cannot send RPDOs on {self.name}: {exc}")) from exc
+
+    def warnings(self) -> list[str]:
+        """The bus's own (saturated sensors, found on the arrays), then any a drive kept
+        (its transport's: late or doubled frames, an overloaded bus)."""
+        out, self._warnings = self._warnings, []
+        for joint, drive in self.joints:
+            if drive.has_warnings:
+                out += [f"joint {joint}: {warning}" for warning in drive.warnings()]
+        return out
 
     def close(self) -> None:
-        self.network.disconnect()
+        if self.owns_network:
+            self.network.disconnect()
 
 
 class EthercatLine(Segment):
@@ -417,6 +510,14 @@ class DriveGroup:
 
 
 def single_joint(drive: Cia402Drive, name: str = "joint") -> DriveGroup:
-    """One drive as a robot of one joint named `name`: alone on its segment, its own `sync`
-    each cycle (the drive's transport sends its SYNC or its line's frame)."""
-    return DriveGroup([name], [Segment(name, [(name, drive)])])
+    """One drive as a robot of one joint named `name`: on CANopen its bus's segment, as a
+    robot's bus is (the transport keeps the network); on EtherCAT alone on its segment, its
+    own `sync` each cycle (its transport sends the line's frame)."""
+    from driver.canopen_transport import CanOpenTransport
+
+    if isinstance(drive.transport, CanOpenTransport):
+        segment: Segment = CanOpenBus(name, drive.transport.network, [(name, drive)],
+                                      owns_network=False)
+    else:
+        segment = Segment(name, [(name, drive)])
+    return DriveGroup([name], [segment])

@@ -54,7 +54,8 @@ def measure_line(interface: str, slaves: int, cycles: int = 5000,
     (`driver.clock.prefer_real_time`; given back after)."""
     dc = sync == "dc"
     refused = prefer_real_time() if dc else "free run"
-    transports = open_ethercat_transports(interface, range(slaves), lockstep=not dc,
+    # free run: the master on drive time (the slaves' watchdog off) for the lock-step rate
+    transports = open_ethercat_transports(interface, range(slaves), clock=clock_for(not dc),
                                           sync=sync)
     try:
         _bring_up(transports, period)
@@ -68,7 +69,7 @@ def measure_line(interface: str, slaves: int, cycles: int = 5000,
                 _cycle(transports, outputs)
             rate = round(cycles / (time.perf_counter() - start))
         line = transports[0].line
-        clock = CycleClock(period, clock_for(lockstep=False))
+        clock = CycleClock(period, clock_for(False))
         round_trips = np.empty(cycles)
         for k in range(cycles):
             clock.wait(line.clock_trim())

@@ -10,6 +10,7 @@ from typing import Any
 import pysoem
 
 from driver.cia402_drive import Cia402Drive
+from driver.clock import DriveClock, WallClock
 from driver.ethercat_transport import open_ethercat_transports
 from protocol.dictionary import StartupParameter
 from protocol.esi import EsiDevice
@@ -34,7 +35,7 @@ class JointOnLine:
 
 
 def open_ethercat_drives(interface: str, joints: Sequence[JointOnLine], *,
-                         period: float = 1e-3, lockstep: bool = False,
+                         period: float = 1e-3, clock: WallClock | DriveClock | None = None,
                          esi: str | Path | EsiDevice | None = None,
                          eds: str | Path | None = None, response_timeout: float | None = None,
                          watchdog: float | None = None,
@@ -43,11 +44,12 @@ def open_ethercat_drives(interface: str, joints: Sequence[JointOnLine], *,
     """The joints' drives on the line at `interface`, not started. Start every one before the
     first `sync` of any: the line goes to OP when the last is mapped, and the first `sync` of
     a cycle sends that cycle's frame for all of them (call each drive's `sync` once a cycle,
-    then command each). `lockstep`: the slaves' watchdog is off and a cycle may take any wall
-    time; `watchdog` (s) sets it in real time (default the ESC's 100 ms); `open_master` and
-    `sync` ("free_run" or "dc"): see `driver.ethercat_master.EthercatMaster`."""
+    then command each). `clock` a DriveClock: the slaves' watchdog is off and a cycle may take
+    any wall time; `watchdog` (s) sets it in real time (default the ESC's 100 ms); `clock`,
+    `open_master` and `sync` ("free_run" or "dc"): see `driver.ethercat_master.EthercatMaster`.
+    """
     transports = open_ethercat_transports(
-        interface, [j.position for j in joints], lockstep=lockstep, esi=esi,
+        interface, [j.position for j in joints], clock=clock, esi=esi,
         eds=[j.eds if j.eds is not None else eds for j in joints],
         response_timeout=response_timeout, watchdog=watchdog, open_master=open_master,
         names=[j.name for j in joints], sync=sync)

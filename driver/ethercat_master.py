@@ -23,6 +23,7 @@ robot gives one (`names`).
 
 import logging
 import socket
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -30,6 +31,7 @@ from typing import Any
 
 import pysoem
 
+from driver.clock import DriveClock, WallClock
 from driver.ethercat_dc import DcLine
 from driver.interface import DriveError, DriveLost, ProfileError
 from protocol import ethercat as ec
@@ -39,10 +41,11 @@ log = logging.getLogger(__name__)
 
 STATE_TIMEOUT_US = 2_000_000  # SOEM's EC_TIMEOUTSTATE: what a state change may take
 OP_FRAMES = 200  # frames sent after the OP request before giving up (OP comes with outputs)
-LOCKSTEP_RESPONSE_TIMEOUT = 1.0  # s: in lock-step a late frame is not a failure, only none is
+DRIVE_TIME_RESPONSE_TIMEOUT = 1.0  # s: on drive time a late frame is no failure, only none is
 REALTIME_RESPONSE_TIMEOUT = 0.1  # s: the slaves' default process data watchdog
 DEFAULT_WATCHDOG = 0.1  # s: the ESC's reset value (ETG.1000.4: 1000 x 100 us)
 KEEP_ALIVE = 0.02  # s: a fifth of the ESC's default watchdog
+KEEPER_SWITCH_SHARE = 0.25  # DC: the interpreter's switch interval at most this share of a period
 SCAN_RETRY = 0.1  # s between two scans of a line that did not answer right
 SYNC_MODES = ("free_run", "dc")
 DEFAULT_DC_PERIOD = 1e-3  # s: SYNC0 period when no transport said (start sets it)
@@ -71,11 +74,14 @@ class LineLost(LineFailure, DriveLost):
 class EthercatMaster:
     """The slaves on `interface`, described by `esi` (every slave must be that device).
 
-    `lockstep`: the slaves' process data watchdog (a wall-clock timer in each ESC) is switched
-    off (0x0420 = 0), because a lock-step host may pause for any wall time between two cycles;
-    the master's own check, the working counter of every frame, counts cycles. In real time the
-    watchdog is on (the ESC's 100 ms, or `watchdog` s; written, never assumed), so the slaves
-    stop their drives when this master dies.
+    `clock` (`driver.clock`, made by `clock_for`; default the wall clock): the line's time,
+    which the master waits on (DC start-up, settling) and which its cyclic frames advance
+    (drive time: the count of the line's frames x period). On drive time the slaves' process
+    data watchdog (a wall-clock timer in each ESC) is switched off (0x0420 = 0), because the
+    host may pause for any wall time between two cycles; the master's own check, the working
+    counter of every frame, counts cycles. On the wall clock the watchdog is on (the ESC's
+    100 ms, or `watchdog` s; written, never assumed), so the slaves stop their drives when
+    this master dies.
 
     `open_master` makes the pysoem master (by default SOEM on the interface; a line of
     virtual slaves in this process for `--sim`: `sim_bus.ethercat.linked.LinkedMaster`).
@@ -86,7 +92,8 @@ class EthercatMaster:
     `driver.ethercat_dc`). The period comes from the transports' `start`.
     """
 
-    def __init__(self, interface: str, esi: EsiDevice, *, lockstep: bool = False,
+    def __init__(self, interface: str, esi: EsiDevice, *,
+                 clock: WallClock | DriveClock | None = None,
                  response_timeout: float | None = None, watchdog: float | None = None,
                  open_master: Callable[[], Any] = pysoem.Master, sync: str = "free_run"):
         if sync not in SYNC_MODES:
@@ -97,10 +104,10 @@ class EthercatMaster:
         self.dc: DcLine | None = None
         self._open_master = open_master
         self.esi = esi
-        self.lockstep = lockstep
+        self.clock = clock if clock is not None else WallClock()
         if response_timeout is None:
-            response_timeout = LOCKSTEP_RESPONSE_TIMEOUT if lockstep else (
-                REALTIME_RESPONSE_TIMEOUT)
+            response_timeout = REALTIME_RESPONSE_TIMEOUT if self.clock.runs_alone else (
+                DRIVE_TIME_RESPONSE_TIMEOUT)
         self.response_timeout_us = int(response_timeout * 1e6)
         self.watchdog = watchdog
         self.master: pysoem.Master | None = None
@@ -203,10 +210,10 @@ class EthercatMaster:
         master = self.master
         if not self.mapped:
             try:
-                # written in real time too, never left as found: an earlier lock-step master
+                # written in real time too, never left as found: an earlier drive-time master
                 # (killed, or one that never closed) may have switched it off, and a slave
                 # without it keeps its drive enabled when this master dies
-                milliseconds = 0.0 if self.lockstep else (
+                milliseconds = 0.0 if not self.clock.runs_alone else (
                     self.watchdog if self.watchdog is not None else DEFAULT_WATCHDOG) * 1e3
                 for slave in self.slaves:
                     slave.set_watchdog("processdata", milliseconds)
@@ -244,11 +251,11 @@ class EthercatMaster:
     def _dc_to_operational(self) -> None:
         """DC: a frame every period until every slave took OP at a SYNC0 with outputs in its
         window (the first SYNC0 comes 100 ms after the set-up), the frames already placed in
-        the reference clock's cycle. In lock-step a frame is a period of drive time."""
-        master = self.master
+        the reference clock's cycle. On drive time a frame is a period of it."""
+        master, clock = self.master, self.clock
         period = self.dc.period_ns * 1e-9
-        deadline = time.monotonic() + DC_OP_TIMEOUT
-        wake, frames = time.perf_counter(), 0
+        wake = clock.now()
+        deadline, frames = wake + DC_OP_TIMEOUT, 0
         for _ in range(int(DC_OP_TIMEOUT / period)):
             self._sent_at = time.monotonic()
             master.send_processdata()
@@ -263,11 +270,10 @@ class EthercatMaster:
                 self._last_frame = time.monotonic()
                 self._start_keeper()
                 return
-            if not self.lockstep:
-                if time.monotonic() > deadline:
-                    break
-                wake += period + self.dc.take_trim()
-                time.sleep(max(0.0, wake - time.perf_counter()))
+            if clock.now() > deadline:
+                break
+            wake += period + self.dc.take_trim()
+            clock.sleep_until(wake)
         self._require_state(pysoem.OP_STATE, "OP")
 
     def settle(self) -> None:
@@ -280,8 +286,7 @@ class EthercatMaster:
         with self.lock:
             for _ in range(DC_SETTLE_FRAMES):
                 self._frame()
-                if not self.lockstep:
-                    time.sleep(self.dc.period_ns * 1e-9)
+                self.clock.sleep_until(self.clock.now() + self.dc.period_ns * 1e-9)
 
     def pass_image(self) -> None:
         """DC: a frame now, then a period for the slaves' SYNC0 to take its outputs and sample
@@ -289,7 +294,7 @@ class EthercatMaster:
         process data this way)."""
         with self.lock:
             self._frame()
-        time.sleep(self.dc.period_ns * 1e-9)
+        self.clock.sleep_until(self.clock.now() + self.dc.period_ns * 1e-9)
 
     def clock_trim(self) -> float:
         """s to add to the next period of the cycle's clock (DC: follow the reference)."""
@@ -340,6 +345,8 @@ class EthercatMaster:
         with self.lock:
             self.frames += 1
             self._frame()
+            if self.period is not None:
+                self.clock.advance(self.period)  # drive time: frames x period
             if self.dc is not None:
                 self.dc.observe(self.master.dc_time, self._sent_at)
             if self.frames % STATE_CHECK_FRAMES == 0:
@@ -376,9 +383,15 @@ class EthercatMaster:
         of 32 joints, an enable sequence, a garbage collection, a stalled cycle) starves the
         slaves' watchdog: at worst the drives hold the last command a little longer. A real
         master (SOEM's examples, ros2_control's EtherCAT drivers) keeps its own cyclic thread
-        for the same reason. Lock-step has none: there a frame is a cycle of drive time."""
-        if self.lockstep or self._keeper_stop is not None:
+        for the same reason. On drive time there is none: a frame is a cycle of it there."""
+        if not self.clock.runs_alone or self._keeper_stop is not None:
             return
+        # the keeper is a Python thread: while another holds the interpreter (the cold solve,
+        # a garbage collection) it waits for the switch interval, 5 ms by default, longer
+        # than the three SYNC0 windows a slave forgives on distributed clocks
+        if self.dc is not None:
+            sys.setswitchinterval(min(sys.getswitchinterval(),
+                                      KEEPER_SWITCH_SHARE * self.dc.period_ns * 1e-9))
         stop = self._keeper_stop = threading.Event()
         threading.Thread(target=self._keep if self.dc is None else self._keep_windows,
                          args=(stop,), daemon=True,
@@ -416,9 +429,9 @@ class EthercatMaster:
     def keep_alive(self) -> None:
         """Real time, while OP: a frame when none went out for KEEP_ALIVE s (DC: since the
         last SYNC0), so an acyclic sequence between cycles (enabling the drive by CoE) does
-        not starve the slaves' watchdog (DC: their SYNC0 windows). Lock-step needs none (the
-        watchdog is off) and gets none (a frame is a cycle of the drive's time there)."""
-        if self.lockstep or not self.operational or self.failure is not None:
+        not starve the slaves' watchdog (DC: their SYNC0 windows). Drive time needs none (the
+        watchdog is off) and gets none (a frame is a cycle of it there)."""
+        if not self.clock.runs_alone or not self.operational or self.failure is not None:
             return
         now = time.monotonic()
         if self.dc is not None:

@@ -17,6 +17,7 @@ from typing import Any
 
 import pysoem
 
+from driver.clock import DriveClock, WallClock
 from driver.ethercat_master import EthercatMaster
 from driver.interface import DriveError, DriveLost, ProfileError, SdoRefused
 from driver.transport import Transport
@@ -100,7 +101,7 @@ class EthercatTransport(Transport):
         outputs until the slaves dropped out with 0x001A; a cyclic master steers CiA 402
         through the PDOs anyway."""
         line = self.line
-        return line.dc is not None and line.operational and not line.lockstep and self._mapped
+        return line.dc is not None and line.operational and line.clock.runs_alone and self._mapped
 
     def read(self, index: int, subindex: int = 0) -> int:
         var = self._variable(index, subindex)
@@ -286,7 +287,8 @@ def _mappable(dictionary, obj: MappedObject) -> bool:
 
 
 def open_ethercat_transports(interface: str, positions: Sequence[int], *,
-                             lockstep: bool = False, esi: str | Path | EsiDevice | None = None,
+                             clock: WallClock | DriveClock | None = None,
+                             esi: str | Path | EsiDevice | None = None,
                              eds: str | Path | Sequence[str | Path | None] | None = None,
                              response_timeout: float | None = None,
                              watchdog: float | None = None,
@@ -297,12 +299,12 @@ def open_ethercat_transports(interface: str, positions: Sequence[int], *,
     frame per cycle for all of them). `esi` defaults to the shipped elbow drive ESI; `eds` is
     every slave's EDS, or a list with one per position (drives of different joints differ);
     `names` the joint of each position, named with its slave in every report.
-    `open_master`, `sync`: see `driver.ethercat_master.EthercatMaster`."""
+    `clock`, `open_master`, `sync`: see `driver.ethercat_master.EthercatMaster`."""
     if not isinstance(esi, EsiDevice):
         esi = load_esi(esi if esi is not None else shipped_esi_path())
     if eds is None or isinstance(eds, str | Path):
         eds = [eds] * len(positions)
-    line = EthercatMaster(interface, esi, lockstep=lockstep, response_timeout=response_timeout,
+    line = EthercatMaster(interface, esi, clock=clock, response_timeout=response_timeout,
                           watchdog=watchdog, open_master=open_master, sync=sync)
     for position, name in zip(positions, names or (), strict=False):
         if name:

@@ -31,10 +31,11 @@ the requested process data, before anything was enabled), `ForeignMaster` (anoth
 drives the device). Emergencies (CANopen EMCY, EtherCAT CoE emergency) carry CiA 301 error
 codes on both buses; the transport hands them to `on_emergency` from its receive context.
 
-Lock-step: a transport built with `lockstep=True` runs every watchdog it owns on drive time
-(cycles counted by `exchange`), never on the wall clock, so a slow or busy host cannot trip
-one; in real time they run on the clock. See `driver.canopen_health` for why that is sound
-for the heartbeat consumer.
+Time: a transport's watchdogs measure time on the clock it is given (`driver.clock`): drive
+time in lock-step (advanced by the cycles the bus runs), so a slow or busy host cannot trip
+one, the wall clock in real time; one code path either way. (The EtherCAT transport still
+takes a `lockstep` flag.) See `driver.canopen_health` for why that is sound for the heartbeat
+consumer.
 """
 
 from abc import ABC, abstractmethod

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 
 import can
 
+from driver.clock import clock_for
 from model.parameters import ActuatorModel, Payload
 from protocol.bus_spec import is_ethercat, parse_bus_spec
 from robot.can_log import CanLog, LoggedBus, tap_link
@@ -104,6 +105,16 @@ def _master_options(model: ActuatorModel, lockstep: bool, timing: dict) -> dict:
             "current_max": model.limits.current_max, **timing}
 
 
+def _can_master_options(model: ActuatorModel, lockstep: bool, timing: dict) -> dict:
+    """`_master_options` for a CANopen drive: its bus's watchdogs run on the run's clock
+    (`driver.clock.clock_for`: drive time in lock-step)."""
+    from driver.clock import clock_for
+
+    options = _master_options(model, lockstep, timing)
+    options["clock"] = clock_for(options.pop("lockstep"))
+    return options
+
+
 def open_line_drive(bus: str, slave: int, model: ActuatorModel, *, esi: EsiDevice | None,
                     eds: str | None, name: str = "joint", lockstep: bool = False,
                     **timing) -> Connection:
@@ -113,6 +124,7 @@ def open_line_drive(bus: str, slave: int, model: ActuatorModel, *, esi: EsiDevic
     from driver.ethercat_drive import JointOnLine
 
     options = _master_options(model, lockstep, timing)
+    options["clock"] = clock_for(options.pop("lockstep"))  # the line's own time
     joint = JointOnLine(slave, options.pop("velocity_limit"), options.pop("drive_gain"),
                         current_max=options.pop("current_max"))
     drive = _open_on_line(bus, parse_bus_spec(bus)["channel"], [joint], esi=esi, eds=eds,
@@ -128,7 +140,7 @@ def open_can_drive(config: dict, node_id: int, model: ActuatorModel, *, eds: str
     the drive cannot be opened). Raises DriveOpenError (exit 1)."""
     from driver.canopen_drive import CanOpenDrive
 
-    options = _master_options(model, lockstep, timing)
+    options = _can_master_options(model, lockstep, timing)
     where = describe_bus(config)
     try:
         network = open_can_network(config, can_log)
@@ -160,7 +172,7 @@ def open_embedded_drive(model: ActuatorModel, sim_model: ActuatorModel, payload:
     from sim_bus.embedded import EmbeddedDrive
     from sim_bus.plant import SensorNoise
 
-    options = _master_options(model, lockstep, timing)
+    options = _can_master_options(model, lockstep, timing)
     sim = EmbeddedDrive(sim_model, payload, SensorNoise(seed=seed), node_id,
                         clock=clock_for(lockstep), eds_path=eds)
     if can_log is not None:
@@ -218,6 +230,7 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
     CoE objects as on a wire, one image a cycle). Raises DriveOpenError (exit 1)."""
     from driver.canopen_transport import CanOpenTransport, open_network
     from driver.cia402_drive import Cia402Drive
+    from driver.clock import clock_for
     from driver.drive_group import CanOpenBus, DriveGroup, EthercatLine
     from driver.ethercat_drive import JointOnLine
 
@@ -237,7 +250,7 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
                                 j.model.parameters.drive_gain, j.eds,
                                 j.model.limits.current_max, j.name, j.startup)
                     for j in on_line],
-                    period=period, lockstep=lockstep, response_timeout=response_timeout,
+                    period=period, clock=clock_for(lockstep), response_timeout=response_timeout,
                     sync=robot.sync(bus), **options)
                 segments[-1].joints = [(j.name, drive)
                                        for j, drive in zip(on_line, drives, strict=True)]
@@ -262,9 +275,10 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
             else:
                 network = open_network(bus, robot.bitrates.get(bus))
             segments.append(CanOpenBus(bus, network, []))
+            clock = clock_for(lockstep)
             for joint in joints:
                 transport = CanOpenTransport(network, addresses[joint.name], eds=joint.eds,
-                                             lockstep=lockstep,
+                                             clock=clock,
                                              response_timeout=response_timeout,
                                              owns_network=False)
                 segments[-1].joints.append((joint.name, Cia402Drive(
@@ -308,7 +322,7 @@ def _linked_line(robot: RobotSpec, on_line: list, seed: int,
         devices[joint.name] = device
         line.append(device)
     segment = VirtualLine(line)
-    return lambda: LinkedMaster(segment, lockstep)
+    return lambda: LinkedMaster(segment, clock_for(lockstep))
 
 
 def open_joint(robot: RobotSpec, joint: JointSpec, sim_model: ActuatorModel,
@@ -321,6 +335,7 @@ def open_joint(robot: RobotSpec, joint: JointSpec, sim_model: ActuatorModel,
     joint's too, see `open_robot`), its physics `sim_model`. Raises DriveOpenError (exit
     1)."""
     from driver.canopen_drive import CanOpenDrive
+    from driver.clock import clock_for
 
     timing = {"lockstep": lockstep, "velocity_limit": joint.model.limits.velocity_max,
               "drive_gain": joint.model.parameters.drive_gain, "eds": joint.eds,
@@ -333,9 +348,11 @@ def open_joint(robot: RobotSpec, joint: JointSpec, sim_model: ActuatorModel,
         on_line = JointOnLine(joint.address, timing.pop("velocity_limit"),
                               timing.pop("drive_gain"), timing.pop("eds"),
                               timing.pop("current_max"), joint.name, timing.pop("startup"))
+        timing["clock"] = clock_for(timing.pop("lockstep"))  # the line's own time
         drive = _open_on_line(joint.bus, parse_bus_spec(joint.bus)["channel"], [on_line],
                               **timing)[0]
         return _one(drive, joint.name, where=joint.bus, address=f"slave {joint.address}")
+    timing["clock"] = clock_for(timing.pop("lockstep"))  # CANopen from here on
     if not sim:
         try:
             return _one(CanOpenDrive.open(joint.bus, joint.address, **timing), joint.name,

@@ -58,22 +58,23 @@ class HeartbeatProducer:
         self._nmt_state = nmt_state
         self._time = time
         self._stop: Callable[[], None] | None = None
-        # a reset's boot-up (its own thread in real time) and the master's SDO write of 0x1017
-        # both (re)start the beat: unserialised, both could start one and one never stop
+        # a (re)start comes from the SDO server's thread (0x1017 written) and from the boot
+        # after a reset (its own thread in real time) at once: without the lock both beat,
+        # and the stop of one of them is lost (a drive whose heartbeat "stops" beats on)
         self._lock = threading.Lock()
 
     def start(self, period_ms: int) -> None:
         with self._lock:
-            self._stop_beat()
+            self._stop_beating()
             if period_ms > 0:
                 self._stop = self._time.every(period_ms * 1e-3, self._beat,
                                               f"heartbeat-0x{self._cob_id:X}")
 
     def stop(self) -> None:
         with self._lock:
-            self._stop_beat()
+            self._stop_beating()
 
-    def _stop_beat(self) -> None:
+    def _stop_beating(self) -> None:
         if self._stop is not None:
             self._stop()
             self._stop = None

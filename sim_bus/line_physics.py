@@ -234,13 +234,16 @@ class DriveLine:
         return True
 
     def cycle(self, rows: np.ndarray, controlwords: np.ndarray, outputs: tuple,
-              output_values: list, counter: int = 0, refresh: bool = True) -> np.ndarray:
+              output_values: list, counter: int = 0, refresh: bool = True,
+              others_idle: bool = False) -> np.ndarray:
         """One cycle of the drives `rows` (indices, in line order) under these outputs, a
         row per drive of the line: `controlwords` and, for the objects `outputs` other than
         the controlword (target torque and current), `output_values`. The rows whose cycle
         ran here (bool over `rows`); every drive not among them may have been cycled
         another way, so its terms are read again before its next. `refresh` False: the
-        caller has just called `refresh`."""
+        caller has just called `refresh`. `others_idle`: the caller knows the drives not in
+        `rows` did not cycle (a SYNC0 batch of part of the line), so only those of `rows`
+        not run here are read again."""
         if refresh:
             self.refresh()
         devices = self.devices
@@ -261,7 +264,10 @@ class DriveLine:
         cycled = rows[done]
         self._unwritten[cycled] = True
         self.pending = True
-        if len(cycled) < len(devices):  # the others may run elsewhere: read them again
+        if others_idle:
+            if len(cycled) < len(rows):
+                self.cycled_elsewhere(rows[~done].tolist())
+        elif len(cycled) < len(devices):  # the others may run elsewhere: read them again
             self.cycled_elsewhere(np.setdiff1d(self._rows, cycled, assume_unique=True).tolist())
         return done
 

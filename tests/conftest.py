@@ -31,7 +31,8 @@ def virtual_pair(payload: Payload = Payload(), noise: SensorNoise = SensorNoise(
     model = model or load_model()
     embedded = EmbeddedDrive(model, payload, noise, 2, clock=clock_for(lockstep))
     master = CanOpenDrive(embedded.master_network, 2, velocity_limit=model.limits.velocity_max,
-                          drive_gain=model.parameters.drive_gain, lockstep=lockstep,
+                          drive_gain=model.parameters.drive_gain,
+                          clock=clock_for(lockstep),
                           **drive_kwargs)
     try:
         yield embedded.node, master

@@ -18,6 +18,15 @@ from protocol import objects
 from protocol.dictionary import mappable_object
 from protocol.pdo import PdoLayout
 from sim_bus.device import Cia402Device
+from sim_bus.ethercat.dc import (
+    REG_RECEIVE_TIME_PORT0,
+    REG_RECEIVE_TIME_UNIT,
+    REG_START_TIME,
+    REG_SYNC0_CYCLE_TIME,
+    REG_SYNC_ACTIVATION,
+    REG_SYSTEM_TIME_DELAY,
+    REG_SYSTEM_TIME_OFFSET,
+)
 from sim_bus.ethercat.segment import Segment, pass_frame
 
 Cmd = ec.Command
@@ -58,9 +67,9 @@ class FrameMaster:
         return [struct.unpack("<H", self.read(k, ec.REG_AL_STATUS, 2))[0]
                 for k in range(self.count)]
 
-    def start(self) -> None:
+    def start(self, operational: bool = True) -> None:
         """INIT -> SAFE-OP with the image mapped, OP requested (entered with the first
-        outputs)."""
+        outputs) unless not `operational`."""
         segment = self.segment
         esi = segment.esi
         for k in range(self.count):
@@ -91,6 +100,34 @@ class FrameMaster:
             self.write(k, ec.REG_WATCHDOG_TIME_PROCESS_DATA, struct.pack("<H", 1000))  # 100 ms
         self.request(AL.SAFE_OP)
         assert self.states() == [AL.SAFE_OP] * self.count
+        if operational:
+            self.request(AL.OP)
+
+    def start_dc(self, shift: float = 0.5e-3, period: float = 1e-3) -> None:
+        """From SAFE-OP, what SOEM's ecx_configdc and ecx_dcsync0 send: receive times
+        latched, each slave's offset onto the master's time (`now` in ns) and its delay, SYNC0
+        every `period` `shift` past the master's frames, starting 100 ms on; then OP
+        requested (entered at the first SYNC0 with outputs)."""
+        self.send([(Cmd.BWR, 0, REG_RECEIVE_TIME_PORT0 << 16, bytes(4))])
+        parent_span = delay = 0
+        for k in range(self.count):
+            port0, port1 = struct.unpack("<II", self.read(k, REG_RECEIVE_TIME_PORT0, 8))
+            (latched,) = struct.unpack("<Q", self.read(k, REG_RECEIVE_TIME_UNIT, 8))
+            self.write(k, REG_SYSTEM_TIME_OFFSET,
+                       struct.pack("<Q", (int(self.now * 1e9) - latched) % 2**64))
+            span = (port1 - port0) % 2**32 if k < self.count - 1 else 0
+            if k:
+                delay += (parent_span - span) // 2
+                self.write(k, REG_SYSTEM_TIME_DELAY, struct.pack("<I", delay))
+            parent_span = span
+        cycle = int(round(period * 1e9))
+        for k in range(self.count):
+            self.write(k, REG_SYNC_ACTIVATION, b"\x00")
+            (now,) = struct.unpack("<Q", self.read(k, ec.REG_DC_SYSTEM_TIME, 8))
+            start = (now + 100_000_000) // cycle * cycle + cycle + int(round(shift * 1e9))
+            self.write(k, REG_START_TIME, struct.pack("<Q", start))
+            self.write(k, REG_SYNC0_CYCLE_TIME, struct.pack("<I", cycle))
+            self.write(k, REG_SYNC_ACTIVATION, b"\x03")
         self.request(AL.OP)
 
     def lrw(self, controlwords: np.ndarray, torques: np.ndarray) -> bytearray:

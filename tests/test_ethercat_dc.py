@@ -9,6 +9,7 @@ import time
 import pysoem
 import pytest
 
+from driver.clock import clock_for
 from driver.drive_group import DriveGroup, EthercatLine
 from driver.ethercat_dc import DcLine
 from driver.ethercat_drive import JointOnLine, open_ethercat_drives
@@ -128,8 +129,8 @@ def joint(position: int) -> JointOnLine:
 def dc_group(count: int, lockstep: bool = True):
     segment = line(count)
     drives = open_ethercat_drives("linked", [joint(k) for k in range(count)],
-                                  lockstep=lockstep, sync="dc",
-                                  open_master=lambda: LinkedMaster(segment, lockstep))
+                                  clock=clock_for(lockstep), sync="dc",
+                                  open_master=lambda: LinkedMaster(segment, clock_for(lockstep)))
     names = [f"joint{k}" for k in range(count)]
     group = DriveGroup(names, [EthercatLine("ethercat:linked",
                                             list(zip(names, drives, strict=True)))])
@@ -215,7 +216,8 @@ def test_a_sync0_cycle_other_than_the_drives_period_is_refused():
     """SYNC0 every 2 ms for a drive that steps 1 ms (0x1006): OP refused with 0x0035."""
     segment = line(1)
     [transport] = open_ethercat_transports(
-        "linked", [0], lockstep=True, sync="dc", open_master=lambda: LinkedMaster(segment, True))
+        "linked", [0], clock=clock_for(True), sync="dc",
+        open_master=lambda: LinkedMaster(segment, clock_for(True)))
     try:
         transport.boot(1.0)
         transport.map_process_data((), ())

@@ -18,6 +18,7 @@ import numpy as np
 import pysoem
 import pytest
 
+from driver.clock import clock_for
 from driver.drive_group import DriveGroup, EthercatLine, JointFailure
 from driver.ethercat_drive import JointOnLine, open_ethercat_drives
 from driver.ethercat_master import STATE_CHECK_FRAMES, LineLost
@@ -52,8 +53,9 @@ class LinkedRobot:
         joints = [JointOnLine(k, MODEL.limits.velocity_max, MODEL.parameters.drive_gain,
                               current_max=MODEL.limits.current_max, name=name)
                   for k, name in enumerate(names)]
-        drives = open_ethercat_drives("sim", joints, lockstep=True, response_timeout=1.0,
-                                      open_master=lambda: LinkedMaster(self.segment))
+        drives = open_ethercat_drives("sim", joints, clock=clock_for(True), response_timeout=1.0,
+                                      open_master=lambda: LinkedMaster(self.segment,
+                                                                       clock_for(False)))
         for drive in drives:
             drive.transport.boot(5.0)
         self.group = DriveGroup(list(names), [EthercatLine("ethercat:sim",
@@ -175,7 +177,7 @@ def test_soem_names_the_slave_that_vanished_and_the_one_that_left_op(link):
             (Fault.LEAVES_OP, "slave 1 (knee_joint) in SAFE_OP + ERROR, AL status code "
                               "synchronization error (0x001A)")):
         with SlaveProcess(link, 2, MODEL), link.entered():
-            drives = open_ethercat_drives(link.master_port, joints, lockstep=True,
+            drives = open_ethercat_drives(link.master_port, joints, clock=clock_for(True),
                                           response_timeout=0.2)
             on_line = list(zip(NAMES[:2], drives, strict=True))
             group = DriveGroup(list(NAMES[:2]), [EthercatLine("ethercat:veth", on_line)])

@@ -10,6 +10,7 @@ import time
 import pysoem
 import pytest
 
+from driver.clock import clock_for
 from driver.drive_group import DriveGroup, EthercatLine
 from driver.ethercat_drive import JointOnLine, open_ethercat_drives
 from driver.ethercat_transport import open_ethercat_transports
@@ -97,7 +98,7 @@ def test_soem_finds_the_slaves_reads_their_sii_and_maps_the_cst_layout(link):
 
 def test_lockstep_drives_move_each_joint_the_commanded_way_one_frame_per_cycle(link):
     with slaves(link, 2) as line, link.entered():
-        drives = open_ethercat_drives(link.master_port, [joint(0), joint(1)], lockstep=True)
+        drives = open_ethercat_drives(link.master_port, [joint(0), joint(1)], clock=clock_for(True))
         try:
             for drive in drives:
                 drive.start()
@@ -127,7 +128,7 @@ def test_a_line_is_one_segment_of_a_drive_group(link):
     names = ["shoulder", "elbow", "wrist"]
     with slaves(link, 3) as line, link.entered():
         drives = open_ethercat_drives(link.master_port, [joint(k) for k in range(3)],
-                                      lockstep=True)
+                                      clock=clock_for(True))
         group = DriveGroup(names, [EthercatLine(f"ethercat:{link.master_port}",
                                                 list(zip(names, drives, strict=True)))])
         try:
@@ -162,7 +163,7 @@ def test_identity_other_than_the_esi_is_refused(link):
 
 def test_killed_slave_process_is_lost_within_one_cycle(link):
     with slaves(link, 1) as line, link.entered():
-        [transport] = open_ethercat_transports(link.master_port, [0], lockstep=True,
+        [transport] = open_ethercat_transports(link.master_port, [0], clock=clock_for(True),
                                                response_timeout=0.2)
         try:
             bring_up([transport])
@@ -196,7 +197,7 @@ def test_bootstrap_request_is_refused_by_name(link):
 
 def test_safe_op_refused_for_a_wrong_output_size_names_the_code(link):
     with slaves(link, 1), link.entered():
-        [transport] = open_ethercat_transports(link.master_port, [0], lockstep=True)
+        [transport] = open_ethercat_transports(link.master_port, [0], clock=clock_for(True))
         try:
             bring_up([transport])
             line = transport.line
@@ -216,7 +217,7 @@ def test_safe_op_refused_for_a_wrong_output_size_names_the_code(link):
 
 def test_master_loss_trips_the_watchdog_and_the_drive_stops_on_its_brake(link):
     with slaves(link, 1) as line, link.entered():
-        [drive] = open_ethercat_drives(link.master_port, [joint(0)], lockstep=False)
+        [drive] = open_ethercat_drives(link.master_port, [joint(0)], clock=clock_for(False))
         drive.start()
         for _ in range(50):
             drive.sync()
@@ -234,7 +235,7 @@ def test_master_loss_trips_the_watchdog_and_the_drive_stops_on_its_brake(link):
 
 def test_drive_fault_arrives_as_a_coe_emergency_with_its_code(link):
     with slaves(link, 1), link.entered():
-        [drive] = open_ethercat_drives(link.master_port, [joint(0)], lockstep=True)
+        [drive] = open_ethercat_drives(link.master_port, [joint(0)], clock=clock_for(True))
         try:
             drive.start()
             drive.sync()
@@ -283,7 +284,8 @@ def test_a_stalled_controller_holds_the_command_instead_of_tripping_the_watchdog
     """Real time: the line's own keeper sends frames while the cycle stalls (a cold solve, a
     collection), so the slaves' 100 ms watchdog never fires for a master that is alive."""
     with slaves(link, 2) as line, link.entered():
-        drives = open_ethercat_drives(link.master_port, [joint(0), joint(1)], lockstep=False)
+        drives = open_ethercat_drives(link.master_port, [joint(0), joint(1)],
+                                      clock=clock_for(False))
         group = DriveGroup(["a", "b"], [EthercatLine(f"ethercat:{link.master_port}",
                                                      list(zip(["a", "b"], drives,
                                                               strict=True)))])

@@ -13,7 +13,7 @@ from controller.mpc import Mpc
 from controller.problem import OcpSettings
 from controller.reference import Sinusoid
 from driver.canopen_drive import CanOpenDrive
-from driver.clock import DriveClock
+from driver.clock import DriveClock, clock_for
 from driver.drive_group import single_joint
 from driver.ethercat_drive import JointOnLine, open_ethercat_drive
 from model.parameters import Payload, load_model
@@ -48,12 +48,12 @@ def track(drive) -> tuple[int, float, int]:
 
 def can_drive(sim: EmbeddedDrive) -> CanOpenDrive:
     return CanOpenDrive(sim.master_network, 2, velocity_limit=MODEL.limits.velocity_max,
-                        drive_gain=MODEL.parameters.drive_gain, lockstep=True)
+                        drive_gain=MODEL.parameters.drive_gain, clock=DriveClock())
 
 
 def ethercat_drive(link: VirtualLink):
     return open_ethercat_drive(link.master_port, JointOnLine(
-        0, MODEL.limits.velocity_max, MODEL.parameters.drive_gain), lockstep=True)
+        0, MODEL.limits.velocity_max, MODEL.parameters.drive_gain), clock=clock_for(True))
 
 
 def test_mpc_over_ethercat_tracks_within_ten_percent_of_can(link):

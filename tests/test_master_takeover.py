@@ -18,6 +18,7 @@ import pysoem
 import pytest
 
 from driver.canopen_drive import CanOpenDrive
+from driver.clock import clock_for
 from driver.ethercat_drive import JointOnLine, open_ethercat_drives
 from driver.interface import DriveError
 from model import dynamics
@@ -124,13 +125,13 @@ def drive_state_of_line(interface: str) -> tuple[State, float]:
 def test_ethercat_every_lost_master_stops_the_drive_and_the_next_one_holds_the_load(link):
     with SlaveProcess(link, 1, MODEL, HEAVY) as line, link.entered():
         # a lock-step master switches the slave's watchdog off and ends as it should
-        [drive] = open_ethercat_drives(link.master_port, [joint()], lockstep=True)
+        [drive] = open_ethercat_drives(link.master_port, [joint()], clock=clock_for(True))
         drive.start()
         hold(drive, 20)
         drive.close()
         for attempt in range(3):
             # a real-time master holds the joint with the drive's own current, then dies
-            [drive] = open_ethercat_drives(link.master_port, [joint()], lockstep=False)
+            [drive] = open_ethercat_drives(link.master_port, [joint()], clock=clock_for(False))
             drive.start()
             assert_holds(hold(drive, 1500, period=0.0005))
             die(drive)
@@ -153,11 +154,11 @@ def test_ethercat_a_master_killed_in_lockstep_leaves_nothing_enabled_to_the_next
     """No watchdog watches a lock-step line: the next master's scan (to INIT) is what the
     slave reacts to, as to a lost master, and the master disables whatever is left."""
     with SlaveProcess(link, 1, MODEL, HEAVY), link.entered():
-        [drive] = open_ethercat_drives(link.master_port, [joint()], lockstep=True)
+        [drive] = open_ethercat_drives(link.master_port, [joint()], clock=clock_for(True))
         drive.start()
         hold(drive, 20)
         die(drive)
-        [drive] = open_ethercat_drives(link.master_port, [joint()], lockstep=False)
+        [drive] = open_ethercat_drives(link.master_port, [joint()], clock=clock_for(False))
         try:
             drive.transport.boot(5.0)
             assert drive.state() is State.SWITCH_ON_DISABLED

@@ -3,6 +3,7 @@ time (a late wake-up, a late sample, a decision over budget, the telemetry), so 
 their machine from the service. Real time with a virtual drive in this process; the slow
 phase is made twenty periods long so that it, not the host, is what the run measures."""
 
+import itertools
 import time
 
 from controller.loop import DECISION, LATE_SAMPLE, ControlLoop, LoopOptions
@@ -53,26 +54,25 @@ def test_a_slow_decision_is_named_as_the_cause_of_its_missed_cycles():
     assert sum(causes.values()) == report.missed_cycles
 
 
-class _SlowDrive:
-    """A drive whose sample is late every EVERY-th cycle (the exchange stalls)."""
+def slow_sample(group):
+    """`group` (one bus) with its sample late every EVERY-th cycle: the bus's exchange stalls
+    before its SYNC goes out (as a drive's `sync` stalled when a joint had its own)."""
+    segment = group.segments[0]
+    trigger, cycles = segment.trigger, itertools.count(1)
 
-    def __init__(self, drive):
-        self._drive, self._cycles = drive, 0
-
-    def sync(self):
-        self._cycles += 1
-        if self._cycles % EVERY == 0:
+    def stalling_trigger():
+        if next(cycles) % EVERY == 0:
             time.sleep(STALL)
-        return self._drive.sync()
+        trigger()
 
-    def __getattr__(self, name):
-        return getattr(self._drive, name)
+    segment.trigger = stalling_trigger
+    return group
 
 
 def test_a_late_sample_is_named_as_the_cause_of_its_missed_cycles():
     with virtual_pair(lockstep=False) as (_, drive):
         drive.start()
-        report = ControlLoop(single_joint(_SlowDrive(drive)), _Holding(),
+        report = ControlLoop(slow_sample(single_joint(drive)), _Holding(),
                              LoopOptions(duration=0.4)).run()
     causes = report.missed_by_cause
     stalled = (report.cycles // EVERY) * STALL / 1e-3

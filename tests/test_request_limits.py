@@ -193,7 +193,7 @@ def service():
         sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(), clock=DriveClock())
         cleanup.callback(sim.close)
         drive = CanOpenDrive(sim.master_network, 2, velocity_limit=MODEL.limits.velocity_max,
-                             lockstep=True, response_timeout=1.0)
+                             clock=DriveClock(), response_timeout=1.0)
         cleanup.callback(drive.close)
         drive.start()
         loop = ControlLoop(single_joint(drive), mpc, LoopOptions(clock=DriveClock()),

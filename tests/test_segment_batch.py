@@ -10,7 +10,7 @@ import struct
 import numpy as np
 
 from protocol import ethercat as ec
-from sim_bus.ethercat.segment import Segment
+from sim_bus.ethercat.segment import Segment, pass_frame
 from sim_bus.faults import Fault
 from tests.segment_frames import ENABLE, FIRST_STATION, FrameMaster, talos_devices
 
@@ -115,3 +115,101 @@ def test_the_batch_passes_frames_exactly_as_the_slaves_one_by_one():
     assert "watchdog" in devices[0].master_loss  # the expiry reached the drives
     assert all(f.cycles > CYCLES - 200 for f in batched.segment.firmwares)
     assert batched.segment.batch.batched > 0.8 * CYCLES * SLAVES, batched.segment.batch.batched
+
+
+def _dc_line(batching: bool) -> FrameMaster:
+    devices = talos_devices(SLAVES)
+    devices[2].schedule(Fault.ENCODER_GLITCH, 0.300)
+    devices[3].schedule(Fault.OVERCURRENT_TRIP, 0.500)
+    segment = Segment(devices)
+    if not batching:
+        segment.batch = None
+    master = FrameMaster(segment)
+    master.now = 5.0
+    master.start(operational=False)
+    master.start_dc()
+    return master
+
+
+def _dc_frame(master: FrameMaster, k: int) -> list:
+    """A DC master's cycle k: the LRW and the reference clock's time (FRMW), sometimes an AL
+    status read."""
+    count = master.count
+    outputs = np.zeros(count, master.layouts[0].dtype)
+    outputs["f0"] = _controlwords(k - 200)  # shutdown until OP (at the first SYNC0), then on
+    outputs["f1"] = (300 * np.sin(np.arange(count) + k / 70)).astype(np.int64)
+    datagrams = [(Cmd.LRW, 0, 0, outputs.tobytes() + bytes(count * master.in_size)),
+                 (Cmd.FRMW, 0, FIRST_STATION | ec.REG_DC_SYSTEM_TIME << 16, bytes(8))]
+    if k % 7 == 0:
+        datagrams.append((Cmd.BRD, 0, ec.REG_AL_STATUS << 16, bytes(2)))
+    return datagrams
+
+
+def _clock(clock) -> tuple:
+    """A slave's distributed clock: its time control loop and its SYNC0."""
+    return (clock._correction, clock._slew, clock._integral, clock._anchor_t,
+            clock.next_sync0, clock.sync0_count)
+
+
+def test_the_batch_runs_sync0_exactly_as_the_slaves_one_by_one():
+    """DC: frames a period apart, SYNC0 half a period after each; the batch moves the steady
+    slaves' buffers and runs their SYNC0 cycles at once. Every answer, drive and ESC memory is
+    the same as slave by slave, through OP on SYNC0, the enable sequence, a sensor fault, a
+    trip and its reset, a quick stop, and slave 1 pushed off its window (its clock jumped)
+    until it drops out with a sync error; most cycles ran in the batch."""
+    batched, single = _dc_line(True), _dc_line(False)
+    for k in range(1000):
+        if k == 700:  # slave 1's SYNC0 now 10 us after the frames: inside the outputs' margin
+            for master in (batched, single):
+                slave = master.segment.escs[1]
+                offset = int.from_bytes(slave.memory[0x0920:0x0928], "little")
+                slave.memory[0x0920:0x0928] = ((offset + 490_000) % 2**64).to_bytes(8, "little")
+        for master in (batched, single):
+            master.now += 1e-3
+            master.segment.run_sync0(master.now)
+        frames = [m.send(_dc_frame(m, k)) for m in (batched, single)]
+        assert frames[0] == frames[1], f"cycle {k}"
+        for master in (batched, single):
+            master.segment.run_sync0(master.now + 0.6e-3)
+            master.segment.check_watchdogs(master.now)
+        if k % 100 == 0 or k in (501, 701, 705, 720):
+            assert _devices(batched) == _devices(single), f"cycle {k}"
+            for a, b in zip(batched.segment.escs, single.segment.escs, strict=True):
+                assert a.memory == b.memory, f"cycle {k}"
+                assert _clock(a.dc) == _clock(b.dc), f"cycle {k}"
+    assert _devices(batched) == _devices(single)
+    report = batched.segment.report()
+    assert [r["cycles"] for r in report] == [r["cycles"] for r in single.segment.report()]
+    assert [r["al_status_code"] for r in report] == [0, 0x001A, 0, 0, 0, 0]
+    assert report[1]["missed_sync0"] >= 4 and report[0]["missed_sync0"] == 0
+    assert report[0]["state"] == "OPERATION_ENABLED" and report[3]["state"] == "FAULT"
+    assert all(r["cycles"] > 850 for r in report)
+    assert batched.segment.batch.batched > 0.8 * 1000 * SLAVES, batched.segment.batch.batched
+
+
+def test_a_frame_of_addressed_datagrams_reaches_only_the_slaves_it_names():
+    """SOEM's state read of a long line (an FPRD per slave in one frame, here with an FPWR and
+    a datagram to nobody) passes each slave only its own datagrams: the same frame and
+    memories as every slave looking at every datagram."""
+    routed, whole = (FrameMaster(Segment(talos_devices(SLAVES))) for _ in range(2))
+    datagrams = [(Cmd.FPRD, 0, FIRST_STATION + k | ec.REG_AL_STATUS << 16, bytes(6))
+                 for k in range(SLAVES)]
+    datagrams += [(Cmd.FPWR, 0, FIRST_STATION + 2 | ec.REG_AL_CONTROL << 16, b"\x02\x00"),
+                  (Cmd.FPRD, 0, 0x7777 | ec.REG_AL_STATUS << 16, bytes(2)),
+                  (Cmd.BRD, 0, ec.REG_AL_STATUS << 16, bytes(2))]
+    frames = []
+    for master in (routed, whole):
+        frame = bytearray(ec.encode_frame(datagrams))
+        spans = ec.datagram_spans(frame, len(frame))
+        if master is routed:
+            assert pass_frame(master.segment.escs, frame, len(frame), 0.0)
+        else:
+            for esc in master.segment.escs:
+                esc.process(frame, memoryview(frame), spans)
+            frame[ec.SOURCE_MAC_OFFSET] |= ec.SOURCE_MAC_PROCESSED_BIT
+        frames.append(frame)
+    assert frames[0] == frames[1]
+    results = [ec.datagram_result(frames[0], s) for s in ec.datagram_spans(frames[0])]
+    assert [wkc for _, wkc in results] == [1] * (SLAVES + 1) + [0, SLAVES]
+    for a, b in zip(routed.segment.escs, whole.segment.escs, strict=True):
+        assert a.memory == b.memory

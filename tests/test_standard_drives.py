@@ -162,7 +162,7 @@ def test_a_nmt_reset_leaves_the_power_stage_off_and_the_brake_holds_the_load():
     sim = EmbeddedDrive(MODEL, heavy, SensorNoise(), 2, clock=DriveClock(),
                         initial_position=-1.5)
     drive = CanOpenDrive(sim.master_network, 2, velocity_limit=MODEL.limits.velocity_max,
-                         lockstep=True)
+                         clock=DriveClock())
     try:
         drive.start()
         assert sim.device.state is State.OPERATION_ENABLED

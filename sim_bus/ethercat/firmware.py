@@ -282,9 +282,9 @@ class SlaveFirmware:
         if self._op_requested:
             self._op_requested = False
             memory[ec.REG_AL_STATUS] = ec.AlState.OP | memory[ec.REG_AL_STATUS] & ec.AL_ERROR
-        self._run_cycle(memory[ec.REG_AL_STATUS] & ec.AL_STATE_MASK == ec.AlState.OP)
+        self.run_cycle(memory[ec.REG_AL_STATUS] & ec.AL_STATE_MASK == ec.AlState.OP)
 
-    def _run_cycle(self, apply_outputs: bool) -> None:
+    def run_cycle(self, apply_outputs: bool) -> None:
         """The drive's cycle: the outputs latched (when `apply_outputs`), one device cycle,
         the inputs sampled into SM3; on a completed output buffer (free run) or on SYNC0."""
         device = self.device
@@ -310,6 +310,19 @@ class SlaveFirmware:
             return None
         return self._out_keys, self._in_keys
 
+    def sync0_steady_keys(self) -> tuple[tuple, tuple] | None:
+        """`steady_keys` in DC mode: (output objects, input objects) while a completed
+        output buffer only waits for SYNC0 (`outputs_received`) and a SYNC0 with fresh
+        outputs does nothing but the drive's cycle besides its bookkeeping (in OP on SYNC0,
+        or in SAFE-OP waiting for the first SYNC0 with outputs to enter OP); the segment's
+        batch (`sim_bus.ethercat.frame_batch`) then moves the buffers and runs the cycles
+        of all such slaves at once. None otherwise."""
+        state = self.esc.memory[ec.REG_AL_STATUS] & ec.AL_STATE_MASK
+        if not self._dc or (state != ec.AlState.OP or self._op_requested) and not (
+                state == ec.AlState.SAFE_OP and self._op_requested):
+            return None
+        return self._out_keys, self._in_keys
+
     def _outputs_for_sync0(self, esc: Esc) -> None:
         """DC mode: the buffer waits for SYNC0; one completed inside OUTPUT_MARGIN of it is
         late and misses that SYNC0 (the one after takes the next frame's). In OP, SYNC0 must
@@ -329,8 +342,17 @@ class SlaveFirmware:
 
     def sync0(self, esc: Esc) -> None:
         """DC mode: latch the outputs of the window, advance the physics, sample the inputs."""
+        apply = self.sync0_window(esc)
+        if apply is not None:
+            self.run_cycle(apply)
+
+    def sync0_window(self, esc: Esc) -> bool | None:
+        """SYNC0's bookkeeping before the drive's cycle: whether outputs came in the window
+        (counted against the sync error limit, OP entered or left on it). None: no cycle (a
+        free-running slave does not use SYNC0); else whether the cycle applies the outputs.
+        The caller runs the cycle (`sync0`, or the segment's batch for many slaves at once)."""
         if not self._dc:
-            return  # SYNC0 pulses a free-running slave does not use
+            return None  # SYNC0 pulses a free-running slave does not use
         self._last_sync0 = esc.now
         fresh, self._fresh = self._fresh, False
         memory = esc.memory
@@ -349,7 +371,7 @@ class SlaveFirmware:
                     self._sync_lost(esc, ec.AL_SYNC_ERROR, "outputs missed their SYNC0 window "
                                     f"{self.missed_sync0} times")
                     state = ec.AlState.SAFE_OP
-        self._run_cycle(state == ec.AlState.OP and fresh)
+        return state == ec.AlState.OP and fresh
 
     def _sync_lost(self, esc: Esc, code: int, reason: str) -> None:
         """OP -> SAFE-OP with the error indicator and `code`, the output sync manager off (the

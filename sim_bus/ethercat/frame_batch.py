@@ -64,6 +64,19 @@ def into_buffers(rows: np.ndarray, memories, starts: np.ndarray, outputs: np.nda
         memory[starts[k, 1]:starts[k, 1] + in_size] = inputs[k]
 
 
+@numba.njit(cache=True)
+def from_buffers(rows: np.ndarray, memories, starts: np.ndarray, which: int,
+                 size: int) -> np.ndarray:
+    """Row n: `size` bytes of slave rows[n]'s memory from starts[rows[n], which] (0: its SM2
+    buffer, the outputs the last frame left; 1: its SM3 buffer, the inputs last sampled)."""
+    out = np.empty((rows.shape[0], size), dtype=np.uint8)
+    for n in range(rows.shape[0]):
+        k = rows[n]
+        start = starts[k, which]
+        out[n] = memories[k][start:start + size]
+    return out
+
+
 def batchable_keys(out_keys: Sequence[tuple[int, int]],
                    in_keys: Sequence[tuple[int, int]]) -> bool:
     """Whether a layout is one the line's batch can cycle: the controlword first, then
@@ -105,6 +118,9 @@ class _Plan:
         self.wkc_offsets = wkc_offsets  # the logical datagrams' working counters
         self.others = others  # per slave: the spans the ESC still passes (None: all)
         self.watchdogs = watchdogs  # per slave: batched, and its outputs retrigger it
+        # the slaves that take the reference clock's time at once, and where it lies
+        self.clock_rows: list[int] = []
+        self.clock_span = (0, 0)
 
 
 class FrameBatch:
@@ -115,9 +131,12 @@ class FrameBatch:
         self.escs, self.firmwares, self.line = list(escs), list(firmwares), line
         count = len(self.escs)
         self.stale = True  # the slaves may have changed: find which are steady again
+        # their registers may have changed (FMMUs, sync managers): the frame plans too
+        self._replan = True
         # their drives may have run cycles the line was not told of: read them again
         self._drives_unknown = True
         self._steady = np.zeros(count, dtype=bool)
+        self._dc = np.zeros(count, dtype=bool)  # steady on SYNC0 (else on the frame)
         self._keys: tuple | None = None
         self._layouts: tuple[PdoLayout, PdoLayout] | None = None
         self._encoder: InputEncoder | None = None
@@ -136,22 +155,24 @@ class FrameBatch:
         self.line.load_kernel()
         empty = np.zeros((count, 1), dtype=np.uint8)
         into_buffers(none, self._memories, self._starts, empty, empty)
+        from_buffers(none, self._memories, self._starts, 0, 1)
 
     # --- the plan --------------------------------------------------------------------------
 
     def _find_steady(self) -> None:
         """Which slaves are steady with one common batchable layout and plain FMMUs; the
         frame plans are kept while that stays as it was and nothing else changed."""
-        before = self._steady.copy()
-        self._steady[:] = False
+        before = self._steady.copy(), self._dc.copy()
+        self._steady[:] = self._dc[:] = False
         self._find_steady_into()
-        if self.stale or not np.array_equal(before, self._steady):
+        if self._replan or not (np.array_equal(before[0], self._steady)
+                              and np.array_equal(before[1], self._dc)):
             self._plans.clear()
-        self.stale = False
+        self.stale = self._replan = False
 
     def _find_steady_into(self) -> None:
-        keys = [firmware.steady_keys() if esc.present else None
-                for esc, firmware in zip(self.escs, self.firmwares, strict=True)]
+        keys = [(firmware.steady_keys() or firmware.sync0_steady_keys()) if esc.present
+                else None for esc, firmware in zip(self.escs, self.firmwares, strict=True)]
         common = next((k for k in keys if k is not None and batchable_keys(*k)), None)
         if common is None:
             return
@@ -177,6 +198,7 @@ class FrameBatch:
                     and writes[0][3]
                     and reads[0][2] == in_start and reads[0][1] - reads[0][0] == in_length):
                 self._steady[k] = True
+                self._dc[k] = firmware.sync0_steady_keys() is not None
                 self._starts[k] = out_start, in_start
 
     def _plan(self, frame: bytearray, spans: list) -> "_Plan | None":
@@ -228,11 +250,33 @@ class FrameBatch:
         if not rows:
             return None
         batched = set(rows)
-        return _Plan(
+        plan = _Plan(
             np.array(rows, dtype=np.int64), np.array(out_index), np.array(in_index),
             np.array(wkc, dtype=np.int64), [d[3] + d[4] for d in logical],
             [others if k in batched else None for k in range(len(self.escs))],
             [k in batched and bool(self.escs[k]._plan[0][0][4]) for k in range(len(self.escs))])
+        self._plan_clock(plan, frame, spans)
+        return plan
+
+    def _plan_clock(self, plan: _Plan, frame: bytearray, spans: list) -> None:
+        """A DC master's reference clock datagram (an FRMW of 0x0910, 8 bytes, after the
+        process data, as SOEM appends it): the batched slaves on SYNC0 behind the reference
+        take its write at once (`dc.compare_line`) instead of each through its ESC."""
+        command, header, data, length = spans[-1]
+        logical_last = max(n for n, span in enumerate(spans) if span[0] in _LOGICAL)
+        if (command != ec.Command.FRMW or length != 8 or logical_last == len(spans) - 1
+                or frame[header + 4] | frame[header + 5] << 8 != dc.REG_SYSTEM_TIME):
+            return
+        station = frame[header + 2] | frame[header + 3] << 8
+        reference = next((k for k, esc in enumerate(self.escs)
+                          if esc.station_address == station), None)
+        if reference is None:
+            return
+        rows = [k for k in plan.rows.tolist() if k > reference and self._dc[k]]
+        for k in rows:
+            plan.others[k] = plan.others[k][:-1]
+        plan.clock_rows = rows
+        plan.clock_span = data, data + length  # its data and its working counter
 
     def passed_without(self, frame: bytearray, spans: list) -> None:
         """The frame went slave by slave: unless it only read registers, it may have
@@ -243,13 +287,13 @@ class FrameBatch:
                 continue
             end = (frame[header + 4] | frame[header + 5] << 8) + length
             if command not in _READS or end > ec.PROCESS_RAM_START:
-                self.stale = self._drives_unknown = True
+                self.stale = self._replan = self._drives_unknown = True
                 return
 
     def slaves_changed(self, cycled: bool) -> None:
         """Something outside a frame changed the slaves (a watchdog expired, SYNC0 fired);
         `cycled`: their drives ran cycles too."""
-        self.stale = True
+        self.stale = self._replan = True
         self._drives_unknown = self._drives_unknown or cycled
 
     def cycled_elsewhere(self, rows: Sequence[int]) -> None:
@@ -283,46 +327,28 @@ class FrameBatch:
             if plan is None:
                 return False
         buffer = np.frombuffer(frame, np.uint8)
-        layouts, encoder = self._layouts, self._encoder
-        outputs = buffer[plan.out_index]  # (batched, out size), a copy: taken before inputs
-        decoded = outputs.view(layouts[0].dtype)[:, 0]
-        out_keys = self._keys[0]
-        rows = plan.rows
-        count = len(self.escs)
-        controlwords = np.zeros(count, dtype=np.int64)
-        controlwords[rows] = decoded["f0"]
-        targets = []
-        for n in range(1, len(out_keys)):
-            column = np.zeros(count, dtype=np.int64)
-            column[rows] = decoded[f"f{n}"]
-            targets.append(column)
-        done = line.cycle(rows, controlwords, out_keys, targets, refresh=False)
-        ran = rows[done]
-        all_ran = len(ran) == len(rows)
-        encoder.encode(line.values, None if all_ran and len(ran) == count else ran)
-        inputs = encoder.bytes[rows]
-        if all_ran:
-            buffer[plan.in_index] = inputs
-        else:
-            buffer[plan.in_index[done]] = inputs[done]
-        full_outputs = np.zeros((count, outputs.shape[1]), dtype=np.uint8)
-        full_outputs[rows] = outputs
-        into_buffers(ran, self._memories, self._starts, full_outputs, encoder.bytes)
+        on_sync0 = self._dc[plan.rows]
+        done = np.ones(len(plan.rows), dtype=bool)
+        if not on_sync0.all():
+            free = ~on_sync0
+            done[free] = self._cycle_now(buffer, plan, None if on_sync0.any() else free)
+        if on_sync0.any():
+            self._exchange(buffer, plan, on_sync0)
         shares = plan.wkc[done].sum(axis=0).tolist()
         for offset, share in zip(plan.wkc_offsets, shares, strict=True):
             if share:
                 ec.WKC.pack_into(frame, offset, (ec.WKC.unpack_from(frame, offset)[0] + share)
                                  & 0xFFFF)
-        self.batched += len(ran)
         # the rest of the frame slave by slave, in line order (a batched slave's cycle
-        # leaves its watchdog retriggered and its cycle counted); a batched slave whose drive
-        # had more to its cycle passes the whole frame through its ESC (its data untouched)
+        # leaves its watchdog retriggered and its cycle counted, or on SYNC0 its outputs
+        # noted for the window); a batched slave whose drive had more to its cycle passes
+        # the whole frame through its ESC (its data untouched)
         others = plan.others
-        if not all_ran:
+        if not done.all():
             others = list(others)
-            for k in rows[~done].tolist():
+            for k in plan.rows[~done].tolist():
                 others[k] = None
-        firmwares = self.firmwares
+        firmwares, dc_steady = self.firmwares, self._dc
         for k, esc in enumerate(self.escs):
             esc.now = now + esc.dc.hop
             rest = others[k]
@@ -332,9 +358,131 @@ class FrameBatch:
             if plan.watchdogs[k]:
                 esc._trigger_watchdog()
             firmware = firmwares[k]
-            firmware.cycles += 1
+            if dc_steady[k]:
+                memory = esc.memory
+                status = memory[ec.REG_AL_STATUS]
+                firmware.outputs_received(esc)
+                if memory[ec.REG_AL_STATUS] != status:  # its sync lost: slave by slave again
+                    self.stale = True
+            else:
+                firmware.cycles += 1
             if rest:
                 esc.process(frame, view, rest)
             else:
                 firmware.frame_passed(esc)
+        if plan.clock_rows:
+            data, counter = plan.clock_span
+            escs = self.escs
+            dc.compare_line([escs[k].dc for k in plan.clock_rows], frame[data:data + 8],
+                            [escs[k].now for k in plan.clock_rows])
+            ec.WKC.pack_into(frame, counter, (ec.WKC.unpack_from(frame, counter)[0]
+                                              + len(plan.clock_rows)) & 0xFFFF)
         return True
+
+    def _outputs(self, outputs: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, list]:
+        """The controlwords and target columns (a row per slave of the line) of `outputs`,
+        the output images of the slaves `rows`."""
+        decoded = outputs.view(self._layouts[0].dtype)[:, 0]
+        count = len(self.escs)
+        controlwords = np.zeros(count, dtype=np.int64)
+        controlwords[rows] = decoded["f0"]
+        targets = []
+        for n in range(1, len(self._keys[0])):
+            column = np.zeros(count, dtype=np.int64)
+            column[rows] = decoded[f"f{n}"]
+            targets.append(column)
+        return controlwords, targets
+
+    def _cycle_now(self, buffer: np.ndarray, plan: _Plan, mask: np.ndarray | None
+                   ) -> np.ndarray:
+        """Free run: the batched slaves (`mask` over the plan's rows, None: all) cycle on
+        the frame's outputs and put their fresh inputs in it. Whose drive ran (over the
+        masked rows)."""
+        line, encoder = self.line, self._encoder
+        rows, out_index, in_index = plan.rows, plan.out_index, plan.in_index
+        if mask is not None:
+            rows, out_index, in_index = rows[mask], out_index[mask], in_index[mask]
+        outputs = buffer[out_index]  # (batched, out size), a copy: taken before inputs
+        controlwords, targets = self._outputs(outputs, rows)
+        done = line.cycle(rows, controlwords, self._keys[0], targets, refresh=False)
+        ran = rows[done]
+        all_ran = len(ran) == len(rows)
+        count = len(self.escs)
+        encoder.encode(line.values, None if all_ran and len(ran) == count else ran)
+        inputs = encoder.bytes[rows]
+        if all_ran:
+            buffer[in_index] = inputs
+        else:
+            buffer[in_index[done]] = inputs[done]
+        full_outputs = np.zeros((count, outputs.shape[1]), dtype=np.uint8)
+        full_outputs[rows] = outputs
+        into_buffers(ran, self._memories, self._starts, full_outputs, encoder.bytes)
+        self.batched += len(ran)
+        return done
+
+    def _exchange(self, buffer: np.ndarray, plan: _Plan, mask: np.ndarray) -> None:
+        """DC: the batched slaves (`mask` over the plan's rows) take the frame's outputs
+        into their SM2 buffers (for their next SYNC0) and give it the inputs their last
+        SYNC0 sampled into SM3; no drive cycles."""
+        rows = plan.rows[mask]
+        outputs = buffer[plan.out_index[mask]]  # a copy: taken before inputs
+        inputs = from_buffers(rows, self._memories, self._starts, 1,
+                              plan.in_index.shape[1])
+        buffer[plan.in_index[mask]] = inputs
+        count = len(self.escs)
+        full_outputs = np.zeros((count, outputs.shape[1]), dtype=np.uint8)
+        full_outputs[rows] = outputs
+        full_inputs = np.zeros((count, inputs.shape[1]), dtype=np.uint8)
+        full_inputs[rows] = inputs
+        into_buffers(rows, self._memories, self._starts, full_outputs, full_inputs)
+
+    # --- SYNC0 -------------------------------------------------------------------------------
+
+    def sync0(self, rows: Sequence[int]) -> None:
+        """The SYNC0 each slave of `rows` has just taken (`Esc.take_sync0`): its firmware's
+        window bookkeeping (`SlaveFirmware.sync0_window`), then the drives' cycles: every
+        slave steady on SYNC0 with fresh outputs in one compiled call over its SM2 buffer,
+        its inputs into SM3; the others each through its firmware (`run_cycle`), exactly as
+        `SlaveFirmware.sync0` runs them one by one."""
+        line = self.line
+        if self.stale:
+            self._find_steady()
+        if self._drives_unknown:
+            line.cycled_elsewhere(range(len(self.escs)))
+            self._drives_unknown = False
+        if line.refresh():
+            self._find_steady()
+        escs, firmwares, steady = self.escs, self.firmwares, self._dc
+        batched, single = [], []
+        for k in rows:
+            apply = firmwares[k].sync0_window(escs[k])
+            if apply is None:
+                continue
+            if apply and steady[k]:
+                batched.append(k)
+            else:
+                single.append((k, apply))
+        if batched:
+            rows_ = np.array(batched, dtype=np.int64)
+            outputs = from_buffers(rows_, self._memories, self._starts, 0,
+                                   self._layouts[0].size)
+            controlwords, targets = self._outputs(outputs, rows_)
+            done = line.cycle(rows_, controlwords, self._keys[0], targets, refresh=False,
+                              others_idle=True)
+            ran = rows_[done]
+            self._encoder.encode(line.values, ran)
+            full_outputs = np.zeros((len(self.escs), outputs.shape[1]), dtype=np.uint8)
+            full_outputs[rows_] = outputs
+            into_buffers(ran, self._memories, self._starts, full_outputs, self._encoder.bytes)
+            for k in ran.tolist():
+                firmwares[k].cycles += 1
+            single.extend((k, True) for k in rows_[~done].tolist())
+            self.batched += len(ran)
+        if single:
+            line.cycled_elsewhere([k for k, _ in single])
+            for k, apply in single:
+                firmwares[k].run_cycle(apply)
+                # a slave that left its steady state (entered OP, lost its sync) is looked
+                # at again; one that only missed a window stays as it was
+                if steady[k] != (firmwares[k].sync0_steady_keys() is not None):
+                    self.stale = True

@@ -34,7 +34,7 @@ from protocol.pdo import PdoLayout
 from sim_bus.ethercat.esc import Esc
 from sim_bus.ethercat.firmware import SlaveFirmware
 from sim_bus.ethercat.frame_batch import InputEncoder, batchable_keys, into_buffers
-from sim_bus.ethercat.linked_dc import LinkedClock
+from sim_bus.ethercat.linked_dc import LineClock, LinkedClock
 from sim_bus.ethercat.mailbox import SdoAbort
 from sim_bus.ethercat.segment import Segment
 
@@ -181,10 +181,11 @@ class LinkedMaster:
     """`pysoem.Master`'s calls, served by `segment` in this process (`open` takes no
     interface: the segment is the line)."""
 
-    def __init__(self, segment: Segment, lockstep: bool = False):
+    def __init__(self, segment: Segment, clock: LineClock):
         self._segment = segment
-        # the line's time for its distributed clocks (drive time in lock-step)
-        self._clock = LinkedClock(segment.escs, lockstep)
+        # the line's time for its distributed clocks (on drive time its frames x the SYNC0
+        # cycle)
+        self._clock = LinkedClock(segment.escs, clock)
         self.dc_time = 0  # ns, the reference clock's time the last frame read
         self.slaves: list[LinkedSlave] = []
         self.state = 0

@@ -3,14 +3,16 @@ for `config_dc`, `dc_sync` and the cyclic frame's reference clock datagram, done
 register reads and writes on the slave controllers in this process, so their DC units
 (`sim_bus.ethercat.dc`) see exactly what a veth line's see.
 
-Time: in lock-step the line's clocks run on drive time (the frames' count x the SYNC0 cycle,
-no drift: the drive time is the only time there is, so a run is the same every time); in real
-time on the host's monotonic clock, each slave drifting its stated amount.
+Time: the clock the line is given (`driver.clock`). On drive time (lock-step) the line's clocks
+run on its frames' count x the SYNC0 cycle, with no drift (the drive time is the only time
+there is, so a run is the same every time); on the wall clock, the host's monotonic clock, each
+slave drifting its stated amount, and the SYNC0 events due run before each frame.
 """
 
 import struct
 import time
 from collections.abc import Sequence
+from typing import Protocol
 
 from protocol import ethercat as ec
 from sim_bus.ethercat import dc
@@ -22,20 +24,30 @@ _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
 
 
+class LineClock(Protocol):
+    """What the line needs of the clock it is given (`driver.clock.WallClock` or
+    `DriveClock`, made by the master's side with `clock_for`)."""
+
+    runs_alone: bool
+
+    def now(self) -> float: ...
+
+    def advance(self, seconds: float) -> None: ...
+
+
 class LinkedClock:
     """The linked line's time and its reference clock datagram."""
 
-    def __init__(self, escs: Sequence[Esc], lockstep: bool):
+    def __init__(self, escs: Sequence[Esc], clock: LineClock):
         self.escs = list(escs)
-        self.lockstep = lockstep
-        self.drive_time = 0.0  # s, lock-step only
+        self.clock = clock
         self.configured = False  # config_dc ran: the cyclic frame carries the time datagram
-        if lockstep:
+        if not clock.runs_alone:
             for esc in self.escs:
                 esc.dc.drift = 0.0
 
     def now(self) -> float:
-        return self.drive_time if self.lockstep else time.monotonic()
+        return self.clock.now()
 
     def _at(self, t: float) -> None:
         for esc in self.escs:
@@ -47,10 +59,10 @@ class LinkedClock:
         propagation delay (0x0928) from the port times of the slave and its parent."""
         t = self.now()
         self._at(t)
-        if self.lockstep:
-            master_time = int(round(t * 1e9))  # drive time
-        else:
+        if self.clock.runs_alone:
             master_time = time.time_ns() - EPOCH_2000_NS
+        else:
+            master_time = int(round(t * 1e9))  # drive time
         slaves = [esc for esc in self.escs if esc.present
                   and _u16(esc, ec.REG_FEATURES) & dc.FEATURE_DC]
         for esc in slaves:
@@ -89,7 +101,7 @@ class LinkedClock:
         if not self.configured:
             return None
         t = self.now()
-        if not self.lockstep:
+        if self.clock.runs_alone:
             self.run_sync0(t)
         self._at(t)
         present = [esc for esc in self.escs if esc.present]
@@ -103,14 +115,14 @@ class LinkedClock:
         return system_time
 
     def after_frame(self) -> None:
-        """Lock-step: a SYNC0 cycle of drive time passes, with the SYNC0 that takes this
-        frame's outputs and samples the inputs the next frame reads."""
-        if not self.lockstep or not self.configured:
+        """Drive time: a SYNC0 cycle of it passes, with the SYNC0 that takes this frame's
+        outputs and samples the inputs the next frame reads."""
+        if self.clock.runs_alone or not self.configured:
             return
         cycle = next((esc.dc.cycle_time for esc in self.escs if esc.dc.sync0_active), 0)
         if cycle:
-            self.drive_time += cycle * 1e-9
-            self.run_sync0(self.drive_time - 1e-9)
+            self.clock.advance(cycle * 1e-9)
+            self.run_sync0(self.clock.now() - 1e-9)
 
     def run_sync0(self, until: float) -> None:
         for esc in self.escs:

@@ -35,6 +35,10 @@ from sim_bus.line_physics import DriveLine
 log = logging.getLogger(__name__)
 
 POLL = 0.01  # s: how often the loop looks at the stop event and the watchdogs when idle
+# the SYNC0 events within this of the line's first are run together (s): well inside the
+# outputs' margin before SYNC0 (`sim_bus.ethercat.firmware.OUTPUT_MARGIN`), far wider than the
+# spread of synchronized clocks
+SYNC0_GATHER = 5e-6
 FRAME_BUFFER = 2048  # a maximum Ethernet frame fits
 SO_TIMESTAMPNS = 35  # <asm-generic/socket.h>: receive timestamps (CLOCK_REALTIME, timespec)
 _TIMESPEC = struct.Struct("@qq")
@@ -82,24 +86,43 @@ class Segment:
         return answered
 
     def next_sync0(self, now: float) -> float | None:
-        """The host time of the next SYNC0 of any slave, or None."""
+        """When to run the next SYNC0 events, host time, or None: the slaves' SYNC0 on one
+        line fall within microseconds of each other (their system times follow one
+        reference), so the loop wakes once for all that fall within SYNC0_GATHER of the
+        first, at the last of them, and the batch runs them in one pass. Exact all the same:
+        a frame that arrives before is preceded by the SYNC0 events due by its arrival."""
         times = [t for esc in self.escs if esc.present
                  and (t := esc.dc.next_sync0_host_time(now)) is not None]
-        return min(times, default=None)
+        if not times:
+            return None
+        first = min(times)
+        return max(t for t in times if t <= first + SYNC0_GATHER)
 
     def run_sync0(self, now: float) -> int:
         """Every SYNC0 due by `now`, each at its own time (a late wake-up catches up, each
-        slave's events in order; slaves do not depend on each other). The number fired."""
+        slave's events in order; slaves do not depend on each other), the drives' cycles of
+        each round in one batch. The number fired."""
         fired = 0
+        escs, batch = self.escs, self.batch
+        candidates = range(len(escs))
         with self.lock:
-            for esc in self.escs:
-                while esc.present:
-                    t = esc.dc.next_sync0_host_time(now)
-                    if t is None or t > now or not esc.fire_sync0(t):
-                        break
-                    fired += 1
-            if fired and self.batch is not None:
-                self.batch.slaves_changed(cycled=True)
+            while candidates:
+                due, behind = [], []
+                for k in candidates:
+                    esc = escs[k]
+                    t = esc.dc.next_sync0_host_time(now) if esc.present else None
+                    if t is not None and t <= now and esc.take_sync0(t):
+                        due.append(k)
+                        # a next one may be due too only if this one is half a cycle old
+                        if now - t >= esc.dc.cycle_time * 0.5e-9:
+                            behind.append(k)
+                fired += len(due)
+                if batch is None:
+                    for k in due:
+                        self.firmwares[k].sync0(escs[k])
+                elif due:
+                    batch.sync0(due)
+                candidates = behind
         return fired
 
     def check_watchdogs(self, now: float) -> None:
@@ -173,11 +196,51 @@ def pass_frame(escs: Sequence[Esc], frame: bytearray, length: int, now: float,
     if batch is None or not batch.process(frame, view, spans, now):
         if batch is not None:
             batch.passed_without(frame, spans)
-        for esc in escs:
+        routes = _routes(escs, frame, spans)
+        for k, esc in enumerate(escs):
             esc.now = now + esc.dc.hop  # the frame reaches slave k k hops after the first
-            esc.process(frame, view, spans)
+            esc.process(frame, view, spans if routes is None else routes[k])
     frame[ec.SOURCE_MAC_OFFSET] |= ec.SOURCE_MAC_PROCESSED_BIT
     return True
+
+
+_ADDRESSED = frozenset((ec.Command.FPRD, ec.Command.FPWR, ec.Command.FPRW))
+_WRITING = frozenset((ec.Command.APWR, ec.Command.APRW, ec.Command.FPWR, ec.Command.FPRW,
+                      ec.Command.BWR, ec.Command.BRW, ec.Command.ARMW, ec.Command.FRMW))
+# what decides which slave a configured address reaches: station address and alias, and
+# the DL control's alias enable
+_ADDRESSING = ((ec.REG_STATION_ADDRESS, ec.REG_STATION_ALIAS + 2),
+               (ec.REG_DL_CONTROL_ALIAS, ec.REG_DL_CONTROL_ALIAS + 1))
+
+
+def _routes(escs: Sequence[Esc], frame: bytearray, spans: list) -> list[list] | None:
+    """Per slave, the datagrams that can do anything there: a configured-address read or
+    write (FPRD/FPWR/FPRW) only at the slave it names, everything else everywhere; None
+    when routing saves nothing or the frame itself may readdress a slave. A master's
+    state read of a long line (one FPRD per slave in a frame) then costs a datagram per
+    slave instead of the whole frame per slave (32 x 32 for TALOS, milliseconds)."""
+    if not any(span[0] in _ADDRESSED for span in spans):
+        return None
+    for command, header, _, length in spans:
+        if command in _WRITING:
+            ado = frame[header + 4] | frame[header + 5] << 8
+            if any(ado < high and low < ado + length for low, high in _ADDRESSING):
+                return None
+    stations: dict[int, list[int]] = {}
+    for k, esc in enumerate(escs):
+        if esc.memory[ec.REG_DL_CONTROL_ALIAS] & 0x01:
+            return None  # aliases in use: each slave checks for itself
+        stations.setdefault(esc.station_address, []).append(k)
+    routes: list[list] = [[] for _ in escs]
+    for span in spans:
+        if span[0] in _ADDRESSED:
+            header = span[1]
+            for k in stations.get(frame[header + 2] | frame[header + 3] << 8, ()):
+                routes[k].append(span)
+        else:
+            for route in routes:
+                route.append(span)
+    return routes
 
 
 def open_socket(interface: str) -> socket.socket:
