@@ -385,6 +385,7 @@ def _robot_setup(args: argparse.Namespace) -> "_Setup | int":
     """`actuatord --robot FILE`: every joint of the file; the exit code 2 for a bad file or
     option."""
     from commands.sim_options import parse_joint_fault
+    from driver.clock import clock_for
     from robot.description import RobotFileError, load_robot
     from robot.wiring import open_robot
 
@@ -421,7 +422,8 @@ def _robot_setup(args: argparse.Namespace) -> "_Setup | int":
         batch, [j.name for j in robot.joints], [j.model for j in robot.joints],
         [problem.payload for problem in problems], period,
         # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host
-        lambda: open_robot(robot, sim=args.sim, lockstep=args.lockstep, seed=args.seed,
+        lambda: open_robot(robot, sim=args.sim, clock=clock_for(args.lockstep),
+                           seed=args.seed,
                            period=period, response_timeout=1.0 if args.lockstep else 0.1,
                            faults=faults),
         lambda connection: (f"{len(connection.group)} joints of {robot.name} on "

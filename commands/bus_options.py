@@ -292,11 +292,13 @@ def open_drive(args: argparse.Namespace, model: ActuatorModel, sim_model: Actuat
     `model` is what the master knows of the joint; `sim_model` and `payload` are the virtual
     drive's physics (its hidden truth), `schedule` its injected faults; `timing` goes to the
     master (`period`, `response_timeout`). Raises DriveOpenError (exit code 1)."""
-    lockstep = getattr(args, "lockstep", False)
+    from driver.clock import clock_for
+
+    clock = clock_for(getattr(args, "lockstep", False))
     interface = None if args.sim else ethercat_interface(args)
     if interface is not None:
         return open_line_drive(args.bus, args.slave, model, esi=load_esi_option(args),
-                               eds=args.eds, name=name, lockstep=lockstep, **timing)
+                               eds=args.eds, name=name, clock=clock, **timing)
     config = None if args.sim else bus_config(args)
     can_log = None
     if args.can_log is not None:
@@ -307,7 +309,7 @@ def open_drive(args: argparse.Namespace, model: ActuatorModel, sim_model: Actuat
     if config is not None:
         try:
             return open_can_drive(config, args.node_id, model, eds=args.eds, can_log=can_log,
-                                  name=name, lockstep=lockstep, **timing)
+                                  name=name, clock=clock, **timing)
         except DriveOpenError as exc:
             if getattr(exc.__cause__, "errno", None) != errno.EAFNOSUPPORT:
                 raise
@@ -316,4 +318,4 @@ def open_drive(args: argparse.Namespace, model: ActuatorModel, sim_model: Actuat
                                  "sim-bus on the same bus)") from exc
     return open_embedded_drive(model, sim_model, payload, args.node_id, seed=args.seed,
                                eds=args.eds, schedule=schedule, can_log=can_log,
-                               name=name, lockstep=lockstep, **timing)
+                               name=name, clock=clock, **timing)

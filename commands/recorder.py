@@ -243,7 +243,7 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     try:
         connection = (open_drive(args, model, sim_model, payload) if joint is None else
                       open_joint(robot, joint, sim_model, payload, sim=args.sim,
-                                 lockstep=args.lockstep, seed=args.seed))
+                                 clock=clock_for(args.lockstep), seed=args.seed))
     except DriveOpenError as exc:
         if notice is not None:
             notice.done()

@@ -137,6 +137,12 @@ class WallClock:
             pass
 
     @staticmethod
+    def for_bus() -> "WallClock":
+        """The clock of one bus or line of a run on this clock: the wall clock, which all
+        share."""
+        return WallClock()
+
+    @staticmethod
     def timers() -> "WallTimers":
         """The own time of a party on this clock (a virtual drive): the wall clock."""
         return WallTimers()
@@ -168,6 +174,13 @@ class DriveClock:
 
     def sleep_until(self, deadline: float) -> None:
         self._now = max(self._now, deadline)
+
+    @staticmethod
+    def for_bus() -> "DriveClock":
+        """The clock of one bus or line of a run on this clock: a drive time of its own,
+        which that bus's SYNCs (or that line's frames) advance, so a robot of four buses does
+        not advance one clock four periods a cycle."""
+        return DriveClock()
 
     @staticmethod
     def timers() -> "DriveTimers":

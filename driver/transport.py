@@ -33,9 +33,8 @@ codes on both buses; the transport hands them to `on_emergency` from its receive
 
 Time: a transport's watchdogs measure time on the clock it is given (`driver.clock`): drive
 time in lock-step (advanced by the cycles the bus runs), so a slow or busy host cannot trip
-one, the wall clock in real time; one code path either way. (The EtherCAT transport still
-takes a `lockstep` flag.) See `driver.canopen_health` for why that is sound for the heartbeat
-consumer.
+one, the wall clock in real time; one code path either way. See `driver.canopen_health` for
+why that is sound for the heartbeat consumer.
 """
 
 from abc import ABC, abstractmethod

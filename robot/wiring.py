@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 import can
 
-from driver.clock import clock_for
+from driver.clock import Clock
 from model.parameters import ActuatorModel, Payload
 from protocol.bus_spec import is_ethercat, parse_bus_spec
 from robot.can_log import CanLog, LoggedBus, tap_link
@@ -96,35 +96,25 @@ def _one(drive: Cia402Drive, name: str, **parts) -> Connection:
     return Connection(single_joint(drive, name), **parts)
 
 
-def _master_options(model: ActuatorModel, lockstep: bool, timing: dict) -> dict:
+def _master_options(model: ActuatorModel, clock: Clock, timing: dict) -> dict:
     """What the master knows of the joint (`model`: its velocity limit guards the encoder, its
-    drive gain converts torque commands, its current limit caps the drive) and its timing
-    (`period`, `response_timeout`)."""
-    return {"lockstep": lockstep, "velocity_limit": model.limits.velocity_max,
+    drive gain converts torque commands, its current limit caps the drive), its timing
+    (`period`, `response_timeout`) and the clock of its bus (the run's `clock`'s `for_bus`:
+    drive time of the bus's own in lock-step)."""
+    return {"clock": clock.for_bus(), "velocity_limit": model.limits.velocity_max,
             "drive_gain": model.parameters.drive_gain,
             "current_max": model.limits.current_max, **timing}
 
 
-def _can_master_options(model: ActuatorModel, lockstep: bool, timing: dict) -> dict:
-    """`_master_options` for a CANopen drive: its bus's watchdogs run on the run's clock
-    (`driver.clock.clock_for`: drive time in lock-step)."""
-    from driver.clock import clock_for
-
-    options = _master_options(model, lockstep, timing)
-    options["clock"] = clock_for(options.pop("lockstep"))
-    return options
-
-
 def open_line_drive(bus: str, slave: int, model: ActuatorModel, *, esi: EsiDevice | None,
-                    eds: str | None, name: str = "joint", lockstep: bool = False,
+                    eds: str | None, clock: Clock, name: str = "joint",
                     **timing) -> Connection:
     """The master drive of the slave at 0-based position `slave` on the EtherCAT line `bus`
     (`ethercat:IFACE`), read through `esi` (None: the shipped ESI) and `eds`. Call after every
     option is checked: this is where the line is touched. Raises DriveOpenError (exit 1)."""
     from driver.ethercat_drive import JointOnLine
 
-    options = _master_options(model, lockstep, timing)
-    options["clock"] = clock_for(options.pop("lockstep"))  # the line's own time
+    options = _master_options(model, clock, timing)
     joint = JointOnLine(slave, options.pop("velocity_limit"), options.pop("drive_gain"),
                         current_max=options.pop("current_max"))
     drive = _open_on_line(bus, parse_bus_spec(bus)["channel"], [joint], esi=esi, eds=eds,
@@ -133,14 +123,14 @@ def open_line_drive(bus: str, slave: int, model: ActuatorModel, *, esi: EsiDevic
 
 
 def open_can_drive(config: dict, node_id: int, model: ActuatorModel, *, eds: str | None,
-                   can_log: CanLog | None = None, name: str = "joint", lockstep: bool = False,
+                   clock: Clock, can_log: CanLog | None = None, name: str = "joint",
                    **timing) -> Connection:
     """The master drive at `node_id` on the CAN bus python-can's `config` names, every frame
     logged to `can_log` (which the connection then owns: it is stopped with it, or at once if
     the drive cannot be opened). Raises DriveOpenError (exit 1)."""
     from driver.canopen_drive import CanOpenDrive
 
-    options = _can_master_options(model, lockstep, timing)
+    options = _master_options(model, clock, timing)
     where = describe_bus(config)
     try:
         network = open_can_network(config, can_log)
@@ -161,23 +151,22 @@ def open_can_drive(config: dict, node_id: int, model: ActuatorModel, *, eds: str
 def open_embedded_drive(model: ActuatorModel, sim_model: ActuatorModel, payload: Payload,
                         node_id: int, *, seed: int, eds: str | None,
                         schedule: Iterable[tuple[Fault, float]] = (),
-                        can_log: CanLog | None = None, name: str = "joint",
-                        lockstep: bool = False, **timing) -> Connection:
+                        clock: Clock, can_log: CanLog | None = None, name: str = "joint",
+                        **timing) -> Connection:
     """`--sim`: a virtual drive in this process, `sim_model` and `payload` its physics (its
     hidden truth), `schedule` its injected faults, its noise seeded `seed`, linked to a master
     that knows `model`; the link's frames logged to `can_log` (owned as by `open_can_drive`).
     Raises DriveOpenError (exit 1)."""
     from driver.canopen_drive import CanOpenDrive
-    from driver.clock import clock_for
     from sim_bus.embedded import EmbeddedDrive
     from sim_bus.plant import SensorNoise
 
-    options = _can_master_options(model, lockstep, timing)
+    options = _master_options(model, clock, timing)
     sim = EmbeddedDrive(sim_model, payload, SensorNoise(seed=seed), node_id,
-                        clock=clock_for(lockstep), eds_path=eds)
+                        clock=clock.for_bus(), eds_path=eds)
     if can_log is not None:
         tap_link(sim.master_network, sim.network, can_log,
-                 (lambda: sim.device.period) if lockstep else None)
+                 None if clock.runs_alone else (lambda: sim.device.period))
     for fault, seconds in schedule:
         sim.device.schedule(fault, seconds)
     try:
@@ -217,7 +206,7 @@ def _open_on_line(bus: str, interface: str, joints: list, **options) -> list[Cia
 
 # --- a robot: every joint's drive, on its bus or embedded ---------------------------------------
 
-def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period: float,
+def open_robot(robot: RobotSpec, *, sim: bool, clock: Clock, seed: int, period: float,
                response_timeout: float,
                faults: Iterable[tuple[str, Fault, float]] = ()) -> Connection:
     """Every joint's drive, grouped by bus: one SYNC per CAN bus and one frame per EtherCAT
@@ -227,10 +216,10 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
     joint's model, its noise seeded `seed` + the joint's index: a CAN bus is an in-process
     CANopen link, an EtherCAT line a line of virtual slaves linked to the master's process
     image in this process (`sim_bus.ethercat.linked`: the same PDO layout, state machine and
-    CoE objects as on a wire, one image a cycle). Raises DriveOpenError (exit 1)."""
+    CoE objects as on a wire, one image a cycle). Each bus and line runs on a clock of its
+    own from the run's `clock` (`for_bus`). Raises DriveOpenError (exit 1)."""
     from driver.canopen_transport import CanOpenTransport, open_network
     from driver.cia402_drive import Cia402Drive
-    from driver.clock import clock_for
     from driver.drive_group import CanOpenBus, DriveGroup, EthercatLine
     from driver.ethercat_drive import JointOnLine
 
@@ -243,25 +232,24 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
                 options = {}
                 if sim:  # the line's slaves in this process, linked to the master's image
                     options["open_master"] = _linked_line(
-                        robot, on_line, seed, faults, devices, lockstep)
+                        robot, on_line, seed, faults, devices, clock)
                 segments.append(EthercatLine(bus, []))
                 drives = _open_on_line(bus, parse_bus_spec(bus)["channel"], [
                     JointOnLine(j.address, j.model.limits.velocity_max,
                                 j.model.parameters.drive_gain, j.eds,
                                 j.model.limits.current_max, j.name, j.startup)
                     for j in on_line],
-                    period=period, clock=clock_for(lockstep), response_timeout=response_timeout,
+                    period=period, clock=clock.for_bus(), response_timeout=response_timeout,
                     sync=robot.sync(bus), **options)
                 segments[-1].joints = [(j.name, drive)
                                        for j, drive in zip(on_line, drives, strict=True)]
                 continue
             addresses = {j.name: j.address for j in joints}
             if sim:
-                from driver.clock import clock_for
                 from sim_bus.embedded import EmbeddedBus
                 from sim_bus.plant import SensorNoise
 
-                link = EmbeddedBus(clock=clock_for(lockstep))
+                link = EmbeddedBus(clock=clock.for_bus())
                 embedded.append(link)
                 for joint in joints:
                     index = robot.joints.index(joint)
@@ -275,10 +263,10 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
             else:
                 network = open_network(bus, robot.bitrates.get(bus))
             segments.append(CanOpenBus(bus, network, []))
-            clock = clock_for(lockstep)
+            bus_clock = clock.for_bus()
             for joint in joints:
                 transport = CanOpenTransport(network, addresses[joint.name], eds=joint.eds,
-                                             clock=clock,
+                                             clock=bus_clock,
                                              response_timeout=response_timeout,
                                              owns_network=False)
                 segments[-1].joints.append((joint.name, Cia402Drive(
@@ -301,7 +289,7 @@ def open_robot(robot: RobotSpec, *, sim: bool, lockstep: bool, seed: int, period
 
 def _linked_line(robot: RobotSpec, on_line: list, seed: int,
                  faults: list[tuple[str, Fault, float]],
-                 devices: dict[str, Cia402Device], lockstep: bool) -> Callable[[], object]:
+                 devices: dict[str, Cia402Device], clock: Clock) -> Callable[[], object]:
     """`--sim` for an EtherCAT line: a virtual drive per joint (commissioned for its model,
     its noise seeded `seed` + the joint's index, its scheduled faults), in slave order, as a
     line of slaves in this process; what makes the master that drives them
@@ -322,11 +310,11 @@ def _linked_line(robot: RobotSpec, on_line: list, seed: int,
         devices[joint.name] = device
         line.append(device)
     segment = VirtualLine(line)
-    return lambda: LinkedMaster(segment, clock_for(lockstep))
+    return lambda: LinkedMaster(segment, clock.for_bus())
 
 
 def open_joint(robot: RobotSpec, joint: JointSpec, sim_model: ActuatorModel,
-               payload: Payload, *, sim: bool, lockstep: bool, seed: int,
+               payload: Payload, *, sim: bool, clock: Clock, seed: int,
                **timing) -> Connection:
     """One joint of a robot file alone, the others not started (their drives stay as they
     powered up: switch on disabled, brake engaged; on an EtherCAT line they follow it to OP,
@@ -335,9 +323,8 @@ def open_joint(robot: RobotSpec, joint: JointSpec, sim_model: ActuatorModel,
     joint's too, see `open_robot`), its physics `sim_model`. Raises DriveOpenError (exit
     1)."""
     from driver.canopen_drive import CanOpenDrive
-    from driver.clock import clock_for
 
-    timing = {"lockstep": lockstep, "velocity_limit": joint.model.limits.velocity_max,
+    timing = {"clock": clock.for_bus(), "velocity_limit": joint.model.limits.velocity_max,
               "drive_gain": joint.model.parameters.drive_gain, "eds": joint.eds,
               "current_max": joint.model.limits.current_max, "startup": joint.startup,
               **timing}
@@ -348,23 +335,20 @@ def open_joint(robot: RobotSpec, joint: JointSpec, sim_model: ActuatorModel,
         on_line = JointOnLine(joint.address, timing.pop("velocity_limit"),
                               timing.pop("drive_gain"), timing.pop("eds"),
                               timing.pop("current_max"), joint.name, timing.pop("startup"))
-        timing["clock"] = clock_for(timing.pop("lockstep"))  # the line's own time
         drive = _open_on_line(joint.bus, parse_bus_spec(joint.bus)["channel"], [on_line],
                               **timing)[0]
         return _one(drive, joint.name, where=joint.bus, address=f"slave {joint.address}")
-    timing["clock"] = clock_for(timing.pop("lockstep"))  # CANopen from here on
     if not sim:
         try:
             return _one(CanOpenDrive.open(joint.bus, joint.address, **timing), joint.name,
                         where=joint.bus, address=f"node {joint.address}")
         except Exception as exc:
             raise DriveOpenError(f"cannot use bus {joint.bus}: {exc}") from exc
-    from driver.clock import clock_for
     from sim_bus.embedded import EmbeddedBus
     from sim_bus.plant import SensorNoise
 
     node_id = 1 if joint.on_ethercat else joint.address
-    link = EmbeddedBus(clock=clock_for(lockstep))
+    link = EmbeddedBus(clock=clock.for_bus())
     try:
         device = link.add_drive(sim_model, payload, SensorNoise(seed=seed), node_id,
                                 eds_path=joint.eds, commissioned=True)

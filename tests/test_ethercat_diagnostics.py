@@ -18,7 +18,7 @@ import numpy as np
 import pysoem
 import pytest
 
-from driver.clock import clock_for
+from driver.clock import DriveClock, clock_for
 from driver.drive_group import DriveGroup, EthercatLine, JointFailure
 from driver.ethercat_drive import JointOnLine, open_ethercat_drives
 from driver.ethercat_master import STATE_CHECK_FRAMES, LineLost
@@ -280,7 +280,7 @@ def test_start_up_parameters_reach_ethercat_and_canopen_drives_before_the_scalin
     the master reads the drive's limits: the knee type's 120 % max current is the current
     limit the master plans with."""
     robot = load_robot(_startup_robot(tmp_path))
-    connection = open_robot(robot, sim=True, lockstep=True, seed=0, period=1e-3,
+    connection = open_robot(robot, sim=True, clock=DriveClock(), seed=0, period=1e-3,
                             response_timeout=1.0)
     try:
         connection.group.start()
@@ -305,7 +305,7 @@ def test_a_start_up_parameter_the_drive_refuses_stops_the_start_in_one_line(tmp_
                                  'sdo = [{ index = 0x2010, value = 99 }]\n')
     text = text.replace('sdo = [{ index = 0x6072, subindex = 0, value = 800 }]\n', "")
     connection = open_robot(load_robot(_startup_robot(tmp_path, text)), sim=True,
-                            lockstep=True, seed=0, period=1e-3, response_timeout=1.0)
+                            clock=DriveClock(), seed=0, period=1e-3, response_timeout=1.0)
     try:
         with pytest.raises(JointFailure) as refused:
             connection.group.start()

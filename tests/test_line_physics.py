@@ -12,6 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from driver.clock import DriveClock
 from driver.interface import SAMPLE_JOINT_TORQUE
 from model import dynamics
 from model.parameters import Payload, load_model
@@ -130,7 +131,7 @@ def _three_elbows_on_a_line():
         joints=tuple(JointSpec(f"joint_{k}", "ethercat:line0", k, model, None, {},
                                default_reference(model.limits)) for k in range(3)),
         bitrates={}, source=Path("<three elbows on one line>"))
-    connection = open_robot(spec, sim=True, lockstep=True, seed=0, period=1e-3,
+    connection = open_robot(spec, sim=True, clock=DriveClock(), seed=0, period=1e-3,
                             response_timeout=1.0,
                             faults=[("joint_1", Fault.TORQUE_SENSOR_SATURATED, 0.1)])
     connection.group.start()

@@ -12,6 +12,7 @@ import zenoh
 
 from controller.messages import JointStates
 from driver import Sample
+from driver.clock import DriveClock
 from driver.drive_group import EthercatLine
 from driver.ethercat_transport import EthercatTransport
 from driver.interface import SAMPLE_POSITION, SAMPLE_STATUSWORD, SAMPLE_T
@@ -48,7 +49,7 @@ def test_sim_keeps_an_ethercat_line_on_ethercat_one_image_a_cycle():
     synchronous torque through the ESI), each cycle is one exchange of the whole image, and
     each drive's physics advances exactly one period per cycle. (It used to turn the line into
     one CANopen link carrying 129 frames a cycle, which no real bus could.)"""
-    connection = open_robot(load_robot(ROBOTS / "talos_32.toml"), sim=True, lockstep=True,
+    connection = open_robot(load_robot(ROBOTS / "talos_32.toml"), sim=True, clock=DriveClock(),
                             seed=0, period=1e-3, response_timeout=1.0)
     try:
         group = connection.group
@@ -79,7 +80,7 @@ def test_sim_keeps_an_ethercat_line_on_ethercat_one_image_a_cycle():
 
 def test_one_sync_per_bus_per_cycle_and_every_joint_sampled_in_it():
     robot = load_robot(ARM)
-    connection = open_robot(robot, sim=True, lockstep=True, seed=0, period=1e-3,
+    connection = open_robot(robot, sim=True, clock=DriveClock(), seed=0, period=1e-3,
                             response_timeout=1.0)
     counters = []
     try:
@@ -112,7 +113,7 @@ def test_one_sync_per_bus_per_cycle_and_every_joint_sampled_in_it():
 
 def test_a_fault_on_one_joint_names_it_and_the_group_stops_every_drive():
     robot = load_robot(ARM)
-    connection = open_robot(robot, sim=True, lockstep=True, seed=0, period=1e-3,
+    connection = open_robot(robot, sim=True, clock=DriveClock(), seed=0, period=1e-3,
                             response_timeout=1.0,
                             faults=[("arm_left_3_joint", Fault.OVERCURRENT_TRIP, 0.01)])
     try:
