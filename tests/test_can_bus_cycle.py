@@ -28,7 +28,7 @@ NODES = (2, 3)
 
 def two_drives_on_one_bus(clock: DriveClock, response_timeout: float = 1.0):
     """Two virtual drives on one in-process bus and the master's group over them."""
-    link = EmbeddedBus(clock=DriveClock())
+    link = EmbeddedBus(clock=DriveClock())  # the drives' own time, as `--sim` gives them
     for node in NODES:
         link.add_drive(MODEL, Payload(), SensorNoise(seed=node), node, commissioned=True)
     joints = []
