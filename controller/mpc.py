@@ -334,6 +334,8 @@ class BatchMpc:
         effects = any(lanes.has_effects(joint.packed_parameters) for joint in self.joints)
         self.kernel = self._kernel_asked or "lanes"
         self._lanes = lanes.allocate(len(problems), n)
+        steps = np.arange(n + 1)
+        self._ring_orders = (steps[None, :] + steps[:, None]) % (n + 1)  # [ring] -> slots
         self._tick_lanes = lanes.tick_kernel(len(problems), effects, self.threads)
         # load the compiled code now, not in the first control cycle: one iteration each
         for joint in self.joints:
@@ -397,9 +399,11 @@ class BatchMpc:
             trajectories, gains, _, _, current, _ = self._lanes
             chunk, lane = divmod(j, lanes.width(len(self.joints)))
             which, ring = current[chunk, lanes.WHICH], current[chunk, lanes.RING]
-            # the steps in order from the ring (np.roll copies)
-            solution = np.roll(trajectories[which, chunk, :, :, lane], -ring, axis=0)
-            reference = np.roll(gains[chunk, :, lanes.REFERENCE_Q, lane], -ring)
+            # the steps in order from the ring: one gather each (copies), with the step order
+            # of each ring position made once (np.roll took 22 us a plan)
+            order = self._ring_orders[ring]
+            solution = trajectories[which, chunk, :, :, lane][order]
+            reference = gains[chunk, :, lanes.REFERENCE_Q, lane][order]
             return PlanSnapshot(t, joint.settings.dt, solution[:, lanes.Q],
                                 solution[:, lanes.QD], solution[:-1, lanes.U], reference)
         solution = joint.solution()
