@@ -11,7 +11,7 @@ from controller.policy import Decision
 from driver.drive_group import single_joint
 from model.parameters import load_model
 from sim_bus.plant import SensorNoise
-from tests.conftest import virtual_pair
+from tests.conftest import as_a_real_time_master, virtual_pair
 
 MODEL = load_model()
 STALL = 0.02  # s: twenty periods
@@ -43,7 +43,10 @@ class _Holding:
 
 
 def test_a_slow_decision_is_named_as_the_cause_of_its_missed_cycles():
-    with virtual_pair(lockstep=False, noise=SensorNoise()) as (_, drive):
+    # at the master's priority, as actuatord runs: at normal priority on a loaded host (load 3)
+    # the host's own late wake-ups and samples outnumbered the stalls (230 and 221 vs 224)
+    with virtual_pair(lockstep=False, noise=SensorNoise()) as (_, drive), \
+            as_a_real_time_master():
         drive.start()
         report = ControlLoop(single_joint(drive), _Holding(), LoopOptions(duration=0.4)).run()
     causes = report.missed_by_cause
@@ -70,7 +73,7 @@ def slow_sample(group):
 
 
 def test_a_late_sample_is_named_as_the_cause_of_its_missed_cycles():
-    with virtual_pair(lockstep=False) as (_, drive):
+    with virtual_pair(lockstep=False) as (_, drive), as_a_real_time_master():
         drive.start()
         report = ControlLoop(slow_sample(single_joint(drive)), _Holding(),
                              LoopOptions(duration=0.4)).run()
