@@ -20,6 +20,8 @@ frame's stamp is the kernel's receive time, as python-can gives it: the freshnes
 `driver.canopen_cycle` relies on it.
 """
 
+import ctypes
+import ipaddress
 import logging
 import os
 import select
@@ -39,6 +41,9 @@ POLL_TIMEOUT = 0.05  # s: how long stopping waits for the receive thread at most
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux's value where Python lacks it
 _TIMESPEC = struct.Struct("@ll")  # the kernel's struct timespec: seconds, nanoseconds
 _ANCILLARY = socket.CMSG_SPACE(_TIMESPEC.size)
+SO_ATTACH_FILTER = 26  # Linux: a classic BPF program run on each datagram the socket queues
+_BPF = struct.Struct("HBBI")  # struct sock_filter: code, jump if true, jump if false, k
+_SKF_NET_OFF = -0x100000  # BPF offset base of the IP header (0: the UDP header on a UDP socket)
 
 
 class MulticastNetwork(canopen.Network):
@@ -57,6 +62,7 @@ class MulticastNetwork(canopen.Network):
             self._sender = _sender_socket(self._socket.family, group,
                                           config.get("hop_limit", 1))
             self._source = self._sender.getsockname()[:2]
+            _drop_from(self._socket, *self._source)
         except Exception:
             self.bus.shutdown()
             raise
@@ -84,7 +90,7 @@ class MulticastNetwork(canopen.Network):
                 return
             except OSError:  # closed under us by disconnect: the receiver forgets it
                 return
-            if sender[:2] == source:
+            if sender[:2] == source:  # where the kernel could not drop it (IPv6)
                 continue
             try:
                 frame = decode(datagram)
@@ -132,6 +138,29 @@ def _sender_socket(family: socket.AddressFamily, group: tuple[str, int],
         sender.close()
         raise
     return sender
+
+
+def _drop_from(receiver: socket.socket, address: str, port: int) -> None:
+    """Have the kernel drop, before queueing, what `receiver` gets from `address`:`port` (our
+    own frames, looped back): about a third of a bus's datagrams (its SYNC and RPDOs), each a
+    wake-up of the receive thread, which then takes the interpreter from the loop thread in
+    the middle of its cycle. The program (IPv4 only; the kernel copies it): source port (UDP
+    header) and source address (IP header) ours: drop, else keep."""
+    if receiver.family != socket.AF_INET:
+        return
+    program = b"".join(_BPF.pack(*insn) for insn in (
+        (0x28, 0, 0, 0),  # ldh [0]: the UDP source port
+        (0x15, 0, 3, port),  # jeq #port, else keep
+        (0x20, 0, 0, (_SKF_NET_OFF + 12) & 0xFFFFFFFF),  # ld [ip + 12]: the source address
+        (0x15, 0, 1, int(ipaddress.IPv4Address(address))),  # jeq #address, else keep
+        (0x06, 0, 0, 0),  # ret 0: drop
+        (0x06, 0, 0, 0xFFFFFFFF)))  # ret: keep all of it
+    buffer = ctypes.create_string_buffer(program, len(program))
+    try:
+        receiver.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, struct.pack(
+            "HL", len(program) // _BPF.size, ctypes.addressof(buffer)))
+    except OSError as exc:  # the check in receive_ready drops them instead
+        log.info("own frames dropped in user space (socket filter refused: %s)", exc)
 
 
 class MulticastReceiver:
