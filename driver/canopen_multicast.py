@@ -171,6 +171,11 @@ class MulticastReceiver:
     did."""
 
     def __init__(self) -> None:
+        self._forget()
+        # a forked child has none of the parent's threads: its first network starts one
+        os.register_at_fork(after_in_child=self._forget)
+
+    def _forget(self) -> None:
         self._lock = threading.Lock()
         self._networks: dict[int, MulticastNetwork] = {}
         self._poll: select.epoll | None = None
