@@ -71,7 +71,9 @@ class BusWatch:
     def __init__(self, network: canopen.Network, clock: Clock):
         self.network = network
         self.clock = clock
-        self.frames = 0  # every frame this network received, ours echoed or not
+        # every frame this network received: ours too where the interface echoes them
+        # (python-can's udp_multicast; the lean path, driver.canopen_multicast, drops them)
+        self.frames = 0
         # the receive stamp of the last frame through (the kernel's on SocketCAN and
         # udp_multicast): how far the receive thread has caught up with the bus
         self.last_stamp = 0.0

@@ -13,6 +13,7 @@ import canopen
 from driver.canopen_bringup import SdoAccess, plan_pdos, write_pdos
 from driver.canopen_cycle import BusCycle, PlannedPdo
 from driver.canopen_health import MASTER_HEARTBEAT_CONSUMER_MS, Health, master_node_id
+from driver.canopen_multicast import MulticastNetwork
 from driver.clock import Clock, WallClock
 from driver.interface import DriveError, DriveLost, ForeignMaster
 from driver.transport import Transport
@@ -33,10 +34,13 @@ CATCH_UP_STEP = 0.005  # s between looks at how far the receive thread has come
 
 def open_network(bus_spec: str, bitrate: int | None = None) -> canopen.Network:
     """A connected canopen Network for a bus spec (see protocol.bus_spec); `bitrate` (bit/s)
-    where the interface sets one."""
+    where the interface sets one. A udp_multicast bus gets the lean path
+    (`driver.canopen_multicast`), every other interface python-can's and canopen's own."""
+    config = parse_bus_spec(bus_spec)
+    if config["interface"] == "udp_multicast":
+        return MulticastNetwork(config)
     network = canopen.Network()
     network.NOTIFIER_CYCLE = NOTIFIER_CYCLE
-    config = parse_bus_spec(bus_spec)
     if bitrate is not None:
         config["bitrate"] = bitrate
     network.connect(**config)

@@ -46,6 +46,13 @@ def open_can_network(config: dict, can_log: CanLog | None = None) -> canopen.Net
 
     from driver.canopen_transport import NOTIFIER_CYCLE
 
+    if config["interface"] == "udp_multicast" and can_log is None:
+        from driver.canopen_multicast import MulticastNetwork
+
+        return MulticastNetwork(config)
+    # the lean udp_multicast path has no bus object to log through: with --can-log a frame
+    # goes python-can's way (LoggedBus), slower but every frame logged, echoes once
+
     bus = can.Bus(ignore_config=True, **config)
     if can_log is not None:
         bus = LoggedBus(bus, can_log)

@@ -11,10 +11,10 @@ samples ("late sample"). Here a frame is one msgpack call and one socket call ea
 received frame nobody on the network subscribes to (the drives' own echoes: two thirds of
 them) is dropped after decoding, and one thread receives for every bus of the process.
 
-The datagrams are python-can's own (`can.interfaces.udp_multicast.utils.pack_message`: a
-msgpack map of the message's fields), so a python-can master on the same group reads them as
-it reads its own. The socket is the one python-can's bus made (group joined, loopback on),
-used through its file descriptor.
+The datagrams are python-can's own (`protocol.can_datagram`, as
+`can.interfaces.udp_multicast.utils.pack_message` writes them), so a python-can master on the
+same group reads them as it reads its own. The socket is the one python-can's bus made (group
+joined, loopback on), used through its file descriptor.
 """
 
 import logging
@@ -26,12 +26,12 @@ import time
 
 import can
 import canopen
-import msgpack
+
+from protocol.can_datagram import DATAGRAM_MAX, decode, encode
 
 log = logging.getLogger(__name__)
 
 POLL_TIMEOUT = 0.05  # s: how long closing waits for the receive thread at most
-DATAGRAM_MAX = 4096  # bytes: a CAN FD frame's msgpack map is well below
 
 
 class MulticastNetwork(canopen.Network):
@@ -55,12 +55,7 @@ class MulticastNetwork(canopen.Network):
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         """One classic CAN frame, as python-can's `pack_message` writes it."""
-        data = bytes(data)
-        datagram = msgpack.packb({
-            "timestamp": time.time(), "arbitration_id": can_id, "is_extended_id": False,
-            "is_remote_frame": remote, "is_error_frame": False, "channel": None,
-            "dlc": len(data), "data": data, "is_fd": False, "bitrate_switch": False,
-            "error_state_indicator": False}, use_bin_type=True)
+        datagram = encode(can_id, bytes(data), time.time(), remote)
         with self._send_lock:  # nodes send from their own threads (heartbeats)
             self._socket.sendto(datagram, self._destination)
 
@@ -74,14 +69,15 @@ class MulticastNetwork(canopen.Network):
             except BlockingIOError:
                 return
             try:
-                frame = msgpack.unpackb(datagram, raw=False)
-                can_id = frame["arbitration_id"]
-                callbacks = subscribers.get(can_id)
-                if not callbacks or frame["is_error_frame"] or frame["is_remote_frame"]:
-                    continue
-                data = frame["data"]
-            except (ValueError, KeyError, TypeError) as exc:  # not a python-can datagram
+                frame = decode(datagram)
+            except ValueError as exc:
                 log.warning("bus %s: datagram dropped: %s", self.channel, exc)
+                continue
+            if frame is None:
+                continue
+            can_id, data = frame
+            callbacks = subscribers.get(can_id)
+            if not callbacks:
                 continue
             now = time.time()
             for callback in callbacks:

@@ -1,0 +1,222 @@
+"""The master's CANopen networks on python-can's `udp_multicast` buses, lean: udp_multicast
+stands in for CAN where a machine has no SocketCAN (the master and the virtual drives in two
+processes), and through python-can it cost the master more than the cycle.
+
+Measured on talos_arm (7 joints on 4 buses) across processes: about 0.9 of a core, one
+`can.Notifier` thread per bus, each frame through `UdpMulticastBus.recv` (select, recvmsg,
+msgpack, a checked `can.Message`), canopen's listener and node scanner, about 40 frames a
+millisecond including the echoes of the master's own SYNCs and RPDOs, and sending
+(`can.Message`, `pack_message`, a socket timeout set, sendto) about 60 % of the loop thread;
+bus-bench missed about 290 % of cycles. Here one thread receives for every udp_multicast bus
+of the process, a frame is one recvmsg and one msgpack call in, one msgpack call and one send
+out, and the master's own frames are dropped by their sender address before decoding.
+
+Own frames: python-can's socket is bound to the group's port and every process on the group
+sends from that same port, so an echo cannot be told by its source. Frames here leave from a
+socket of the network's own (an ephemeral port, connected to the group), whose address,
+as the receivers see it, names this network alone. The receiving socket is python-can's
+(group joined, loopback on, SO_TIMESTAMPNS), used through a descriptor of our own, so a
+frame's stamp is the kernel's receive time, as python-can gives it: the freshness window in
+`driver.canopen_cycle` relies on it.
+"""
+
+import ctypes
+import ipaddress
+import logging
+import os
+import select
+import socket
+import struct
+import threading
+import time
+
+import can
+import canopen
+
+from protocol.can_datagram import DATAGRAM_MAX, decode, encode
+
+log = logging.getLogger(__name__)
+
+POLL_TIMEOUT = 0.05  # s: how long stopping waits for the receive thread at most
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux's value where Python lacks it
+_TIMESPEC = struct.Struct("@ll")  # the kernel's struct timespec: seconds, nanoseconds
+_ANCILLARY = socket.CMSG_SPACE(_TIMESPEC.size)
+SO_ATTACH_FILTER = 26  # Linux: a classic BPF program run on each datagram the socket queues
+_BPF = struct.Struct("HBBI")  # struct sock_filter: code, jump if true, jump if false, k
+_SKF_NET_OFF = -0x100000  # BPF offset base of the IP header (0: the UDP header on a UDP socket)
+
+
+class MulticastNetwork(canopen.Network):
+    """A connected canopen Network on the udp_multicast bus python-can's `config` names
+    (interface "udp_multicast", its group as channel, its port), received by the process's
+    `MulticastReceiver` from construction until `disconnect`."""
+
+    def __init__(self, config: dict):
+        super().__init__(None)
+        self.bus = can.Bus(ignore_config=True, **config)
+        try:
+            self.channel = config["channel"]
+            self._socket = socket.socket(fileno=os.dup(self.bus.fileno()))
+            self._socket.setblocking(False)
+            group = (self.channel, self._socket.getsockname()[1])
+            self._sender = _sender_socket(self._socket.family, group,
+                                          config.get("hop_limit", 1))
+            self._source = self._sender.getsockname()[:2]
+            _drop_from(self._socket, *self._source)
+        except Exception:
+            self.bus.shutdown()
+            raise
+        self._send_lock = threading.Lock()
+        RECEIVER.attach(self)
+
+    def fileno(self) -> int:
+        return self._socket.fileno()
+
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        """One frame: one pack, one send (python-can's datagram, see protocol.can_datagram)."""
+        datagram = encode(can_id, bytes(data), time.time(), remote)
+        with self._send_lock:  # the loop, the heartbeat thread and SDOs send
+            self._sender.send(datagram)
+
+    def receive_ready(self) -> None:
+        """Hand every datagram waiting on the socket, but our own, to `notify` (BusWatch's
+        count and then canopen's subscribers), stamped with the kernel's receive time; error
+        and remote frames ignored, as canopen's listener does."""
+        recvmsg, source = self._socket.recvmsg, self._source
+        while True:
+            try:
+                datagram, ancillary, _, sender = recvmsg(DATAGRAM_MAX, _ANCILLARY)
+            except BlockingIOError:
+                return
+            except OSError:  # closed under us by disconnect: the receiver forgets it
+                return
+            if sender[:2] == source:  # where the kernel could not drop it (IPv6)
+                continue
+            try:
+                frame = decode(datagram)
+            except ValueError as exc:
+                log.warning("bus %s: datagram dropped: %s", self.channel, exc)
+                continue
+            if frame is None:
+                continue
+            stamp = time.time()
+            for level, kind, value in ancillary:
+                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
+                    seconds, nanoseconds = _TIMESPEC.unpack_from(value)
+                    stamp = seconds + nanoseconds * 1e-9
+            try:
+                self.notify(frame[0], frame[1], stamp)
+            except Exception:  # one handler's failure must not stop the bus
+                log.exception("bus %s: handler of 0x%03X failed", self.channel, frame[0])
+
+    def disconnect(self) -> None:
+        RECEIVER.detach(self)
+        for node in self.nodes.values():
+            if hasattr(node, "pdo"):
+                node.pdo.stop()
+        self._sender.close()
+        self._socket.close()
+        if self.bus is not None:
+            self.bus.shutdown()
+        self.bus = None
+
+
+def _sender_socket(family: socket.AddressFamily, group: tuple[str, int],
+                   hop_limit: int) -> socket.socket:
+    """A socket that sends to `group` from an address of its own (an ephemeral port), its
+    frames looped back to this host's receivers, `hop_limit` its TTL, as python-can's are."""
+    sender = socket.socket(family, socket.SOCK_DGRAM)
+    try:
+        if family == socket.AF_INET6:
+            sender.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_HOPS, hop_limit)
+            sender.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_LOOP, 1)
+        else:
+            sender.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, hop_limit)
+            sender.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+        sender.connect(group)  # fixes the source address the receivers see
+    except OSError:
+        sender.close()
+        raise
+    return sender
+
+
+def _drop_from(receiver: socket.socket, address: str, port: int) -> None:
+    """Have the kernel drop, before queueing, what `receiver` gets from `address`:`port` (our
+    own frames, looped back): about a third of a bus's datagrams (its SYNC and RPDOs), each a
+    wake-up of the receive thread, which then takes the interpreter from the loop thread in
+    the middle of its cycle. The program (IPv4 only; the kernel copies it): source port (UDP
+    header) and source address (IP header) ours: drop, else keep."""
+    if receiver.family != socket.AF_INET:
+        return
+    program = b"".join(_BPF.pack(*insn) for insn in (
+        (0x28, 0, 0, 0),  # ldh [0]: the UDP source port
+        (0x15, 0, 3, port),  # jeq #port, else keep
+        (0x20, 0, 0, (_SKF_NET_OFF + 12) & 0xFFFFFFFF),  # ld [ip + 12]: the source address
+        (0x15, 0, 1, int(ipaddress.IPv4Address(address))),  # jeq #address, else keep
+        (0x06, 0, 0, 0),  # ret 0: drop
+        (0x06, 0, 0, 0xFFFFFFFF)))  # ret: keep all of it
+    buffer = ctypes.create_string_buffer(program, len(program))
+    try:
+        receiver.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, struct.pack(
+            "HL", len(program) // _BPF.size, ctypes.addressof(buffer)))
+    except OSError as exc:  # the check in receive_ready drops them instead
+        log.info("own frames dropped in user space (socket filter refused: %s)", exc)
+
+
+class MulticastReceiver:
+    """One thread receiving for every `MulticastNetwork` of the process (a thread per bus
+    contends for the interpreter every frame), running while one is attached. It is started
+    by the first network opened, after `apply_real_time` in the commands, so it inherits
+    the real-time priority of the thread that opens the buses, as python-can's notifiers
+    did."""
+
+    def __init__(self) -> None:
+        self._forget()
+        # a forked child has none of the parent's threads: its first network starts one
+        os.register_at_fork(after_in_child=self._forget)
+
+    def _forget(self) -> None:
+        self._lock = threading.Lock()
+        self._networks: dict[int, MulticastNetwork] = {}
+        self._poll: select.epoll | None = None
+        self._thread: threading.Thread | None = None
+
+    def attach(self, network: MulticastNetwork) -> None:
+        with self._lock:
+            if self._thread is None:
+                self._poll = select.epoll()
+                self._thread = threading.Thread(target=self._run, args=(self._poll,),
+                                                daemon=True, name="multicast-receiver")
+                self._thread.start()
+            self._networks[network.fileno()] = network
+            # epoll takes a descriptor at once, even while the thread waits
+            self._poll.register(network.fileno(), select.EPOLLIN)
+
+    def detach(self, network: MulticastNetwork) -> None:
+        with self._lock:
+            fd = network.fileno()
+            if self._networks.get(fd) is not network:
+                return
+            del self._networks[fd]
+            self._poll.unregister(fd)
+            if self._networks:
+                return
+            thread, self._thread, poll, self._poll = self._thread, None, self._poll, None
+        if thread is not threading.current_thread():
+            thread.join()  # it sees its poll closed within POLL_TIMEOUT
+        poll.close()
+
+    def _run(self, poll: select.epoll) -> None:
+        networks = self._networks
+        while self._poll is poll:
+            try:
+                events = poll.poll(POLL_TIMEOUT)
+            except (OSError, ValueError):  # closed: the last network left
+                return
+            for fd, _ in events:
+                network = networks.get(fd)
+                if network is not None:
+                    network.receive_ready()
+
+
+RECEIVER = MulticastReceiver()  # the process's one
