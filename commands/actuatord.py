@@ -50,6 +50,7 @@ from controller.mpc import BatchMpc, JointProblem
 from controller.problem import MAX_HORIZON, OcpSettings, ResolutionError, Weights
 from controller.reference import ReferenceError, Sinusoid, reference_from_dict
 from controller.requests import RequestHandler
+from driver import process_image
 from model.parameters import ActuatorModel, ModelFileError, Payload
 from protocol import telemetry
 from protocol.bus_spec import BusSpecError, is_ethercat
@@ -212,6 +213,7 @@ def _joint_setup(args: argparse.Namespace) -> "_Setup | int":
         try:
             with CompileNotice(PROG):  # a first run compiles the solver here
                 batch = BatchMpc([JointProblem(model, settings, payload, reference)])
+                process_image.compile_ahead()  # the bus's decode and encode, as the solver
         except ReferenceError as exc:
             shown = args.reference or "(default: the paper's sinusoid)"
             raise ValueError(f"--reference {shown[:60]} with the limits of the model "
@@ -411,6 +413,7 @@ def _robot_setup(args: argparse.Namespace) -> "_Setup | int":
         problems = _robot_problems(args, robot)
         with CompileNotice(PROG):
             batch = BatchMpc(problems)  # compiled before any drive is opened
+            process_image.compile_ahead()  # the buses' decode and encode, as the solver
             if args.sim and any(is_ethercat(bus) for bus in robot.buses()):
                 from sim_bus.line_physics import compile_ahead
 

@@ -230,12 +230,15 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     except (ModelFileError, BusSpecError, ValueError) as exc:
         return usage_error(PROG, str(exc))
 
-    from driver import DriveError, ProfileError
+    # the bus's decode and encode loaded (compiled on a first run) before any drive is enabled
+    # and before the real-time priority, at which a compile starves the drives
+    from driver import DriveError, ProfileError, process_image
     from driver.clock import clock_for, collector_off_the_cycle
     from recorder.experiment import run_trajectory
     from recorder.mcap_io import McapRecorder
     from recorder.tracking import TrackingLaw
 
+    process_image.compile_ahead()
     apply_real_time(args, PROG)  # before the drive's threads start: they inherit it
     # a first run compiles the physics (--sim's drive, while it opens) and the tracking law
     # (its first sample); a real bus's opening is not counted

@@ -264,6 +264,10 @@ class MpcJoints:
         self.parameters = [joint.parameters for joint in self._joints]
         self.limits = [joint.limits for joint in self._joints]
         self._buffers(len(batch), batch.rows.shape[1])
+        # the cycle's kernels loaded now (compiled on a first run), on copies: see ControlLoop
+        rows = batch.rows.copy()
+        _prepare(rows, np.zeros((len(batch), len(Sample._fields))), ~self._everyone)
+        _decisions(rows, _USABLE, self._header.copy(), self._ok.copy())
 
     def decide(self, t: float, table: np.ndarray, believed: np.ndarray | None,
                safety: BatchSafety) -> Decided:
@@ -409,6 +413,17 @@ class ControlLoop:
         self._history = {key: [] for key in HISTORY_KEYS}
         if options.keep_history:
             self.report.history = self._history
+        self._load_kernels()
+
+    def _load_kernels(self) -> None:
+        """The cycle's compiled kernels loaded now, on scratch arrays of the cycle's types,
+        not in the first cycle: on the first run after an install they compile (seconds), and
+        a first cycle held that long left the drives without SYNC past their watchdog."""
+        count = len(self.names)
+        table = np.zeros((count, len(Sample._fields)))  # statusword 0: screened out at once
+        _screen(table, *self._screen_limits, np.zeros(count, dtype=bool))
+        _check(np.zeros((count, ws.HEADER)), np.zeros(count, dtype=bool),
+               self._safety.current_max, np.zeros(count))
 
     @property
     def time(self) -> float:

@@ -22,6 +22,7 @@ from driver.interface import (
     SAMPLE_STATUSWORD,
     SAMPLE_T,
     SAMPLE_VELOCITY,
+    Sample,
 )
 from protocol import cia301
 
@@ -104,3 +105,15 @@ def encode(currents, limit, target_per_amp, controlword, layout, out):  # pragma
             for b in range(size):
                 out[at + b] = (value >> (8 * b)) & 0xFF
     return -1
+
+
+def compile_ahead() -> None:
+    """Load `decode` and `encode` now (compile them on a first run after an install): called
+    before any drive is enabled, so a fresh install's compile (seconds) is not the first
+    cycle's, which would leave the drives without SYNC past their watchdog (EMCY 0x8130 and a
+    failed start, seen on the first run after a fresh compile)."""
+    table = np.empty((1, len(Sample._fields)))
+    decode(np.zeros(2 * INPUTS, dtype=np.uint8), np.zeros((1, 2 * INPUTS), dtype=np.int64),
+           np.ones((1, 4)), 0.0, np.full(1, np.nan), 1, table)
+    encode(np.zeros(1), np.ones(1), np.ones(1), 0, np.zeros((1, 2 * OUTPUTS), dtype=np.int64),
+           np.zeros(2 * OUTPUTS, dtype=np.uint8))
