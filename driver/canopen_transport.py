@@ -248,6 +248,10 @@ class CanOpenTransport(Transport):
     def has_warnings(self) -> bool:
         return bool(self._warnings)
 
+    @property
+    def warning_lists(self) -> tuple[list[str], ...]:
+        return (self._warnings,)
+
     def warnings(self) -> list[str]:
         if not self._warnings:
             return []

@@ -95,6 +95,20 @@ class RingStats:
         n = min(self.count, len(self._values))
         return float(np.percentile(self._values[:n], q)) if n else math.nan
 
+    def recent_percentiles(self, qs: tuple[float, ...], last: int) -> list[float]:
+        """Percentiles `qs` of the last `last` values only (at most the window). What a
+        running loop reports every second: one partial sort of that second's values, where
+        one over the whole window took 1.5 ms per percentile at 200 000 values, a missed
+        cycle every second of a long real-time run."""
+        size = len(self._values)
+        n = min(last, self.count, size)
+        if n <= 0:
+            return [math.nan] * len(qs)
+        end = self.count % size
+        values = (self._values[end - n:end] if n <= end else
+                  np.concatenate((self._values[size - (n - end):], self._values[:end])))
+        return np.percentile(values, qs).tolist()
+
     def recent(self) -> np.ndarray:
         """The values kept (the last `window`), oldest first."""
         n = min(self.count, len(self._values))
