@@ -129,9 +129,11 @@ class _CanLine(DriveLine):
         device acts on and nothing changed it since its terms were read, else to the device
         at once."""
         columns = pdo.outputs_of(self.output_objects)
-        if (columns is None or not self._steady[j]
-                or self._revisions[j] != device.revision + device.plant.revision
-                or (0 in columns and values[columns.index(0)] != self._controlword[j])):
+        if (columns is None or self._revisions[j] != device.revision + device.plant.revision
+                or not self._steady[j]
+                or (columns[0] == 0 and values[0] != self._controlword[j])
+                or (columns[0] != 0 and 0 in columns
+                    and values[columns.index(0)] != self._controlword[j])):
             device.write_outputs(pdo.keys, values)
             return
         rows = self.output_rows
@@ -502,9 +504,12 @@ class _BusSync:
         done = line.cycle(rows, line.output_rows[0], line.output_objects, line.target_rows,
                           counter).tolist()
         unapplied = line.unapplied
-        if unapplied:
-            unapplied.difference_update(
-                j for j, ran in zip(rows.tolist(), done, strict=True) if ran)
+        if unapplied:  # what the batch took is applied; the others' devices take theirs
+            if all(done):
+                unapplied.clear()
+            else:
+                unapplied.difference_update(
+                    j for j, ran in zip(rows.tolist(), done, strict=True) if ran)
         values = line.values.tolist()
         for node, ran in zip(nodes, done, strict=True):
             if not ran:
