@@ -270,7 +270,7 @@ class DriveLine:
             self._torque_at = targets.index(_TORQUE_KEY) if _TORQUE_KEY in targets else -1
             self._current_at = targets.index(_CURRENT_KEY) if _CURRENT_KEY in targets else -1
         count = len(rows)
-        done = self._done[:count]
+        done = self._done if count == len(devices) else self._done[:count]
         ran = advance_line(rows, controlwords,
                            output_values[self._torque_at] if self._torque_at >= 0 else _NONE,
                            output_values[self._current_at] if self._current_at >= 0 else _NONE,
