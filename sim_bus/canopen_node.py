@@ -73,7 +73,7 @@ class _Pdo:
     (`of_row`), an RPDO knows where its objects go in a batch's outputs (`outputs_of`)."""
 
     __slots__ = ("cob_id", "codec", "pack", "keys", "values_of", "of_row", "every",
-                 "synchronous", "_outputs", "_columns")
+                 "synchronous", "_outputs", "_columns", "controlword_at")
 
     def __init__(self, cob_id: int, layout: PdoLayout, transmission: int):
         self.cob_id = cob_id
@@ -88,6 +88,7 @@ class _Pdo:
         self.synchronous = transmission <= cia301.SYNC_COUNTER_MAX
         self._outputs: tuple | None = None  # the batch outputs `_columns` are for
         self._columns: tuple[int, ...] | None = None
+        self.controlword_at = self.keys.index(_CONTROLWORD) if _CONTROLWORD in self.keys else -1
 
     def outputs_of(self, outputs: tuple) -> tuple[int, ...] | None:
         """Where each of this RPDO's objects is in a batch's `outputs` (None: one is not)."""
@@ -99,11 +100,11 @@ class _Pdo:
 
 
 class _CanLine(DriveLine):
-    """The batch of one bus's drives, with the outputs its RPDOs brought: the controlword and
-    the targets every drive of the bus has (`output_objects`, a row each in `output_rows`). Rows in
-    `unapplied` hold an RPDO's values the device has not taken yet; they are applied (as
-    the RPDO would have been) before anything reads or changes the device (`flush`), or
-    taken by the next batch cycle."""
+    """The batch of one bus's drives, with the outputs its RPDOs brought: the controlword
+    and the targets every drive of the bus has (`output_objects`, a row each in
+    `output_rows`). Rows in `unapplied` hold an RPDO's values the device has not taken yet;
+    they are applied (as the RPDO would have been) before anything reads or changes the
+    device (`flush`), or taken by the next batch cycle."""
 
     def __init__(self, devices: list[Cia402Device]):
         super().__init__(devices)
@@ -129,11 +130,10 @@ class _CanLine(DriveLine):
         device acts on and nothing changed it since its terms were read, else to the device
         at once."""
         columns = pdo.outputs_of(self.output_objects)
+        at = pdo.controlword_at
         if (columns is None or self._revisions[j] != device.revision + device.plant.revision
                 or not self._steady[j]
-                or (columns[0] == 0 and values[0] != self._controlword[j])
-                or (columns[0] != 0 and 0 in columns
-                    and values[columns.index(0)] != self._controlword[j])):
+                or (at >= 0 and values[at] != self._controlword[j])):
             device.write_outputs(pdo.keys, values)
             return
         rows = self.output_rows
