@@ -606,9 +606,9 @@ class Cia402Device:
         as it would, without anyone sending a SYNC or a frame. Cycles the bus drives (a new
         master's) take precedence: while they come nothing runs here, so on lock-step drive
         time, which only the bus's cycles advance, nothing ever does."""
-        self._settle()
         if self.master_loss is None and self._alone is None:
-            return  # the every-frame case, without the lock
+            return  # the every-look case: no lock, no line's batch written back
+        self._settle()
         with self._lock:
             if self.master_loss is None or self.at_rest:
                 self._alone = None

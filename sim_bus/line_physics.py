@@ -65,18 +65,22 @@ def advance_line(rows: np.ndarray, controlwords: np.ndarray, torque_out: np.ndar
                  torque_targets: np.ndarray, current_targets: np.ndarray,
                  state: np.ndarray, packed: np.ndarray, packed_braked: np.ndarray,
                  draws: np.ndarray, cursor: np.ndarray, values: np.ndarray,
-                 applied: np.ndarray, outputs: np.ndarray, substeps: int) -> np.ndarray:
+                 applied: np.ndarray, outputs: np.ndarray, substeps: int, done: np.ndarray,
+                 unwritten: np.ndarray) -> int:
     """One cycle of each drive in `rows`, as `Cia402Device.cycle()` runs it when nothing but
     the physics happens: the outputs taken (`controlwords`, and the targets where
     `torque_out` / `current_out` have a row per drive), the command latched in its mode and
     clamped at the drive's maximum, the plant advanced one period, the sensors sampled. A
     drive whose cycle has more to it (not `steady`, a new controlword, a fault due, its noise
     draws to renew, a command that trips, a joint leaving its window) is left untouched
-    (False in the result): its device runs that cycle itself. `values` gets the readings,
-    `applied` the current, `outputs` (controlword, torque target, current target) what the
-    drive took."""
-    done = np.zeros(rows.shape[0], dtype=np.bool_)
+    (False in `done`, a flag per row of `rows`): its device runs that cycle itself. `values`
+    gets the readings, `applied` the current, `outputs` (controlword, torque target, current
+    target) what the drive took, `unwritten` True for each drive that ran. Returns how many
+    ran. (Results in the caller's arrays, not a new one: boxing an array per call cost more
+    than the cycle of a drive.)"""
+    ran = 0
     for n in range(rows.shape[0]):
+        done[n] = False
         j = rows[n]
         if (not steady[j] or controlwords[j] != controlword[j]
                 or next_due[j] <= cycles[j] + 1 or cursor[j] > NOISE_BATCH - 2):
@@ -104,6 +108,8 @@ def advance_line(rows: np.ndarray, controlwords: np.ndarray, torque_out: np.ndar
         if not flags[j, I_FAULTED] and not t[T_WINDOW_LOW] <= q <= t[T_WINDOW_HIGH]:
             continue
         done[n] = True
+        unwritten[j] = True
+        ran += 1
         torque_targets[j], current_targets[j] = torque, current_target
         outputs[j, 0] = controlwords[j]
         if torque_out.shape[0]:
@@ -121,7 +127,7 @@ def advance_line(rows: np.ndarray, controlwords: np.ndarray, torque_out: np.ndar
         values[j, V_ECHO] = counter
         sense(q, qd, current, joint, draws[j, k], draws[j, k + 1], t, ranges[j],
               values[j, V_READINGS:])
-    return done
+    return ran
 
 
 _NONE = np.zeros(0, dtype=np.int64)  # an output the layout does not carry
@@ -173,6 +179,10 @@ class DriveLine:
         self.pending = False
         self._unwritten = np.zeros(count, dtype=np.bool_)
         self._output_keys: tuple = ()
+        # the outputs a cycle was last given, and where its targets are in output_values
+        self._outputs_given: tuple | None = None
+        self._torque_at = self._current_at = -1
+        self._done = np.zeros(count, dtype=np.bool_)
 
     def __len__(self) -> int:
         return len(self.devices)
@@ -239,36 +249,46 @@ class DriveLine:
         """One cycle of the drives `rows` (indices, in line order) under these outputs, a
         row per drive of the line: `controlwords` and, for the objects `outputs` other than
         the controlword (target torque and current), `output_values`. The rows whose cycle
-        ran here (bool over `rows`); every drive not among them may have been cycled
+        ran here (bool over `rows`, the line's own array: valid until its next cycle); every
+        drive not among them may have been cycled
         another way, so its terms are read again before its next. `refresh` False: the
         caller has just called `refresh`. `others_idle`: the caller knows the drives not in
         `rows` did not cycle (a SYNC0 batch of part of the line), so only those of `rows`
         not run here are read again."""
-        if refresh:
+        if refresh and self.changed:
             self.refresh()
         devices = self.devices
         for j in self._drifting:
             devices[j].plant.renew_parameters()
-        if outputs != self._output_keys:
-            if self.pending:
-                self.flush()
-            self._output_keys = outputs
-        columns = dict(zip(outputs[1:], output_values, strict=True))
-        done = advance_line(rows, controlwords, columns.get(_TORQUE_KEY, _NONE),
-                            columns.get(_CURRENT_KEY, _NONE), counter, self._steady,
-                            self._controlword, self._next_due, self._cycles, self.terms,
-                            self.flags, self.ranges, self.torque_targets,
-                            self.current_targets, self.state, self.packed,
-                            self.packed_braked, self.draws, self.cursor, self.values,
-                            self.applied, self.outputs, dynamics.SUBSTEPS)
-        cycled = rows[done]
-        self._unwritten[cycled] = True
+        if outputs is not self._outputs_given:
+            if outputs != self._output_keys:
+                if self.pending:
+                    self.flush()
+                self._output_keys = outputs
+            self._outputs_given = outputs
+            targets = outputs[1:]
+            self._torque_at = targets.index(_TORQUE_KEY) if _TORQUE_KEY in targets else -1
+            self._current_at = targets.index(_CURRENT_KEY) if _CURRENT_KEY in targets else -1
+        count = len(rows)
+        done = self._done if count == len(devices) else self._done[:count]
+        ran = advance_line(rows, controlwords,
+                           output_values[self._torque_at] if self._torque_at >= 0 else _NONE,
+                           output_values[self._current_at] if self._current_at >= 0 else _NONE,
+                           counter, self._steady, self._controlword, self._next_due,
+                           self._cycles, self.terms, self.flags, self.ranges,
+                           self.torque_targets, self.current_targets, self.state, self.packed,
+                           self.packed_braked, self.draws, self.cursor, self.values,
+                           self.applied, self.outputs, dynamics.SUBSTEPS, done,
+                           self._unwritten)
         self.pending = True
+        if ran == len(devices):
+            return done
         if others_idle:
-            if len(cycled) < len(rows):
+            if ran < count:
                 self.cycled_elsewhere(rows[~done].tolist())
-        elif len(cycled) < len(devices):  # the others may run elsewhere: read them again
-            self.cycled_elsewhere(np.setdiff1d(self._rows, cycled, assume_unique=True).tolist())
+        else:  # the others may run elsewhere: read them again
+            self.cycled_elsewhere(np.setdiff1d(self._rows, rows[done],
+                                               assume_unique=True).tolist())
         return done
 
     def held_outputs(self, rows: np.ndarray, outputs: tuple) -> tuple[np.ndarray, list]:

@@ -1,0 +1,27 @@
+"""The udp_multicast datagram joined from its parts (`protocol.can_datagram.encode`) is, byte
+for byte, what python-can's own `pack_message` writes for the same frame: standard and
+extended ids at every msgpack integer width, 0 to 8 data bytes, data and remote frames (the
+length of a remote frame is its data's, as canopen sends it: none)."""
+
+import itertools
+
+import can
+from can.interfaces.udp_multicast.utils import pack_message
+
+from protocol.can_datagram import decode, encode
+
+IDS = (0x000, 0x001, 0x07F, 0x080, 0x0FF, 0x100, 0x182, 0x7FF,  # 11-bit
+       0x800, 0xFFFF, 0x10000, 0x1FFFFFFF)  # 29-bit
+
+
+def test_encode_writes_python_cans_datagram():
+    for can_id, size, remote, stamp in itertools.product(IDS, range(9), (False, True),
+                                                          (0.0, 1.5, 1_764_000_000.123456)):
+        if remote and size:
+            continue
+        data = bytes(range(1, size + 1))
+        message = can.Message(timestamp=stamp, arbitration_id=can_id, data=data,
+                              is_extended_id=can_id > 0x7FF, is_remote_frame=remote)
+        assert encode(can_id, data, stamp, remote) == pack_message(message), (can_id, size)
+        if not remote:
+            assert decode(encode(can_id, data, stamp)) == (can_id, data)
