@@ -9,17 +9,18 @@ import pytest
 
 from driver.clock import DriveClock
 from driver.drive_group import CanOpenBus, EthercatLine, JointFailure
-from driver.interface import DriveFault
+from driver.interface import SAMPLE_JOINT_TORQUE, DriveFault, EncoderGlitch
 from model.parameters import load_model
 from robot.description import JointSpec, RobotSpec, default_reference
 from robot.wiring import open_robot
+from sim_bus.faults import Fault
 
 MODEL = load_model()
 
 
-def _robot(bus: str, joints: int):
+def _robot(bus: str, joints: int, faults=()):
     """`joints` elbows on one bus (CANopen node ids from 1, EtherCAT positions from 0), their
-    virtual drives in this process, started."""
+    virtual drives in this process (`faults` scheduled), started."""
     first = 0 if bus.startswith("ethercat") else 1
     spec = RobotSpec(
         name="looks", period_us=1000,
@@ -27,7 +28,7 @@ def _robot(bus: str, joints: int):
                                default_reference(MODEL.limits)) for k in range(joints)),
         bitrates={}, source=Path("<test>"))
     connection = open_robot(spec, sim=True, clock=DriveClock(), seed=0, period=1e-3,
-                            response_timeout=1.0)
+                            response_timeout=1.0, faults=faults)
     connection.group.start()
     return connection
 
@@ -80,3 +81,41 @@ def test_a_drive_warning_between_cycles_reaches_the_next_look_once_naming_the_jo
         assert group.warnings() == []  # said once
     finally:
         connection.close()
+
+
+def test_a_lines_image_names_a_saturated_sensor_a_glitch_and_a_tripped_drive_by_joint():
+    """The line's image decoded in one compiled call: its rare outcomes still in the drives'
+    own words, each naming its joint (the second of three)."""
+    for fault, expected in ((Fault.TORQUE_SENSOR_SATURATED, None),
+                            (Fault.ENCODER_GLITCH, EncoderGlitch),
+                            (Fault.OVERCURRENT_TRIP, DriveFault)):
+        connection = _robot("ethercat:looks0", 3, [("joint_1", fault, 0.01)])
+        try:
+            group = connection.group
+            unread, warnings = np.zeros(3, dtype=bool), []
+            with pytest.raises(JointFailure) if expected else _nothing() as raised:
+                for _ in range(30):
+                    table = group.sync()
+                    unread |= np.isnan(table[:, SAMPLE_JOINT_TORQUE])
+                    warnings += group.warnings()
+                    group.command_currents(np.zeros(3))
+            if expected is None:  # a warning, the joint's reading held out of its samples
+                assert unread.tolist() == [False, True, False]
+                assert warnings and all(
+                    w.startswith("joint joint_1: joint torque sensor reading saturated")
+                    for w in warnings), warnings
+            else:
+                assert raised.value.joint == "joint_1"
+                assert isinstance(raised.value.cause, expected), raised.value.cause
+        finally:
+            connection.close()
+
+
+class _nothing:
+    """No exception expected: a context that lets the block run."""
+
+    def __enter__(self):
+        return None
+
+    def __exit__(self, *exc):
+        return False
