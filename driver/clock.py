@@ -133,6 +133,9 @@ class WallClock:
     # time passes between cycles: the watchdogs that time a peer on the wall (an ESC's
     # process data watchdog, a keeper that sends frames while the cycle is busy) are on
     runs_alone = True
+    # s a master waits for a drive's answer (a cycle's samples, a frame back): a sample
+    # 100 ms late is a dead drive, the drives' own default process data watchdog
+    response_timeout = 0.1
 
     @staticmethod
     def advance(seconds: float) -> None:
@@ -173,6 +176,9 @@ class DriveClock:
     the drives answer. Nothing happens between cycles, so no watchdog needs a thread."""
 
     runs_alone = False
+    # s a master waits for a drive's answer: on drive time a late answer is no failure (the
+    # drive is computed on the same, perhaps busy, host), only none is
+    response_timeout = 1.0
 
     def __init__(self) -> None:
         self._now = 0.0

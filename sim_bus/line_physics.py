@@ -271,6 +271,18 @@ class DriveLine:
             self.cycled_elsewhere(np.setdiff1d(self._rows, cycled, assume_unique=True).tolist())
         return done
 
+    def held_outputs(self, rows: np.ndarray, outputs: tuple) -> tuple[np.ndarray, list]:
+        """The outputs the drives `rows` hold (their last controlword and targets), as
+        `cycle` takes them for the objects `outputs`: a cycle under these is the cycle of a
+        drive that got no new outputs (a SYNC0 whose window had none)."""
+        targets = []
+        for key in outputs[1:]:
+            if key == _CURRENT_KEY:
+                targets.append(np.rint(self.current_targets[rows] * _MILLI).astype(np.int64))
+            else:
+                targets.append(self.torque_targets[rows].astype(np.int64))
+        return self._controlword[rows], targets
+
     def load_kernel(self) -> None:
         """Compile (a first run) or load (from the cache) the batch's kernel now, with a
         cycle of no drive: numba does it at the first call, which would otherwise be a first

@@ -6,6 +6,7 @@ named with its AL status code while every drive ends safe."""
 import struct
 import time
 
+import numpy as np
 import pysoem
 import pytest
 
@@ -23,6 +24,7 @@ from sim_bus.ethercat import dc
 from sim_bus.ethercat.linked import LinkedMaster
 from sim_bus.ethercat.netns import SlaveProcess
 from sim_bus.ethercat.segment import Segment, pass_frame
+from tests.segment_frames import FrameMaster, enable_sequence
 
 Cmd = ec.Command
 MODEL = load_model()
@@ -163,9 +165,10 @@ def test_a_linked_line_runs_on_sync0_in_lock_step():
 
 def test_a_slave_that_misses_its_sync0_window_is_named_and_every_drive_ends_safe():
     """Slave 1's clock jumps (its offset register overwritten): its SYNC0 now comes 10 us
-    after the frame, inside the margin its outputs need. Four late windows in a row and it
-    drops to SAFE-OP with 0x001A and quick-stops its drive; the master's next frame names it
-    by its AL status code in words, and the group's quick stop leaves every drive safe."""
+    after the frame, inside the margin its outputs need. Three late windows in a row (the
+    first one free, as the ETG slave stack counts them) and it drops to SAFE-OP with 0x001A
+    and quick-stops its drive; the master's next frame names it by its AL status code in
+    words, and the group's quick stop leaves every drive safe."""
     segment, drives, group = dc_group(3)
     try:
         group.start()
@@ -187,12 +190,54 @@ def test_a_slave_that_misses_its_sync0_window_is_named_and_every_drive_ends_safe
     message = str(failure.value)
     assert "slave 1 in SAFE_OP + ERROR, AL status code synchronization error (0x001A)" in message
     assert "slave 0" not in message and "slave 2" not in message
-    assert segment.firmwares[1].missed_sync0 == 4
+    assert segment.firmwares[1].missed_sync0 == 3
     assert segment.firmwares[1].device.master_loss.startswith("EtherCAT DC: outputs missed")
     assert all(state in ("quick stop active", "switch on disabled") for _, state in states)
     assert [f.device.state.name for f in segment.firmwares] != ["OPERATION_ENABLED"] * 3
     assert all(f.device.state.name != "OPERATION_ENABLED" for f in segment.firmwares)
     assert all(f.device.brake_engaged for f in segment.firmwares)
+
+
+def test_frames_that_bunch_keep_the_sync_and_three_empty_windows_lose_it():
+    """As the ETG slave stack counts missed windows: a master whose frames go out two in one
+    SYNC0 window and none in the next (late wake-ups under load) keeps every slave in OP, its
+    drive cycling on every SYNC0; frames that stop for three windows in a row lose the sync
+    (0x001A, the drive stopped as for a lost master)."""
+    segment = Segment([Cia402Device(MODEL) for _ in range(2)])
+    master = FrameMaster(segment)
+    master.start(operational=False)
+    master.start_dc()  # SYNC0 0.5 ms into every ms of the master's time, from 100 ms on
+    count = master.count
+
+    def frame(at: float, controlword: int) -> None:
+        segment.run_sync0(at)  # as the line's loop does: the SYNC0 events before the frame
+        outputs = np.zeros(count, master.layouts[0].dtype)
+        outputs["f0"] = controlword
+        data = outputs.tobytes() + bytes(count * master.in_size)
+        sent = bytearray(ec.encode_frame([(Cmd.LRW, 0, 0, data)]))
+        assert segment.process(sent, len(sent), at)
+
+    for k in range(120):  # OP at the first SYNC0 (about 101.5 ms), then enabled
+        frame(k * 1e-3, enable_sequence(max(0, k - 105), count)[0])
+    segment.run_sync0(0.1199)
+    assert [esc.al_status for esc in segment.escs] == [ec.AlState.OP] * count
+    cycles = [firmware.cycles for firmware in segment.firmwares]
+    for k in range(120, 320):  # at 0.1 and 0.4 ms of every other period, none between
+        if k % 2 == 0:
+            frame(k * 1e-3 + 1e-4, 0x0F)
+            frame(k * 1e-3 + 4e-4, 0x0F)
+    segment.run_sync0(0.3199)
+    assert [esc.al_status for esc in segment.escs] == [ec.AlState.OP] * count
+    assert [firmware.missed_sync0 for firmware in segment.firmwares] == [100] * count
+    assert [f.cycles - c for f, c in zip(segment.firmwares, cycles, strict=True)] == [200] * 2
+    assert all(f.device.state.name == "OPERATION_ENABLED" for f in segment.firmwares)
+    segment.run_sync0(0.3209)  # the windows of SYNC0 at 319.5 and 320.5 ms empty: not yet
+    assert [esc.al_status for esc in segment.escs] == [ec.AlState.OP] * count
+    segment.run_sync0(0.3219)  # the third
+    assert [esc.al_status for esc in segment.escs] == [
+        ec.AlState.SAFE_OP | ec.AL_ERROR] * count
+    assert all(f.device.master_loss.startswith("EtherCAT DC: outputs missed")
+               for f in segment.firmwares)
 
 
 def test_sync0_that_stops_is_a_fatal_sync_error():

@@ -151,12 +151,17 @@ def _clock(clock) -> tuple:
             clock.next_sync0, clock.sync0_count)
 
 
+LATE = (400, 460)  # cycles in which the DC master sends every other frame only
+
+
 def test_the_batch_runs_sync0_exactly_as_the_slaves_one_by_one():
     """DC: frames a period apart, SYNC0 half a period after each; the batch moves the steady
     slaves' buffers and runs their SYNC0 cycles at once. Every answer, drive and ESC memory is
     the same as slave by slave, through OP on SYNC0, the enable sequence, a sensor fault, a
-    trip and its reset, a quick stop, and slave 1 pushed off its window (its clock jumped)
-    until it drops out with a sync error; most cycles ran in the batch."""
+    trip and its reset, a quick stop, a master that skips every other frame for a while (its
+    windows without outputs cycle the drives on what they hold), and slave 1 pushed off its
+    window (its clock jumped) until it drops out with a sync error; most cycles ran in the
+    batch."""
     batched, single = _dc_line(True), _dc_line(False)
     for k in range(1000):
         if k == 700:  # slave 1's SYNC0 now 10 us after the frames: inside the outputs' margin
@@ -167,12 +172,13 @@ def test_the_batch_runs_sync0_exactly_as_the_slaves_one_by_one():
         for master in (batched, single):
             master.now += 1e-3
             master.segment.run_sync0(master.now)
-        frames = [m.send(_dc_frame(m, k)) for m in (batched, single)]
-        assert frames[0] == frames[1], f"cycle {k}"
+        if not (LATE[0] <= k < LATE[1] and k % 2):  # a late master: every other frame
+            frames = [m.send(_dc_frame(m, k)) for m in (batched, single)]
+            assert frames[0] == frames[1], f"cycle {k}"
         for master in (batched, single):
             master.segment.run_sync0(master.now + 0.6e-3)
             master.segment.check_watchdogs(master.now)
-        if k % 100 == 0 or k in (501, 701, 705, 720):
+        if k % 100 == 0 or k in (LATE[0] + 1, LATE[1], 501, 701, 705, 720):
             assert _devices(batched) == _devices(single), f"cycle {k}"
             for a, b in zip(batched.segment.escs, single.segment.escs, strict=True):
                 assert a.memory == b.memory, f"cycle {k}"
@@ -181,7 +187,7 @@ def test_the_batch_runs_sync0_exactly_as_the_slaves_one_by_one():
     report = batched.segment.report()
     assert [r["cycles"] for r in report] == [r["cycles"] for r in single.segment.report()]
     assert [r["al_status_code"] for r in report] == [0, 0x001A, 0, 0, 0, 0]
-    assert report[1]["missed_sync0"] >= 4 and report[0]["missed_sync0"] == 0
+    assert report[1]["missed_sync0"] >= 4 and report[0]["missed_sync0"] == 30
     assert report[0]["state"] == "OPERATION_ENABLED" and report[3]["state"] == "FAULT"
     assert all(r["cycles"] > 850 for r in report)
     assert batched.segment.batch.batched > 0.8 * 1000 * SLAVES, batched.segment.batch.batched

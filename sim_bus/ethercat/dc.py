@@ -23,10 +23,13 @@ Registers (ETG.1000.4 / ET1100 datasheet, as far as a master reads or writes the
   0x09A0         SYNC0 cycle time (32 bit, ns)
 """
 
+import math
 import struct
 from collections.abc import Sequence
 
+import numba
 import numpy as np
+from numba.typed import List
 
 REG_RECEIVE_TIME_PORT0 = 0x0900
 REG_RECEIVE_TIME_PORT1 = 0x0904
@@ -85,13 +88,64 @@ def power_on_local_time(position: int) -> int:
     return 1_000_000_000 + position * 1_700_000
 
 
+def _row_field(name: str, kind: type = float) -> property:
+    """An attribute of one clock kept in its row of the line's array `name`."""
+    def get(self) -> float:
+        return kind(getattr(self._line, name)[self._row])
+
+    def put(self, value: float) -> None:
+        getattr(self._line, name)[self._row] = value
+
+    return property(get, put)
+
+
 class DistributedClock:
-    """The DC unit of one ESC, on `memory` (the ESC's register file)."""
+    """The DC unit of one ESC, on `memory` (the ESC's register file). Its state lives in a row
+    of a `LineClocks` (its own line of one until a segment `join`s it to the line's), so what
+    a cyclic frame or a SYNC0 does to every clock of a line is a few array operations there;
+    this class is the slave-by-slave path (registers, set-up) over the same numbers."""
+
+    drift = _row_field("drift")  # the crystal's error, as a fraction (lock-step: 0)
+    hop = _row_field("hop")  # s from the first slave's port 0 to this one's
+    _local_at_zero = _row_field("local_at_zero")  # ns on the local clock at t = 0
+    _correction = _row_field("correction")  # ns the control loop has added
+    _slew = _row_field("slew")  # the control loop's rate correction, as a fraction
+    _anchor_t = _row_field("anchor")  # host time the slew applies from
+    _integral = _row_field("integral")
+    sync0_count = _row_field("sync0_count", int)
 
     def __init__(self, memory: bytearray):
         self.memory = memory
+        self._line, self._row = LineClocks([memory]), 0
+        self._line.clocks.append(self)
         self.place(0, 1)
         self.reset()
+
+    def join(self, line: "LineClocks", row: int) -> None:
+        """Keep this clock's state in row `row` of `line` from now on (as it is now)."""
+        for name in LineClocks.FIELDS:
+            getattr(line, name)[row] = getattr(self._line, name)[self._row]
+        self._line, self._row = line, row
+
+    @property
+    def next_sync0(self) -> int | None:
+        """System time of the next SYNC0 (ns), None: none coming."""
+        return int(self._line.next_sync0[self._row]) if self._line.armed[self._row] else None
+
+    @next_sync0.setter
+    def next_sync0(self, value: int | None) -> None:
+        self._line.armed[self._row] = value is not None
+        self._line.next_sync0[self._row] = 0 if value is None else value & _MASK64
+
+    @property
+    def _next_host(self) -> float | None:
+        """The next SYNC0's host time, once worked out (a cache; None: not yet)."""
+        value = float(self._line.next_host[self._row])
+        return None if math.isnan(value) else value
+
+    @_next_host.setter
+    def _next_host(self, value: float | None) -> None:
+        self._line.next_host[self._row] = math.nan if value is None else value
 
     def place(self, position: int, line_length: int, hop_delay: float = HOP_DELAY) -> None:
         """Where the slave sits: a frame reaches it `position` hops after the first slave
@@ -107,11 +161,11 @@ class DistributedClock:
     def reset(self) -> None:
         """Power-on: the control loop at rest, no cyclic operation."""
         self._anchor_t = 0.0
-        self._correction = 0.0  # ns the control loop has added to the local clock
+        self._correction = 0.0
         self._slew = 0.0
         self._integral = 0.0
-        self.next_sync0: int | None = None  # system time of the next SYNC0 (ns)
-        self._next_host: float | None = None  # its host time, once worked out (a cache)
+        self.next_sync0 = None
+        self._next_host = None
         self.sync0_count = 0
         _U16.pack_into(self.memory, REG_SPEED_COUNTER_START, SPEED_COUNTER_START_DEFAULT)
 
@@ -234,55 +288,126 @@ class DistributedClock:
         return True
 
 
-def compare_line(clocks: Sequence[DistributedClock], data: bytes, times: Sequence[float]
-                 ) -> None:
-    """The reference clock's time `data` (8 bytes, as an FRMW of 0x0910 carries it) written to
-    each of `clocks` at its own host time: `DistributedClock.written` for that write (the
-    compare value in 0x0910, the time control loop's step, the difference in 0x092C), for a
-    whole line in a few array operations instead of a slave at a time through its ESC (31
-    slaves: 56 us of CPU against 176 us, measured with `time.thread_time`). The same
-    arithmetic in the same order, so the same results."""
-    t = np.array(times, dtype=np.float64)
-    local_at_zero = np.array([c._local_at_zero for c in clocks], dtype=np.float64)
-    drift = np.array([c.drift for c in clocks], dtype=np.float64)
-    correction = np.array([c._correction for c in clocks], dtype=np.float64)
-    slew = np.array([c._slew for c in clocks], dtype=np.float64)
-    anchor = np.array([c._anchor_t for c in clocks], dtype=np.float64)
-    integral = np.array([c._integral for c in clocks], dtype=np.float64)
-    offsets = np.array([_U64.unpack_from(c.memory, REG_SYSTEM_TIME_OFFSET)[0] for c in clocks],
-                       dtype=np.uint64)
-    delays = np.array([_U32.unpack_from(c.memory, REG_SYSTEM_TIME_DELAY)[0] for c in clocks],
-                      dtype=np.uint64)
-    # local_time: the float sum truncated, as int() does; then the 64-bit system time
-    local = (local_at_zero + t * 1e9 * (1.0 + drift) + correction
-             + (t - anchor) * 1e9 * slew).astype(np.int64).astype(np.uint64)
-    reference = np.uint64(int.from_bytes(data[:8], "little"))
-    difference = (reference + delays - (local + offsets)).view(np.int64)  # wraps mod 2**64
-    magnitude = np.minimum(np.abs(difference), 0x7FFFFFFF).astype(np.uint32)
-    register = (magnitude | np.where(difference > 0, 0x80000000, 0).astype(np.uint32)).tolist()
-    correction = correction + (t - anchor) * 1e9 * slew
-    # _clamp(value, bound) = max(-bound, min(bound, value))
-    integral = np.maximum(-MAX_SLEW, np.minimum(MAX_SLEW, integral
-                                                + LOOP_INTEGRAL_GAIN * difference))
-    slew = np.maximum(-MAX_SLEW, np.minimum(MAX_SLEW, integral + LOOP_GAIN * difference))
-    # the next SYNC0's host time at the new rate, as `host_time_of` works it out at `t` (the
-    # loop asks for it next; a clock without one keeps None)
-    local = (local_at_zero + t * 1e9 * (1.0 + drift) + correction
-             + (t - t) * 1e9 * slew).astype(np.int64).astype(np.uint64)
-    following = np.array([c.next_sync0 or 0 for c in clocks], dtype=np.uint64)
-    ahead = (following - (local + offsets)).view(np.int64)
-    upcoming = (t + ahead * 1e-9 / (1.0 + drift + slew)).tolist()
-    values = zip(correction.tolist(), integral.tolist(), slew.tolist(), register, times,
-                 upcoming, strict=True)
-    compare = bytes(data[:8])
-    for clock, (corrected, summed, slewed, difference_register, at, host) in zip(
-            clocks, values, strict=True):
-        memory = clock.memory
-        memory[REG_SYSTEM_TIME:REG_SYSTEM_TIME + 8] = compare
-        _U32.pack_into(memory, REG_SYSTEM_TIME_DIFFERENCE, difference_register)
-        clock._correction, clock._anchor_t = corrected, at
-        clock._integral, clock._slew = summed, slewed
-        clock._next_host = None if clock.next_sync0 is None else host
+@numba.njit(cache=True)
+def read_registers(memories, rows: np.ndarray, address: int, size: int) -> np.ndarray:
+    """Row n: `size` bytes at `address` of the memory of slave rows[n]."""
+    out = np.empty((rows.shape[0], size), dtype=np.uint8)
+    for n in range(rows.shape[0]):
+        out[n] = memories[rows[n]][address:address + size]
+    return out
+
+
+@numba.njit(cache=True)
+def write_registers(memories, rows: np.ndarray, address: int, data: np.ndarray) -> None:
+    """Row n of `data` into the memory of slave rows[n] at `address`."""
+    size = data.shape[1]
+    for n in range(rows.shape[0]):
+        memories[rows[n]][address:address + size] = data[n]
+
+
+class LineClocks:
+    """The DC units of a line's slaves, a row each (`DistributedClock.join`), in one set of
+    arrays: the cyclic frame's compare (the reference clock's time fed to every other clock),
+    the line's next SYNC0 and the SYNC0 events due are each a few array operations and two
+    compiled register copies, not a pass over the slaves in Python (31 slaves' compare cost
+    176 us through their ESCs, 56 us gathered into arrays and back, measured with
+    `time.thread_time`). The registers (offset, delay, cycle time) stay in each ESC's memory,
+    read from there at each use, as the per-slave path reads them."""
+
+    FIELDS = ("local_at_zero", "drift", "correction", "slew", "anchor", "integral", "hop",
+              "next_sync0", "armed", "next_host", "sync0_count")
+
+    def __init__(self, memories: Sequence[bytearray]):
+        count = len(memories)
+        self._memories = list(memories)
+        self._views = None  # numba's list of the memories, made at the first array operation
+        self.clocks: list[DistributedClock] = []  # row k's clock, once joined
+        for name in ("local_at_zero", "drift", "correction", "slew", "anchor", "integral",
+                     "hop"):
+            setattr(self, name, np.zeros(count))
+        self.next_sync0 = np.zeros(count, dtype=np.uint64)  # system time, ns
+        self.armed = np.zeros(count, dtype=bool)  # a SYNC0 is coming
+        self.next_host = np.full(count, math.nan)  # its host time (NaN: not worked out)
+        self.sync0_count = np.zeros(count, dtype=np.int64)
+
+    def join(self, clocks: Sequence["DistributedClock"]) -> None:
+        """Every clock of the line keeps its state here, in line order, from now on."""
+        self.clocks = list(clocks)
+        for row, clock in enumerate(clocks):
+            clock.join(self, row)
+
+    @property
+    def memories(self):
+        if self._views is None:
+            self._views = List([np.frombuffer(m, np.uint8) for m in self._memories])
+        return self._views
+
+    def warm(self) -> None:
+        """Load the compiled register copies now, not in the first frame (about 0.1 s)."""
+        none = np.zeros(0, dtype=np.int64)
+        write_registers(self.memories, none, 0, read_registers(self.memories, none, 0, 1))
+
+    def upcoming(self, t: float) -> np.ndarray:
+        """Each clock's next SYNC0 in host time (inf: none coming), seen from `t`; the few not
+        worked out since a register write are worked out slave by slave."""
+        for k in np.flatnonzero(self.armed & np.isnan(self.next_host)).tolist():
+            self.clocks[k].next_sync0_host_time(t)
+        return np.where(self.armed, self.next_host, math.inf)
+
+    def take_due(self, now: float, present: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The SYNC0 of every present clock due by `now`, taken (`DistributedClock.take_sync0`
+        for each, at once): (rows, each one's host time). The next one is a cycle later at
+        today's rate, the SYNC0 status raised, the count kept."""
+        times = self.upcoming(now)
+        rows = np.flatnonzero(present & (times <= now))
+        if not rows.size:
+            return rows, times[rows]
+        at = times[rows]
+        cycles = read_registers(self.memories, rows, REG_SYNC0_CYCLE_TIME, 4).view("<u4")[:, 0]
+        self.next_sync0[rows] += cycles.astype(np.uint64)
+        self.next_host[rows] = at + cycles * 1e-9 / (1.0 + self.drift[rows] + self.slew[rows])
+        self.sync0_count[rows] += 1
+        write_registers(self.memories, rows, REG_SYNC0_STATUS,
+                        np.ones((rows.size, 1), dtype=np.uint8))
+        return rows, at
+
+    def compare(self, rows: np.ndarray, data: bytes, times: np.ndarray) -> None:
+        """The reference clock's time `data` (8 bytes, as an FRMW of 0x0910 carries it)
+        written to the clocks `rows`, each at its own host time `times`: what
+        `DistributedClock.written` does for that write (the compare value in 0x0910, the time
+        control loop's step, the difference in 0x092C, the next SYNC0's host time at the new
+        rate), in the same arithmetic and order, so the same results."""
+        t = times
+        local_at_zero, drift = self.local_at_zero[rows], self.drift[rows]
+        correction, slew = self.correction[rows], self.slew[rows]
+        anchor, integral = self.anchor[rows], self.integral[rows]
+        registers = read_registers(self.memories, rows, REG_SYSTEM_TIME_OFFSET, 12)
+        offsets = registers[:, :8].copy().view("<u8")[:, 0]
+        delays = registers[:, 8:].copy().view("<u4")[:, 0].astype(np.uint64)
+        # local_time: the float sum truncated, as int() does; then the 64-bit system time
+        local = (local_at_zero + t * 1e9 * (1.0 + drift) + correction
+                 + (t - anchor) * 1e9 * slew).astype(np.int64).astype(np.uint64)
+        reference = np.uint64(int.from_bytes(data[:8], "little"))
+        difference = (reference + delays - (local + offsets)).view(np.int64)  # mod 2**64
+        magnitude = np.minimum(np.abs(difference), 0x7FFFFFFF).astype(np.uint32)
+        register = magnitude | np.where(difference > 0, 0x80000000, 0).astype(np.uint32)
+        correction = correction + (t - anchor) * 1e9 * slew
+        # _clamp(value, bound) = max(-bound, min(bound, value))
+        integral = np.maximum(-MAX_SLEW, np.minimum(MAX_SLEW, integral
+                                                    + LOOP_INTEGRAL_GAIN * difference))
+        slew = np.maximum(-MAX_SLEW, np.minimum(MAX_SLEW, integral + LOOP_GAIN * difference))
+        self.correction[rows], self.anchor[rows] = correction, t
+        self.integral[rows], self.slew[rows] = integral, slew
+        # the next SYNC0's host time at the new rate, as `host_time_of` works it out at `t`
+        local = (local_at_zero + t * 1e9 * (1.0 + drift) + correction
+                 + (t - t) * 1e9 * slew).astype(np.int64).astype(np.uint64)
+        ahead = (self.next_sync0[rows] - (local + offsets)).view(np.int64)
+        self.next_host[rows] = np.where(self.armed[rows],
+                                        t + ahead * 1e-9 / (1.0 + drift + slew), math.nan)
+        write_registers(self.memories, rows, REG_SYSTEM_TIME,
+                        np.frombuffer(bytes(data[:8]) * rows.size, np.uint8).reshape(-1, 8))
+        write_registers(self.memories, rows, REG_SYSTEM_TIME_DIFFERENCE,
+                        register.astype("<u4").view(np.uint8).reshape(-1, 4))
 
 
 def _signed64(value: int) -> int:

@@ -14,12 +14,17 @@ period, inputs sampled into SM3, all before the frame leaves this slave.
 DC-synchronous cycle: when the master has activated SYNC0 (`sim_bus.ethercat.dc`) by the time
 it requests OP, the device cycle runs on SYNC0 instead: the outputs that completed in the
 window since the last SYNC0 are latched, the physics advances, the inputs are sampled for the
-next frame to read. As a drive built on the ETG slave stack counts them (SM event missed
-counter 0x1C32:0B against the sync error counter limit 0x10F1:02), a SYNC0 without fresh
-outputs adds SYNC_ERROR_WEIGHT to a counter and one with them takes 1 off; past
-SYNC_ERROR_LIMIT the slave drops to SAFE-OP with AL status code 0x001A (synchronization
-error), and a SYNC0 that stops coming in OP gives 0x002C (fatal sync error); either way the
-drive reacts as to a lost master (abort connection option 0x6007: quick stop by default).
+next frame to read. Missed windows are counted as the ETG slave stack code (SSC, on which most
+drives' firmware is built) counts them (SM event missed counter 0x1C32:0B against the sync
+error counter limit 0x10F1:02): every output buffer takes 1 off the counter and restarts a
+count of SYNC0 events; the first SYNC0 after outputs without new ones is free (SSC's
+u16SmSync0Value of 1 for SYNC0 mode: a frame that falls just after one SYNC0 is taken by the
+next), each further one adds SYNC_ERROR_WEIGHT, and at SYNC_ERROR_LIMIT the slave drops to
+SAFE-OP with AL status code 0x001A (synchronization error): a master whose frames go out
+irregularly (two in one window, none in the next, as a SOEM master's do under load) is
+tolerated, one that stops for three windows is not. A SYNC0 that stops coming in OP gives
+0x002C (fatal sync error); either way the drive reacts as to a lost master (abort connection
+option 0x6007: quick stop by default).
 """
 
 import logging
@@ -39,8 +44,11 @@ from sim_bus.faults import TPDO_DELAY, Fault
 log = logging.getLogger(__name__)
 
 # DC-synchronous operation (assumed figures of the virtual drive, stated here)
-SYNC_ERROR_WEIGHT = 3  # added per SYNC0 without fresh outputs; 1 taken off per good one
-SYNC_ERROR_LIMIT = 9  # tolerates three SYNC0 windows missed in a row, not four
+# SSC's figures: the counter's step per counted miss, its limit (MAX_SM_EVENT_MISSED, the
+# default of 0x10F1:02) and the SYNC0 events after outputs that need none (u16SmSync0Value)
+SYNC_ERROR_WEIGHT = 3
+SYNC_ERROR_LIMIT = 4  # the sync is lost when the counter reaches it: 3 empty windows in a row
+FREE_SYNC0 = 1
 OUTPUT_MARGIN = 20e-6  # s: outputs must be complete this long before SYNC0 (copy time)
 SYNC0_LOSS_CYCLES = 3  # cycle times without SYNC0 in OP: the sync is lost
 
@@ -75,9 +83,10 @@ class SlaveFirmware:
         self.cycles = 0
         self._dc = False  # the device cycle runs on SYNC0 (decided at the OP request)
         self._fresh = False  # outputs completed in the window before the next SYNC0
-        self._sync_errors = 0
+        self._sync_errors = 0  # SSC's SM event missed counter
+        self._since_outputs = 0  # SYNC0 events since the last output buffer (SSC's count)
         self._last_sync0: float | None = None
-        self.missed_sync0 = 0  # SYNC0 events in OP without fresh outputs
+        self.missed_sync0 = 0  # SYNC0 events in OP without fresh outputs (counted or free)
         self.refused_outputs = 0  # output values the device refused (out of its range)
         self.delay_next_frame = 0.0  # s, fault injection: hold the frame this long
         self.repeat_next_frame = False  # fault injection: send the frame twice
@@ -171,7 +180,7 @@ class SlaveFirmware:
             self._dc = False
             return ec.AL_INVALID_DC_SYNC_CONFIGURATION
         self._fresh = False
-        self._sync_errors = 0
+        self._sync_errors = self._since_outputs = 0
         self._last_sync0 = None
         return 0
 
@@ -339,6 +348,8 @@ class SlaveFirmware:
         upcoming = clock.next_sync0_host_time(now)
         if upcoming is None or upcoming - now >= OUTPUT_MARGIN:
             self._fresh = True
+            self._since_outputs = 0
+            self._sync_errors = max(0, self._sync_errors - 1)
 
     def sync0(self, esc: Esc) -> None:
         """DC mode: latch the outputs of the window, advance the physics, sample the inputs."""
@@ -361,16 +372,15 @@ class SlaveFirmware:
             self._op_requested = False
             memory[ec.REG_AL_STATUS] = ec.AlState.OP | memory[ec.REG_AL_STATUS] & ec.AL_ERROR
             state = ec.AlState.OP
-        elif state == ec.AlState.OP:
-            if fresh:
-                self._sync_errors = max(0, self._sync_errors - 1)
-            else:
-                self.missed_sync0 += 1
+        elif state == ec.AlState.OP and not fresh:
+            self.missed_sync0 += 1
+            if self._since_outputs > FREE_SYNC0:
                 self._sync_errors += SYNC_ERROR_WEIGHT
-                if self._sync_errors > SYNC_ERROR_LIMIT:
+                if self._sync_errors >= SYNC_ERROR_LIMIT:
                     self._sync_lost(esc, ec.AL_SYNC_ERROR, "outputs missed their SYNC0 window "
                                     f"{self.missed_sync0} times")
                     state = ec.AlState.SAFE_OP
+        self._since_outputs += 1
         return state == ec.AlState.OP and fresh
 
     def _sync_lost(self, esc: Esc, code: int, reason: str) -> None:

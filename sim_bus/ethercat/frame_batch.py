@@ -49,6 +49,9 @@ _WATCHDOG_REGISTERS = (ec.REG_WATCHDOG_DIVIDER, ec.REG_WATCHDOG_COUNTER_PROCESS_
 _CLOCK_TIMES = (dc.REG_RECEIVE_TIME_PORT0, dc.REG_SPEED_COUNTER_START)
 _TARGETS = frozenset(((objects.TARGET_TORQUE, 0), (objects.TARGET_CURRENT, 0)))
 _CONTROLWORD = (objects.CONTROLWORD, 0)
+# AL status of a slave steady on SYNC0 that a window without outputs leaves as it was: in OP,
+# or in SAFE-OP waiting to enter OP (no error indicator: a slave that just lost its sync has it)
+_WAITING = frozenset((ec.AlState.OP, ec.AlState.SAFE_OP))
 
 
 @numba.njit(cache=True)
@@ -119,16 +122,18 @@ class _Plan:
         self.others = others  # per slave: the spans the ESC still passes (None: all)
         self.watchdogs = watchdogs  # per slave: batched, and its outputs retrigger it
         # the slaves that take the reference clock's time at once, and where it lies
-        self.clock_rows: list[int] = []
+        self.clock_rows = np.zeros(0, dtype=np.int64)
         self.clock_span = (0, 0)
 
 
 class FrameBatch:
-    """The batch of one segment's slaves (`escs`, `firmwares`, `line` in line order)."""
+    """The batch of one segment's slaves (`escs`, `firmwares`, `line` in line order, their
+    distributed clocks joined in `clocks`)."""
 
     def __init__(self, escs: Sequence[Esc], firmwares: Sequence[SlaveFirmware],
-                 line: DriveLine):
+                 line: DriveLine, clocks: dc.LineClocks):
         self.escs, self.firmwares, self.line = list(escs), list(firmwares), line
+        self.clocks = clocks
         count = len(self.escs)
         self.stale = True  # the slaves may have changed: find which are steady again
         # their registers may have changed (FMMUs, sync managers): the frame plans too
@@ -261,7 +266,7 @@ class FrameBatch:
     def _plan_clock(self, plan: _Plan, frame: bytearray, spans: list) -> None:
         """A DC master's reference clock datagram (an FRMW of 0x0910, 8 bytes, after the
         process data, as SOEM appends it): the batched slaves on SYNC0 behind the reference
-        take its write at once (`dc.compare_line`) instead of each through its ESC."""
+        take its write at once (`dc.LineClocks.compare`) instead of each through its ESC."""
         command, header, data, length = spans[-1]
         logical_last = max(n for n, span in enumerate(spans) if span[0] in _LOGICAL)
         if (command != ec.Command.FRMW or length != 8 or logical_last == len(spans) - 1
@@ -275,7 +280,7 @@ class FrameBatch:
         rows = [k for k in plan.rows.tolist() if k > reference and self._dc[k]]
         for k in rows:
             plan.others[k] = plan.others[k][:-1]
-        plan.clock_rows = rows
+        plan.clock_rows = np.array(rows, dtype=np.int64)
         plan.clock_span = data, data + length  # its data and its working counter
 
     def passed_without(self, frame: bytearray, spans: list) -> None:
@@ -370,13 +375,13 @@ class FrameBatch:
                 esc.process(frame, view, rest)
             else:
                 firmware.frame_passed(esc)
-        if plan.clock_rows:
+        rows = plan.clock_rows
+        if rows.size:
             data, counter = plan.clock_span
-            escs = self.escs
-            dc.compare_line([escs[k].dc for k in plan.clock_rows], frame[data:data + 8],
-                            [escs[k].now for k in plan.clock_rows])
+            clocks = self.clocks
+            clocks.compare(rows, frame[data:data + 8], now + clocks.hop[rows])
             ec.WKC.pack_into(frame, counter, (ec.WKC.unpack_from(frame, counter)[0]
-                                              + len(plan.clock_rows)) & 0xFFFF)
+                                              + rows.size) & 0xFFFF)
         return True
 
     def _outputs(self, outputs: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, list]:
@@ -441,9 +446,12 @@ class FrameBatch:
     def sync0(self, rows: Sequence[int]) -> None:
         """The SYNC0 each slave of `rows` has just taken (`Esc.take_sync0`): its firmware's
         window bookkeeping (`SlaveFirmware.sync0_window`), then the drives' cycles: every
-        slave steady on SYNC0 with fresh outputs in one compiled call over its SM2 buffer,
-        its inputs into SM3; the others each through its firmware (`run_cycle`), exactly as
-        `SlaveFirmware.sync0` runs them one by one."""
+        slave steady on SYNC0 in one compiled call, on its SM2 buffer when outputs came in
+        the window and on what its drive holds when none did, its inputs into SM3; the
+        others each through its firmware (`run_cycle`), exactly as `SlaveFirmware.sync0`
+        runs them one by one. (A window without outputs went slave by slave, a device cycle
+        in Python each: on a late master the line fell further behind with every window
+        missed, 7 ms an answer over a veth, and lost its sync.)"""
         line = self.line
         if self.stale:
             self._find_steady()
@@ -453,30 +461,39 @@ class FrameBatch:
         if line.refresh():
             self._find_steady()
         escs, firmwares, steady = self.escs, self.firmwares, self._dc
-        batched, single = [], []
+        # slaves steady on SYNC0 cycle in the batch: with the outputs of their window, or
+        # (none came) with those their drives hold, as the device's cycle without new
+        # outputs runs; only a slave that left its steady state goes through its firmware
+        fresh, held, single = [], [], []
         for k in rows:
             apply = firmwares[k].sync0_window(escs[k])
             if apply is None:
                 continue
-            if apply and steady[k]:
-                batched.append(k)
+            if steady[k] and (apply or escs[k].memory[ec.REG_AL_STATUS] in _WAITING):
+                (fresh if apply else held).append(k)
             else:
                 single.append((k, apply))
-        if batched:
-            rows_ = np.array(batched, dtype=np.int64)
+        if fresh or held:
+            rows_ = np.array(fresh + held, dtype=np.int64)
             outputs = from_buffers(rows_, self._memories, self._starts, 0,
                                    self._layouts[0].size)
             controlwords, targets = self._outputs(outputs, rows_)
+            if held:
+                kept = rows_[len(fresh):]
+                controlwords[kept], kept_targets = line.held_outputs(kept, self._keys[0])
+                for column, values in zip(targets, kept_targets, strict=True):
+                    column[kept] = values
             done = line.cycle(rows_, controlwords, self._keys[0], targets, refresh=False,
                               others_idle=True)
             ran = rows_[done]
             self._encoder.encode(line.values, ran)
             full_outputs = np.zeros((len(self.escs), outputs.shape[1]), dtype=np.uint8)
-            full_outputs[rows_] = outputs
+            full_outputs[rows_] = outputs  # a held slave's buffer written back as it was
             into_buffers(ran, self._memories, self._starts, full_outputs, self._encoder.bytes)
             for k in ran.tolist():
                 firmwares[k].cycles += 1
-            single.extend((k, True) for k in rows_[~done].tolist())
+            single.extend((k, n < len(fresh)) for n, k in zip(
+                np.flatnonzero(~done).tolist(), rows_[~done].tolist(), strict=True))
             self.batched += len(ran)
         if single:
             line.cycled_elsewhere([k for k, _ in single])

@@ -22,11 +22,14 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+import numpy as np
+
 from protocol import esi_path as shipped_esi_path
 from protocol import ethercat as ec
 from protocol.esi import EsiDevice, load_esi
 from protocol.sii import build_sii
 from sim_bus.device import Cia402Device
+from sim_bus.ethercat.dc import LineClocks
 from sim_bus.ethercat.esc import Esc
 from sim_bus.ethercat.firmware import SlaveFirmware
 from sim_bus.ethercat.frame_batch import FrameBatch
@@ -59,9 +62,14 @@ class Segment:
             self.escs.append(esc)
         self.lock = threading.Lock()  # one frame at a time; Python callers take it too
         self.drives = DriveLine(devices)  # their physics in rows of one set of arrays
+        # their distributed clocks in rows of one set of arrays
+        self.clocks = LineClocks([esc.memory for esc in self.escs])
+        self.clocks.join([esc.dc for esc in self.escs])
+        self.clocks.warm()
         # the steady slaves' process data of a frame at once (None: slave by slave, the
         # reference the batch is tested against)
-        self.batch: FrameBatch | None = FrameBatch(self.escs, self.firmwares, self.drives)
+        self.batch: FrameBatch | None = FrameBatch(self.escs, self.firmwares, self.drives,
+                                                   self.clocks)
         self.frames = 0
         self.dropped = 0
         # no process data watchdog can expire before this time (s): `check_watchdogs` looks
@@ -91,39 +99,38 @@ class Segment:
         reference), so the loop wakes once for all that fall within SYNC0_GATHER of the
         first, at the last of them, and the batch runs them in one pass. Exact all the same:
         a frame that arrives before is preceded by the SYNC0 events due by its arrival."""
-        times = [t for esc in self.escs if esc.present
-                 and (t := esc.dc.next_sync0_host_time(now)) is not None]
-        if not times:
+        times = self.clocks.upcoming(now)[self._present()]
+        first = times.min(initial=math.inf)
+        if first == math.inf:
             return None
-        first = min(times)
-        return max(t for t in times if t <= first + SYNC0_GATHER)
+        return float(times[times <= first + SYNC0_GATHER].max())
+
+    def _present(self) -> np.ndarray:
+        return np.fromiter((esc.present for esc in self.escs), dtype=bool,
+                           count=len(self.escs))
 
     def run_sync0(self, now: float) -> int:
         """Every SYNC0 due by `now`, each at its own time (a late wake-up catches up, each
-        slave's events in order; slaves do not depend on each other), the drives' cycles of
-        each round in one batch. The number fired."""
+        slave's events in order; slaves do not depend on each other), taken for the whole
+        line at once (`LineClocks.take_due`), the drives' cycles of each round in one batch.
+        The number fired."""
         fired = 0
-        escs, batch = self.escs, self.batch
-        candidates = range(len(escs))
+        escs, batch, clocks = self.escs, self.batch, self.clocks
         with self.lock:
-            while candidates:
-                due, behind = [], []
-                for k in candidates:
-                    esc = escs[k]
-                    t = esc.dc.next_sync0_host_time(now) if esc.present else None
-                    if t is not None and t <= now and esc.take_sync0(t):
-                        due.append(k)
-                        # a next one may be due too only if this one is half a cycle old
-                        if now - t >= esc.dc.cycle_time * 0.5e-9:
-                            behind.append(k)
+            present = self._present()
+            while True:
+                rows, times = clocks.take_due(now, present)
+                if not rows.size:
+                    return fired
+                due = rows.tolist()
+                for k, t in zip(due, times.tolist(), strict=True):
+                    escs[k].now = t
                 fired += len(due)
                 if batch is None:
                     for k in due:
                         self.firmwares[k].sync0(escs[k])
-                elif due:
+                else:
                     batch.sync0(due)
-                candidates = behind
-        return fired
 
     def check_watchdogs(self, now: float) -> None:
         """The ESCs' process data watchdogs, and the drives' own time once their master is
