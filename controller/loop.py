@@ -131,17 +131,18 @@ class LoopReport:
 # few elements (a one-joint lock-step cycle went from 84 to 136 us of CPU against the scalar
 # loop it replaced; see the commit).
 @numba.njit(**ws.JIT)
-def _screen(table, low, high, velocity_high, believed):  # pragma: no cover - compiled
+def _screen(table, limits, believed):  # pragma: no cover - compiled
     """Per joint: is its drive in operation enabled, and is its state believable (written
-    into `believed`; `BatchSafety.believed`'s rule, a NaN never is)? Returns the first joint
-    whose drive is not enabled (-1: none) and whether every joint is believed."""
+    into `believed`; `BatchSafety.believed`'s rule on `limits`, its `screen_limits`; a NaN
+    never is)? Returns the first joint whose drive is not enabled (-1: none) and whether
+    every joint is believed."""
     everyone = True
     for j in range(table.shape[0]):
         statusword = np.int64(table[j, SAMPLE_STATUSWORD])
         if statusword & cia402.OPERATION_ENABLED_MASK != cia402.OPERATION_ENABLED_BITS:
             return j, everyone
         q, qd = table[j, SAMPLE_POSITION], table[j, SAMPLE_VELOCITY]
-        ok = low[j] <= q <= high[j] and abs(qd) <= velocity_high[j]
+        ok = limits[0, j] <= q <= limits[1, j] and abs(qd) <= limits[2, j]
         believed[j] = ok
         everyone = everyone and ok
     return -1, everyone
@@ -174,12 +175,12 @@ def _prepare(rows, table, believed):  # pragma: no cover - compiled
 
 
 @numba.njit(**ws.JIT)
-def _decisions(rows, usable, header, ok):  # pragma: no cover - compiled
+def _decisions(rows, header, ok):  # pragma: no cover - compiled
     """The rows' headers copied out (the next tick overwrites the rows) and, per joint,
-    whether the solver's status lets its decision go out."""
+    whether the solver's status lets its decision go out (`_USABLE`, a constant here)."""
     header[:] = rows[:, :header.shape[1]]
     for j in range(rows.shape[0]):
-        ok[j] = usable[np.int64(rows[j, ws.STATUS])]
+        ok[j] = _USABLE[np.int64(rows[j, ws.STATUS])]
 
 
 def _named(status: list[str] | None, header: np.ndarray) -> list[str]:
@@ -268,7 +269,7 @@ class MpcJoints:
         # the cycle's kernels loaded now (compiled on a first run), on copies: see ControlLoop
         rows = batch.rows.copy()
         _prepare(rows, np.zeros((len(batch), len(Sample._fields))), ~self._everyone)
-        _decisions(rows, _USABLE, self._header.copy(), self._ok.copy())
+        _decisions(rows, self._header.copy(), self._ok.copy())
 
     def decide(self, t: float, table: np.ndarray, believed: np.ndarray | None,
                safety: BatchSafety) -> Decided:
@@ -284,15 +285,16 @@ class MpcJoints:
             positions = table[:, SAMPLE_POSITION]
             rows[cold, ws.INITIAL_CURRENT] = safety.hold_currents(positions)[cold]
         batch.run(t)
-        header, ok = self._header, self._ok
-        _decisions(rows, _USABLE, header, ok)
-        return Decided(header, ok, None, False)
+        _decisions(rows, self._header, self._ok)
+        return self._decided
 
     def _buffers(self, count: int, width: int) -> None:
         self._everyone = np.ones(count, dtype=bool)
         self._header = np.empty((count, ws.HEADER))
         self._ok = np.empty(count, dtype=bool)
         self._width = width
+        # every cycle's decision: these buffers, written in place by `decide`
+        self._decided = Decided(self._header, self._ok, None, False)
 
     def joint(self, index: int) -> _BatchJoint:
         return self._joints[index]
@@ -425,7 +427,7 @@ class ControlLoop:
         a first cycle held that long left the drives without SYNC past their watchdog."""
         count = len(self.names)
         table = np.zeros((count, len(Sample._fields)))  # statusword 0: screened out at once
-        _screen(table, *self._screen_limits, np.zeros(count, dtype=bool))
+        _screen(table, self._screen_limits, np.zeros(count, dtype=bool))
         _check(np.zeros((count, ws.HEADER)), np.zeros(count, dtype=bool),
                self._safety.current_max, np.zeros(count))
 
@@ -528,7 +530,7 @@ class ControlLoop:
         for warning in joints.warnings():
             self.fault(t, "drive", warning, "continuing: the command does not use it")
         believed = self._believed
-        disabled, everyone = _screen(table, *self._screen_limits, believed)
+        disabled, everyone = _screen(table, self._screen_limits, believed)
         if disabled >= 0:
             name, self.failed_joint = self.names[disabled], self.names[disabled]
             statusword = int(table[disabled, SAMPLE_STATUSWORD])

@@ -116,10 +116,11 @@ class BatchSafety:
         self._position_high = np.array([lim.position_max + STATE_MARGIN for lim in limits])
         self._velocity_high = np.array([VELOCITY_MARGIN * lim.velocity_max for lim in limits])
 
-    def screen_limits(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per joint: the lowest and highest believable position (rad) and the highest
-        believable speed (rad/s), as `believed` applies them (for a compiled cycle)."""
-        return self._position_low, self._position_high, self._velocity_high
+    def screen_limits(self) -> np.ndarray:
+        """Rows over the joints: the lowest and highest believable position (rad) and the
+        highest believable speed (rad/s), as `believed` applies them (one array for a compiled
+        cycle: each array argument costs a compiled call about 0.1 us)."""
+        return np.array([self._position_low, self._position_high, self._velocity_high])
 
     def hold_currents(self, positions: np.ndarray) -> np.ndarray:
         """`holding_current` of every joint (A), within its limit (`positions`: one per joint

@@ -83,13 +83,16 @@ class RingStats:
 
     def __init__(self, window: int = STATS_WINDOW):
         self._values = np.zeros(window)
+        self._window = window
         self.count = 0
         self.max = 0.0
 
     def add(self, value: float) -> None:
-        self._values[self.count % len(self._values)] = value
-        self.count += 1
-        self.max = max(self.max, value)
+        count = self.count
+        self._values[count % self._window] = value
+        self.count = count + 1
+        if value > self.max:  # NaN never is: as max() kept the maximum
+            self.max = value
 
     def percentile(self, q: float) -> float:
         n = min(self.count, len(self._values))

@@ -17,15 +17,13 @@ import can
 import canopen
 import numpy as np
 
+from driver import process_image
 from driver.cia402_drive import Cia402Drive
 from driver.ethercat_dc import DcLine
 from driver.interface import (
     SAMPLE_JOINT_TORQUE,
-    SAMPLE_MOTOR_CURRENT,
     SAMPLE_POSITION,
     SAMPLE_STATUSWORD,
-    SAMPLE_T,
-    SAMPLE_VELOCITY,
     CommandRangeError,
     DriveError,
     DriveFault,
@@ -34,7 +32,7 @@ from driver.interface import (
     Sample,
 )
 from driver.process_image import FAULT_BITS, FAULT_MASK, decode, encode
-from protocol import cia301, cia402
+from protocol import cia402
 
 SAMPLE_COLUMNS = Sample._fields
 
@@ -285,18 +283,21 @@ class EthercatLine(Segment):
             return
         self._in_dtype, self._out_dtype = inputs.pop(), outputs.pop()
         self._out_size = self._out_dtype.itemsize
-        self._joint_torque = drives[0].profile.has_joint_torque
         scaling = [drive.scaling for drive in drives]
-        self._rad = np.array([s.rad_per_increment for s in scaling])
-        self._amps = np.array([s.amps_per_feedback_unit for s in scaling])
-        self._torque = np.array([s.joint_torque_per_unit for s in scaling])
+        self._scale = np.array([[s.rad_per_increment, s.amps_per_feedback_unit,
+                                 s.joint_torque_per_unit, drive.guard.max_position_step]
+                                for s, drive in zip(scaling, drives, strict=True)])
         self._target_per_amp = np.array([s.target_units_per_amp for s in scaling])
         self._current_limit = np.array([drive.current_limit for drive in drives])
-        self._max_step = np.array([drive.guard.max_position_step for drive in drives])
+        # the line's images as the bus's are (`driver.process_image`): every slave's inputs
+        # (outputs) one after the other, each PDO entry at its offset with its size and sign
+        self._in_layout = _image_layout(self._in_dtype, len(drives), process_image.INPUTS)
+        self._out_layout = _image_layout(self._out_dtype, len(drives), process_image.OUTPUTS)
+        self._out = np.zeros(len(drives) * self._out_size, dtype=np.uint8)
+        self._controlword = cia402.Command.ENABLE_OPERATION.value
         self._period = drives[0].period
         self._cycle = drives[0].cycle
-        self._previous: np.ndarray | None = None
-        self._outputs = np.zeros(len(drives), self._out_dtype)
+        self._previous = np.full(len(drives), np.nan)  # NaN: no step to judge yet
         self._warnings: list[str] = []
         self._warning_lists = [lst for drive in drives for lst in drive.warning_lists]
         # a drive faulted since the line last looked (or the first cycle): one look a cycle
@@ -358,48 +359,43 @@ class EthercatLine(Segment):
             raise self.failed(self.joints[0][0], exc) from exc
         with self._line.lock:  # the line's keeper may be sending a frame
             data = b"".join([slave.input for slave in self._slaves])
-        raw = np.frombuffer(data, self._in_dtype)
         self._cycle += 1
+        # on distributed clocks the drives move on at SYNC0 while the master is late
+        cycles = 1 if self._line.dc is None else self._line.dc.elapsed_periods
         table = np.empty((len(self._drives), len(SAMPLE_COLUMNS)))
-        table[:, SAMPLE_T] = self._cycle * self._period
-        table[:, SAMPLE_POSITION] = raw["f1"] * self._rad
-        table[:, SAMPLE_VELOCITY] = raw["f2"] * self._rad
-        table[:, SAMPLE_MOTOR_CURRENT] = raw["f3"] * self._amps
-        statuswords = raw["f0"]
-        table[:, SAMPLE_STATUSWORD] = statuswords
-        if self._joint_torque:
-            reading = raw["f4"]
-            saturated = (reading >= cia301.INT32_MAX) | (reading <= cia301.INT32_MIN)
-            table[:, SAMPLE_JOINT_TORQUE] = np.where(saturated, np.nan, reading * self._torque)
-            for j in np.flatnonzero(saturated):
-                self._warnings.append(f"joint {self.joints[j][0]}: joint torque sensor reading "
-                                      f"saturated ({int(reading[j])} mN.m)")
-        else:
-            table[:, SAMPLE_JOINT_TORQUE] = np.nan
-        previous, self._previous = self._previous, table[:, SAMPLE_POSITION]
-        if previous is not None:
-            # on distributed clocks the drives move on at SYNC0 while the master is late
-            cycles = 1 if self._line.dc is None else self._line.dc.elapsed_periods
-            jumped = np.abs(table[:, SAMPLE_POSITION] - previous) > self._max_step * cycles
-            if jumped.any():
-                j = int(np.argmax(jumped))
-                drive = self._drives[j]
-                try:
-                    drive.guard.check_step(float(previous[j]), float(table[j, SAMPLE_POSITION]),
-                                           drive.name, cycles)
-                except EncoderGlitch as error:
-                    drive.fail(error)
-                    raise JointFailure(self.joints[j][0], error) from error
-        faulted = (statuswords & FAULT_MASK) == FAULT_BITS
-        if faulted.any():  # the drive's own path names the emergency behind it
-            j = int(np.argmax(faulted))
-            joint, drive = self.joints[j]
+        glitch, faulted, saturated = decode(np.frombuffer(data, np.uint8), self._in_layout,
+                                            self._scale, self._cycle * self._period,
+                                            self._previous, cycles, table)
+        if glitch >= 0 or faulted >= 0 or saturated >= 0:
+            self._judge(data, table, cycles, glitch, faulted, saturated)
+        return table
+
+    def _judge(self, data: bytes, table: np.ndarray, cycles: int, glitch: int, faulted: int,
+               saturated: int) -> None:
+        """The rare outcomes of a cycle's decoding, in the drives' own words: a saturated
+        torque reading is a warning; an encoder glitch fails its joint; a drive in fault
+        names the emergency behind it (its own path reads it)."""
+        raw = np.frombuffer(data, self._in_dtype)
+        if saturated >= 0:
+            for j in np.flatnonzero(np.isnan(table[:, SAMPLE_JOINT_TORQUE])):
+                if self._drives[j].profile.has_joint_torque:
+                    self._warnings.append(f"joint {self.joints[j][0]}: joint torque sensor "
+                                          f"reading saturated ({int(raw['f4'][j])} mN.m)")
+        if glitch >= 0:
+            drive = self._drives[glitch]
+            try:
+                drive.guard.check_step(float(self._previous[glitch]),
+                                       float(table[glitch, SAMPLE_POSITION]), drive.name, cycles)
+            except EncoderGlitch as error:
+                drive.fail(error)
+                raise JointFailure(self.joints[glitch][0], error) from error
+        if faulted >= 0:
+            joint, drive = self.joints[faulted]
             self._check_line(joint)
             try:
-                drive.take(lambda: tuple(int(v) for v in raw[j]))
+                drive.take(lambda: tuple(int(v) for v in raw[faulted]))
             except DriveError as exc:
                 raise JointFailure(joint, exc) from exc
-        return table
 
     def command(self, currents: np.ndarray) -> None:
         """This cycle's motor currents (A), one per joint of the line, out in the next frame."""
@@ -410,23 +406,32 @@ class EthercatLine(Segment):
                 if isinstance(failure.cause, DriveFault):
                     self._check_line(failure.joint)
                 raise
-        bad = ~(np.abs(currents) <= self._current_limit)  # NaN is bad too
-        if bad.any():
-            j = int(np.argmax(bad))
-            joint, drive = self.joints[j]
+        bad = encode(currents, self._current_limit, self._target_per_amp, self._controlword,
+                     self._out_layout, self._out)
+        if bad >= 0:
+            joint, drive = self.joints[bad]
             try:
-                drive.command_current(float(currents[j]))  # its own words for the refusal
+                drive.command_current(float(currents[bad]))  # its own words for the refusal
             except (CommandRangeError, DriveError) as exc:
                 raise JointFailure(joint, exc) from exc
         if self._alarmed or self._line.failure is not None:
             self._look_at_drives()
-        outputs = self._outputs
-        outputs["f0"] = cia402.Command.ENABLE_OPERATION.value
-        outputs["f1"] = np.rint(currents * self._target_per_amp)
-        data, size = outputs.tobytes(), self._out_size
+        data, size = self._out.tobytes(), self._out_size
         with self._line.lock:
             for k, slave in enumerate(self._slaves):
                 slave.output = data[k * size:(k + 1) * size]
+
+
+def _image_layout(dtype: np.dtype, slaves: int, entries: int) -> np.ndarray:
+    """A `driver.process_image` layout of `slaves` images of `dtype` one after the other (a
+    line's input or output image): per slave and entry (f0, f1, ... in PDO order), its offset
+    in the line's image and its code (0 where the slave's PDO has fewer entries)."""
+    layout = np.zeros((slaves, 2 * entries), dtype=np.int64)
+    for k, name in enumerate(dtype.names[:entries]):
+        entry, offset = dtype.fields[name][:2]
+        layout[:, 2 * k] = np.arange(slaves) * dtype.itemsize + offset
+        layout[:, 2 * k + 1] = process_image.code(entry.itemsize, entry.kind == "i")
+    return layout
 
 
 class DriveGroup:

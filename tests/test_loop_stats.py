@@ -1,0 +1,78 @@
+"""What the loop reports as it runs costs the cycle little however long the run: LoopStats'
+percentiles cover the cycles since the last LoopStats (the last message: the run's), and a
+Plan is built from its arrays' bytes, the same message as field by field."""
+
+from pathlib import Path
+
+import numpy as np
+
+from controller import messages
+from controller.loop import ControlLoop, LoopOptions
+from controller.mpc import BatchMpc, JointProblem
+from controller.policy import PlanSnapshot
+from controller.problem import OcpSettings
+from driver.clock import DriveClock, RingStats
+from model.parameters import load_model
+from robot.description import JointSpec, RobotSpec, default_reference
+from robot.wiring import open_robot
+
+MODEL = load_model()
+
+
+def test_recent_percentiles_are_those_of_the_last_values_across_the_ring_wrap():
+    ring = RingStats(window=10)
+    values = np.arange(1.0, 24.0) ** 1.5  # 23 values: the ring wrapped twice
+    for value in values:
+        ring.add(value)
+    for last in (1, 3, 7, 10):
+        assert ring.recent_percentiles((50, 99), last) == np.percentile(
+            values[-last:], [50, 99]).tolist()
+    assert ring.recent_percentiles((50,), 50) == [float(np.percentile(values[-10:], 50))]
+    assert np.isnan(ring.recent_percentiles((99,), 0)[0])
+
+
+def test_loop_stats_cover_the_cycles_since_the_last_and_the_last_the_run():
+    spec = RobotSpec(name="stats", period_us=1000,
+                     joints=(JointSpec("elbow", "can0", 1, MODEL, None, {},
+                                       default_reference(MODEL.limits)),),
+                     bitrates={}, source=Path("<test>"))
+    connection = open_robot(spec, sim=True, clock=DriveClock(), seed=0, period=1e-3,
+                            response_timeout=1.0)
+    stats = []
+    try:
+        connection.group.start()
+        batch = BatchMpc([JointProblem(MODEL, OcpSettings(horizon=10))])
+        loop = ControlLoop(connection.group, batch,
+                           LoopOptions(clock=DriveClock(), duration=0.25, stats_every=0.1),
+                           [lambda m: stats.append(m) if type(m) is messages.LoopStats else None])
+        report = loop.run()
+    finally:
+        connection.close()
+    assert report.cycles == 250 and [m.cycles for m in stats] == [100, 200, 250]
+    solve = report.solve.recent()  # every cycle's but the cold first
+    since = 0
+    for message in stats[:-1]:
+        until = message.cycles - 1
+        median, p99 = np.percentile(solve[since:until], [50, 99])
+        assert (message.solve_median_us, message.solve_p99_us) == (median, p99)
+        assert message.solve_max_us == solve[:until].max()
+        since = until
+    last = stats[-1]
+    assert (last.solve_median_us, last.solve_p99_us) == tuple(np.percentile(solve, [50, 99]))
+
+
+def test_a_plan_from_its_arrays_bytes_is_the_plan_field_by_field():
+    rng = np.random.default_rng(1)
+    states = rng.normal(size=(101, 3))  # strided columns, as the solver's trajectories give
+    snapshot = PlanSnapshot(0.25, 1e-3, states[:, 0], states[:, 1], rng.normal(size=100),
+                            rng.normal(size=101))
+    assert messages.plan(snapshot) == messages.Plan(
+        t=0.25, dt=1e-3, position=states[:, 0].tolist(), velocity=states[:, 1].tolist(),
+        current=snapshot.current.tolist(),
+        reference_position=snapshot.reference_position.tolist())
+    empty = np.zeros(0)
+    assert messages.plan(PlanSnapshot(0.0, 1e-3, empty, empty, empty, empty)) == messages.Plan(
+        dt=1e-3)
+    long = np.arange(3000.0)  # a length of two varint bytes and more
+    assert list(messages.plan(PlanSnapshot(0.0, 1e-3, long, long, long, long)).current) == (
+        long.tolist())
