@@ -347,6 +347,11 @@ class LineClocks:
         none = np.zeros(0, dtype=np.int64)
         write_registers(self.memories, none, 0, read_registers(self.memories, none, 0, 1))
 
+    def cycle_times(self, rows: np.ndarray) -> np.ndarray:
+        """SYNC0 cycle time of each clock of `rows`, s."""
+        return read_registers(self.memories, rows, REG_SYNC0_CYCLE_TIME, 4).view(
+            "<u4")[:, 0] * 1e-9
+
     def upcoming(self, t: float) -> np.ndarray:
         """Each clock's next SYNC0 in host time (inf: none coming), seen from `t`; the few not
         worked out since a register write are worked out slave by slave."""

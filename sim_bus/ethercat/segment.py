@@ -31,7 +31,7 @@ from protocol.sii import build_sii
 from sim_bus.device import Cia402Device
 from sim_bus.ethercat.dc import LineClocks
 from sim_bus.ethercat.esc import Esc
-from sim_bus.ethercat.firmware import SlaveFirmware
+from sim_bus.ethercat.firmware import LineSync, SlaveFirmware
 from sim_bus.ethercat.frame_batch import FrameBatch
 from sim_bus.line_physics import DriveLine
 
@@ -68,8 +68,11 @@ class Segment:
         self.clocks.warm()
         # the steady slaves' process data of a frame at once (None: slave by slave, the
         # reference the batch is tested against)
+        # their SYNC0 bookkeeping in rows of one set of arrays
+        self.sync = LineSync(len(self.firmwares))
+        self.sync.join(self.firmwares)
         self.batch: FrameBatch | None = FrameBatch(self.escs, self.firmwares, self.drives,
-                                                   self.clocks)
+                                                   self.clocks, self.sync)
         self.frames = 0
         self.dropped = 0
         # no process data watchdog can expire before this time (s): `check_watchdogs` looks
@@ -130,7 +133,7 @@ class Segment:
                     for k in due:
                         self.firmwares[k].sync0(escs[k])
                 else:
-                    batch.sync0(due)
+                    batch.sync0(rows, times)
 
     def check_watchdogs(self, now: float) -> None:
         """The ESCs' process data watchdogs, and the drives' own time once their master is
