@@ -357,8 +357,9 @@ class FrameBatch:
         # the outputs' bookkeeping of the slaves in OP on SYNC0 at once, each at its own time;
         # slaves entering OP, and any whose SYNC0 stopped, each through its firmware
         alone = self._outputs_in_op(plan.rows[on_sync0 & done], now) if on_sync0.any() else ()
-        for k, esc in enumerate(self.escs):
-            esc.now = now + esc.dc.hop
+        for k, (esc, at) in enumerate(zip(self.escs, (now + self.clocks.hop).tolist(),
+                                          strict=True)):
+            esc.now = at
             rest = others[k]
             if rest is None:
                 esc.process(frame, view, spans)

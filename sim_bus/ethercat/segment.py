@@ -102,6 +102,8 @@ class Segment:
         reference), so the loop wakes once for all that fall within SYNC0_GATHER of the
         first, at the last of them, and the batch runs them in one pass. Exact all the same:
         a frame that arrives before is preceded by the SYNC0 events due by its arrival."""
+        if not self.clocks.armed.any():  # free run: no SYNC0 anywhere
+            return None
         times = self.clocks.upcoming(now)[self._present()]
         first = times.min(initial=math.inf)
         if first == math.inf:
@@ -119,6 +121,8 @@ class Segment:
         The number fired."""
         fired = 0
         escs, batch, clocks = self.escs, self.batch, self.clocks
+        if not clocks.armed.any():  # free run: no SYNC0 anywhere
+            return 0
         with self.lock:
             present = self._present()
             while True:
