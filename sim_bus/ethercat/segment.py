@@ -138,6 +138,8 @@ class Segment:
                         self.firmwares[k].sync0(escs[k])
                 else:
                     batch.sync0(rows, times)
+                if not (clocks.next_host[rows] <= now).any():  # none of them due again
+                    return fired
 
     def check_watchdogs(self, now: float) -> None:
         """The ESCs' process data watchdogs, and the drives' own time once their master is
