@@ -227,9 +227,7 @@ def _joint_setup(args: argparse.Namespace) -> "_Setup | int":
         title = f"{payload.mass:g} kg payload, {title}"
     return _Setup(
         batch, [name], [model], [payload], period,
-        # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host
-        lambda: open_drive(args, model, sim_model, payload, schedule, name, period=period,
-                           response_timeout=1.0 if args.lockstep else 0.1),
+        lambda: open_drive(args, model, sim_model, payload, schedule, name, period=period),
         lambda connection: (f"{connection.address} on {connection.where} enabled; "
                             f"telemetry under {args.prefix}/"),
         plot_title=title)
@@ -424,11 +422,8 @@ def _robot_setup(args: argparse.Namespace) -> "_Setup | int":
     return _Setup(
         batch, [j.name for j in robot.joints], [j.model for j in robot.joints],
         [problem.payload for problem in problems], period,
-        # real time: a sample 100 ms late is a dead drive; lock-step: allow for a slow host
         lambda: open_robot(robot, sim=args.sim, clock=clock_for(args.lockstep),
-                           seed=args.seed,
-                           period=period, response_timeout=1.0 if args.lockstep else 0.1,
-                           faults=faults),
+                           seed=args.seed, period=period, faults=faults),
         lambda connection: (f"{len(connection.group)} joints of {robot.name} on "
                             f"{', '.join(robot.buses())}{' (--sim)' if args.sim else ''} "
                             f"enabled; telemetry under {args.prefix}/"),

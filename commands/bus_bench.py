@@ -45,7 +45,7 @@ def _stage(text: str) -> None:
 def _in_process(cycles: int) -> float:
     """SYNC cycles a second, master and virtual drive in this process on python-can's
     `virtual` bus, both on drive time."""
-    from driver.clock import clock_for
+    from driver.clock import DriveClock
     from model.parameters import Payload, load_model
     from sim_bus.canopen_node import CanOpenNode
     from sim_bus.device import Cia402Device
@@ -55,10 +55,10 @@ def _in_process(cycles: int) -> float:
     channel = f"virtual:bench-{random.getrandbits(32)}"
     sim_network = open_network(channel)
     sim = CanOpenNode(sim_network, 2, Cia402Device(model, Payload(), SensorNoise(), node_id=2),
-                      clock=clock_for(lockstep=True))
+                      clock=DriveClock())
     sim.boot()
     master = CanOpenDrive(open_network(channel), 2, velocity_limit=model.limits.velocity_max,
-                          clock=clock_for(lockstep=True))
+                          clock=DriveClock())
     try:
         master.start()
         start = time.perf_counter()
@@ -150,6 +150,12 @@ def main(argv: list[str] | None = None) -> int:
                              "(default: %(default)s)")
     parser.add_argument("--starts", type=int_range(1, 1000), default=3, metavar="N",
                         help="--robot: runs started one after the other (default: %(default)s)")
+    parser.add_argument("--sim", action="store_true",
+                        help="--robot: the virtual drives embedded in actuatord's process "
+                             "(`actuatord --robot --sim` in real time) instead of their own")
+    parser.add_argument("--busy-loops", type=int_range(0, 64), default=0, metavar="N",
+                        help="--robot: N CPU-bound processes at normal priority beside the "
+                             "floor and every start, as on a busy host (default: %(default)s)")
     which = parser.add_mutually_exclusive_group()
     which.add_argument("--no-ethercat", action="store_true", help="the CAN figures only")
     which.add_argument("--ethercat-only", action="store_true", help="the EtherCAT figures only")
@@ -166,6 +172,8 @@ def main(argv: list[str] | None = None) -> int:
     add_logging_argument(parser)
     args = parser.parse_args(argv)
     configure_logging(parser.prog, args.log_level)
+    if args.robot is None and (args.sim or args.busy_loops):
+        return usage_error(parser.prog, "--sim and --busy-loops go with --robot FILE")
     from driver import DriveError
 
     result: dict = {"cpus": os.cpu_count(),
@@ -176,7 +184,8 @@ def main(argv: list[str] | None = None) -> int:
         from sim_bus.ethercat.netns import LinkUnavailable
 
         try:
-            result.update(robot_real_time(args.robot, args.duration, args.starts, args.sync))
+            result.update(robot_real_time(args.robot, args.duration, args.starts, args.sync,
+                                          sim=args.sim, busy_loops=args.busy_loops))
         except RobotFileError as exc:
             return usage_error(parser.prog, str(exc))
         except LinkUnavailable as exc:
@@ -188,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
         if not args.ethercat_only:
             _stage(f"CAN, master and virtual drive in one process, {args.cycles} lock-step "
                    "cycles ...")
-            result["in_process_lockstep_cycles_per_s"] = round(
+            result["in_process_drive_time_cycles_per_s"] = round(
                 _in_process(args.cycles))
             _stage(f"CAN over udp_multicast, sim-bus in a second process, {args.cycles} "
                    "cycles ...")

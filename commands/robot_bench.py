@@ -2,7 +2,9 @@
 in one process (`sim-bus --robot`) and the master in another (`actuatord --robot`), started
 `--starts` times, beside this machine's own floor (a bare 1 kHz loop) measured in the same
 run: how many starts reached their first cycle and their end, missed cycles by cause, jitter,
-the MPC tick and the master's own cost.
+the MPC tick and the master's own cost. `--sim` runs the drives embedded in the master's
+process instead (`actuatord --robot --sim` in real time); `--busy-loops N` runs N CPU-bound
+processes at normal priority beside the floor and every start, as a busy host has them.
 
 EtherCAT lines run over a veth between two network namespaces of the bench's own, each end
 named as the robot file names the line (root); CAN buses, which this kind of machine has no
@@ -17,8 +19,10 @@ import sys
 import tempfile
 import threading
 import tomllib
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
+import numpy as np
 import tomli_w
 
 from driver.clock import bare_loop
@@ -33,26 +37,38 @@ def stage(text: str) -> None:
     print(f"bus-bench: {text}", file=sys.stderr, flush=True)
 
 
-def run(robot_path: str, duration: float, starts: int, sync: str | None = None) -> dict:
+def run(robot_path: str, duration: float, starts: int, sync: str | None = None, *,
+        sim: bool = False, busy_loops: int = 0) -> dict:
     """Everything `bus-bench --robot` prints (one JSON object); `sync` ("free_run" or "dc"):
-    every EtherCAT line of the robot on it instead of the robot file's own choice."""
+    every EtherCAT line of the robot on it instead of the robot file's own choice; `sim`: the
+    drives embedded in the master's process; `busy_loops`: CPU-bound processes beside it."""
     robot = load_robot(robot_path)
-    stage(f"this machine's floor: a bare 1 kHz loop at real-time priority for {duration:g} s")
-    floor = bare_loop(duration)
-    lines = sorted({parse_bus_spec(bus)["channel"] for bus in robot.buses() if is_ethercat(bus)})
-    runs = []
-    with tempfile.TemporaryDirectory(prefix="bus-bench-") as folder, \
-            contextlib.ExitStack() as stack:
+    with contextlib.ExitStack() as stack:
+        if busy_loops:
+            stage(f"{busy_loops} CPU-bound loop{'s' * (busy_loops > 1)} beside everything")
+            stack.enter_context(_busy_loops(busy_loops))
+        stage(f"this machine's floor: a bare 1 kHz loop at real-time priority for "
+              f"{duration:g} s")
+        floor = bare_loop(duration)
+        lines = sorted({parse_bus_spec(bus)["channel"] for bus in robot.buses()
+                        if is_ethercat(bus)}) if not sim else []
+        runs = []
+        folder = stack.enter_context(tempfile.TemporaryDirectory(prefix="bus-bench-"))
         path = _with_buses_here(Path(robot_path), Path(folder), sync)
         pair = stack.enter_context(NamespacePair(lines)) if lines else None
         for start in range(1, starts + 1):
             stage(f"start {start}/{starts}: {len(robot.joints)} joints of {robot.name}, "
-                  f"{duration:g} s in real time")
+                  f"{duration:g} s in real time{', drives embedded' if sim else ''}")
             runs.append(_one_start(pair, path, duration, Path(folder) / f"run{start}.json",
-                                   robot.period_us))
+                                   robot.period_us, sim))
     cycles = round(duration * 1e6 / robot.period_us)
+    for one in runs:
+        if "missed" in one:
+            one["missed_percent"] = round(100 * one["missed"] / cycles, 3)
+    missed = [one["missed_percent"] for one in runs if one["started"] and "missed_percent" in one]
     return {
         "robot": robot.name, "joints": len(robot.joints), "duration_s": duration,
+        "drives": "embedded" if sim else "own process", "busy_loops": busy_loops,
         "ethercat_sync": {bus: sync or robot.sync(bus) for bus in robot.buses()
                           if is_ethercat(bus)},
         "floor": {"cycles": cycles, "missed": floor.missed_cycles,
@@ -61,16 +77,36 @@ def run(robot_path: str, duration: float, starts: int, sync: str | None = None) 
                   "jitter_max_us": round(floor.jitter_us.max, 1)},
         "starts": {"asked": starts, "started": sum(r["started"] for r in runs),
                    "ran_to_the_end": sum(r.get("exit_code") == 0 for r in runs)},
+        # over the starts that ran: what a reader holds against 3x the floor
+        "missed_percent": {"median": float(np.median(missed)), "max": max(missed)}
+        if missed else None,
         "runs": runs,
     }
 
 
+@contextlib.contextmanager
+def _busy_loops(count: int) -> Iterator[None]:
+    """`count` processes spinning at normal priority until the block ends."""
+    loops = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
+             for _ in range(count)]
+    try:
+        yield
+    finally:
+        for loop in loops:
+            loop.kill()
+            loop.wait()
+
+
 def _one_start(pair: NamespacePair | None, path: Path, duration: float, report: Path,
-               period_us: int) -> dict:
-    """One start: the drives' process until ready, actuatord for `duration`, the drives
-    stopped; actuatord's figures (its --report) with whether it started."""
+               period_us: int, sim: bool = False) -> dict:
+    """One start: the drives' process until ready (none with `sim`), actuatord for
+    `duration`, the drives stopped; actuatord's figures (its --report) with whether it
+    started."""
     def inside(side: str, argv: list[str]) -> list[str]:
         return pair.command(side, argv) if pair is not None else argv
+
+    if sim:
+        return _master(inside, path, duration, report, period_us, ["--sim"])
 
     errors = report.with_suffix(".sim-bus.err")
     with errors.open("w") as stderr:
@@ -85,13 +121,7 @@ def _one_start(pair: NamespacePair | None, path: Path, duration: float, report: 
             return {"started": False, "error": f"sim-bus did not start: {ready.strip()} "
                                                f"{errors.read_text().strip()[-300:]}"}
         threading.Thread(target=drives.stdout.read, daemon=True).start()
-        master = subprocess.run(
-            inside("master", [sys.executable, "-m", "commands.actuatord", "--robot", str(path),
-                              "--duration", f"{duration:g}", "--no-multicast-scouting",
-                              # the MPC steps as the robot cycles (the default dt is 1 ms)
-                              "--period-us", str(period_us), "--dt", f"{period_us * 1e-6:g}",
-                              "--report", str(report)]),
-            capture_output=True, text=True, timeout=duration * 20 + START_TIMEOUT)
+        return _master(inside, path, duration, report, period_us)
     finally:
         drives.send_signal(2)  # SIGINT: sim-bus reports and ends
         try:
@@ -99,6 +129,19 @@ def _one_start(pair: NamespacePair | None, path: Path, duration: float, report: 
         except subprocess.TimeoutExpired:
             drives.kill()
             drives.wait(10)
+
+
+def _master(inside: Callable[[str, list[str]], list[str]], path: Path, duration: float,
+            report: Path, period_us: int, extra: Sequence[str] = ()) -> dict:
+    """actuatord on the robot for `duration`: its figures (its --report) with whether it
+    started."""
+    master = subprocess.run(
+        inside("master", [sys.executable, "-m", "commands.actuatord", "--robot", str(path),
+                          "--duration", f"{duration:g}", "--no-multicast-scouting",
+                          # the MPC steps as the robot cycles (the default dt is 1 ms)
+                          "--period-us", str(period_us), "--dt", f"{period_us * 1e-6:g}",
+                          "--report", str(report), *extra]),
+        capture_output=True, text=True, timeout=duration * 20 + START_TIMEOUT)
     out = {"started": " enabled;" in master.stdout}
     if report.exists():
         out.update(json.loads(report.read_text()))

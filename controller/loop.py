@@ -117,12 +117,13 @@ class LoopReport:
                 "mpc_tick": stats(self.solve), "master": stats(self.master),
                 "exit_code": self.exit_code, "reason": self.reason}
 
-    def count_missed(self, phases: dict[str, float], cycles: int) -> None:
+    def count_missed(self, phases: Sequence[float], cycles: int) -> None:
         """`cycles` missed, put down to the phase that took longest of the cycle behind them
-        (`phases`: s per cause), so a user can tell their machine from the service."""
+        (`phases`: s per cause, in MISSED_CAUSES order), so a user can tell their machine from
+        the service."""
         if cycles:
-            cause = max(phases, key=phases.__getitem__)
-            self.missed_by_cause[cause] += cycles
+            longest = max(range(len(MISSED_CAUSES)), key=phases.__getitem__)
+            self.missed_by_cause[MISSED_CAUSES[longest]] += cycles
 
 
 # The cycle's array work in two compiled calls whatever the number of joints: as numpy
@@ -403,10 +404,13 @@ class ControlLoop:
         self._settle = settle
         self.latest: np.ndarray | None = None  # the last cycle's samples, a row per joint
         self._enabled_names = [cia402.State.OPERATION_ENABLED.value] * count
+        self._limits = policies.limits
         self._currents = np.zeros(count)  # what goes out this cycle (written in place)
         self._believed = np.zeros(count, dtype=bool)
         self._screen_limits = self._safety.screen_limits()
         self._decided: Decided | None = None
+        # the jitter's and the solve's counts at the last LoopStats (set as a run starts)
+        self._stats_counts = (0, 0)
         self._status: list[str] | None = None  # the cycle's status names (None: the codes')
         self._fallbacks: dict[int, str] = {}  # joint -> why the net overrode it this cycle
         self._published = self._joint_view if count == 1 else self._robot_view
@@ -458,17 +462,23 @@ class ControlLoop:
         options, report = self.options, self.report
         clock = report.clock = CycleClock(options.period, options.clock)
         next_stats = options.stats_every
+        self._stats_counts = (0, report.solve.count)  # the clock's jitter starts afresh
         missed = 0
-        behind: dict[str, float] = dict.fromkeys(MISSED_CAUSES, 0.0)  # the last cycle's phases
+        # the last cycle's phases (s, in MISSED_CAUSES order): a plain tuple, looked at only
+        # when a cycle was missed (a dict a cycle cost more than the rest of this bookkeeping)
+        behind = (0.0, 0.0, 0.0, 0.0)
         perf_counter, requests = time.perf_counter, self._requests
+        solve, master, published_view = report.solve, report.master, self._published
         # an EtherCAT line on distributed clocks leads the cycle's clock
         joints_clock_trim = self._joints.clock_trim
         while not self._stop.is_set():
-            report.count_missed(behind, clock.wait(joints_clock_trim()))
-            if clock.missed_cycles - missed >= STALL_CYCLES and self._t is not None:
-                self.fault(self._t, "controller",
-                           f"loop stalled: {clock.missed_cycles - missed} cycles missed",
-                           "continuing from the next sample")
+            skipped = clock.wait(joints_clock_trim())
+            if skipped:
+                report.count_missed(behind, skipped)
+                if clock.missed_cycles - missed >= STALL_CYCLES and self._t is not None:
+                    self.fault(self._t, "controller",
+                               f"loop stalled: {clock.missed_cycles - missed} cycles missed",
+                               "continuing from the next sample")
             missed = clock.missed_cycles
             while requests:
                 requests.popleft()()
@@ -477,26 +487,27 @@ class ControlLoop:
             if decide_time.__class__ is LoopReport:
                 return decide_time
             master_time = perf_counter() - started - self._mpc_time
-            if report.cycles == 0:
+            if report.cycles:
+                overrun = clock.check_overrun()
+                if overrun:
+                    report.count_missed((clock.wake_lateness, self._exchange_time, decide_time,
+                                         0.0), overrun)
+                solve.add(decide_time * 1e6)
+                master.add(master_time * 1e6)
+            else:
                 # the cold solve runs once before the rhythm starts: timed on its own, and the
                 # deadlines begin after it
                 report.cold_solve_us = decide_time * 1e6
                 clock.restart()
-            phases = {LATE_WAKE_UP: clock.wake_lateness, LATE_SAMPLE: self._exchange_time,
-                      DECISION: decide_time, PUBLISH: 0.0}
-            if report.cycles:
-                report.count_missed(phases, clock.check_overrun())
-                report.solve.add(decide_time * 1e6)
-                report.master.add(master_time * 1e6)
             report.cycles += 1
             published = perf_counter()
-            self._published(decide_time)
+            published_view(decide_time)
             t = self._t
             if t >= next_stats:
                 next_stats += options.stats_every
                 self.publish(self._stats(t))
-            phases[PUBLISH] = perf_counter() - published
-            behind = phases
+            behind = (clock.wake_lateness, self._exchange_time, decide_time,
+                      perf_counter() - published)
             if options.duration is not None and t >= options.duration - 1e-9:
                 return self._finish(0, f"ran {options.duration} s", t=t)
             if self._decided.finished:
@@ -582,16 +593,17 @@ class ControlLoop:
         """A robot of one joint: the joint's own State, Command and SolverStats (and a Plan
         every `plan_every` cycles), the topics of a single-joint dashboard or recording."""
         t, sample = self._t, self.latest[0].tolist()
-        header = self._decided.header
-        h = header[0].tolist()
+        h = self._decided.header[0].tolist()
         status = STATUS_NAMES[int(h[ws.STATUS])] if self._status is None else self._status[0]
-        current = float(self._currents[0])
-        fallback = 0 in self._fallbacks
-        limits = self.policy.limits[0]
-        for message in messages.joint_view(t, sample, self._enabled_names[0], current, h,
-                                           status, fallback, limits, decide_time):
-            self.publish(message)
-        self._fallback_faults(t)
+        current = self._currents[0].item()
+        view = messages.joint_view(t, sample, self._enabled_names[0], current, h, status,
+                                   0 in self._fallbacks, self._limits[0], decide_time)
+        subscribers = self._subscribers
+        for message in view:  # `publish`'s loop, inline: three calls fewer a cycle
+            for subscriber in subscribers:
+                subscriber(message)
+        if self._fallbacks:
+            self._fallback_faults(t)
         if self.report.cycles % self.options.plan_every == 0:
             snapshot = self.policy.plan(0, t)
             if snapshot is not None:
@@ -623,12 +635,25 @@ class ControlLoop:
         self.failed_joint = getattr(exc, "joint", None)
         return self._finish(1, f"drive failed: {exc}", "drive", QUICK_STOPPED, t)
 
-    def _stats(self, t: float):
+    def _stats(self, t: float, whole_run: bool = False):
+        """LoopStats: percentiles over the cycles since the last LoopStats (what a dashboard
+        plots as the last second's), or over the run (its last message, as the summary);
+        maxima over the run. Over the run every second, the percentiles' sorting grew with
+        the run to milliseconds in the cycle's time (see `RingStats.recent_percentiles`)."""
         report = self.report
-        return messages.loop_stats(
-            t, report.cycles, report.missed_cycles, report.jitter.percentile(99),
-            report.jitter.max, report.solve.percentile(50), report.solve.percentile(99),
-            report.solve.max, self._dropped())
+        jitter, solve = report.jitter, report.solve
+        if whole_run:
+            jitter_p99 = jitter.percentile(99)
+            solve_median, solve_p99 = solve.percentile(50), solve.percentile(99)
+        else:
+            jitter_since, solve_since = self._stats_counts
+            (jitter_p99,) = jitter.recent_percentiles((99,), jitter.count - jitter_since)
+            solve_median, solve_p99 = solve.recent_percentiles((50, 99),
+                                                               solve.count - solve_since)
+        self._stats_counts = jitter.count, solve.count
+        return messages.loop_stats(t, report.cycles, report.missed_cycles, jitter_p99,
+                                   jitter.max, solve_median, solve_p99, solve.max,
+                                   self._dropped())
 
     def _finish(self, code: int, reason: str, source: str | None = None,
                 action: str | None = None, t: float = 0.0) -> LoopReport:
@@ -636,5 +661,5 @@ class ControlLoop:
         self.report.reason = reason
         if source is not None:
             self.fault(t, source, reason, action or "")
-        self.publish(self._stats(t))
+        self.publish(self._stats(t, whole_run=True))
         return self.report

@@ -4,6 +4,7 @@ thread (protobuf checks both at construction), not later in a publisher thread. 
 subscriber (Zenoh, an MCAP recording, a test) receives the same objects.
 """
 
+import functools
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -64,10 +65,42 @@ def joint_view(t: float, sample: list, drive_state: str, current: float, header:
                         cost=header[ws.COST]))
 
 
+@functools.cache  # a plan's lengths are two (N and N + 1 points)
+def _varint(value: int) -> bytes:
+    """`value` (>= 0) as a protobuf varint: seven bits a byte, low bits first."""
+    out = bytearray()
+    while value > 0x7F:
+        out.append(value & 0x7F | 0x80)
+        value >>= 7
+    out.append(value)
+    return bytes(out)
+
+
+def _packed_key(message: type, name: str) -> bytes:
+    """The key of repeated double field `name` in protobuf's packed encoding (wire type 2)."""
+    field = message.DESCRIPTOR.fields_by_name[name]
+    if field.type != field.TYPE_DOUBLE or not field.is_repeated:
+        raise TypeError(f"{message.__name__}.{name} is not a repeated double")
+    return _varint(field.number << 3 | 2)
+
+
+# the snapshot's arrays and the keys of the Plan's fields that carry them
+_PLAN_ARRAYS = tuple((name, _packed_key(Plan, name))
+                     for name in ("position", "velocity", "current", "reference_position"))
+
+
 def plan(snapshot: PlanSnapshot) -> Message:
-    return Plan(t=snapshot.t, dt=snapshot.dt, position=snapshot.position.tolist(),
-                velocity=snapshot.velocity.tolist(), current=snapshot.current.tolist(),
-                reference_position=snapshot.reference_position.tolist())
+    """The snapshot as a Plan. Its arrays go in as protobuf's packed encoding of a repeated
+    double (key, byte length, the values as little-endian doubles), parsed by protobuf in one
+    call: given lists, protobuf converts every element in turn, 15 us for a 100-step
+    horizon against 3 us this way, in the loop's thread every `plan_every` cycles."""
+    message = Plan(t=snapshot.t, dt=snapshot.dt)
+    parts = []
+    for name, key in _PLAN_ARRAYS:
+        data = getattr(snapshot, name).astype("<f8", copy=False).tobytes()
+        parts += (key, _varint(len(data)), data)
+    message.MergeFromString(b"".join(parts))
+    return message
 
 
 def fault(t: float, source: str, cause: str, action: str) -> Message:

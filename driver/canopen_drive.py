@@ -29,7 +29,8 @@ class CanOpenDrive(Cia402Drive):
                  period: float = 1e-3, drive_gain: float | None = None,
                  current_max: float | None = None,
                  eds: str | Path | None = None, clock: Clock | None = None,
-                 response_timeout: float = 1.0, heartbeat_ms: int = DEFAULT_HEARTBEAT_MS,
+                 response_timeout: float | None = None,
+                 heartbeat_ms: int = DEFAULT_HEARTBEAT_MS,
                  startup: Sequence[StartupParameter] = ()):
         transport = CanOpenTransport(network, node_id, eds=eds, clock=clock,
                                      response_timeout=response_timeout,

@@ -54,13 +54,13 @@ class CanOpenTransport(Transport):
 
     `clock`: what the bus's watchdogs measure time on (`driver.clock`: the wall clock, or
     drive time in lock-step; the first drive on a bus gives the bus its clock);
-    `response_timeout` (s) bounds the wait for a cycle's TPDOs.
+    `response_timeout` (s) bounds the wait for a cycle's TPDOs (default: the clock's).
     """
 
     def __init__(self, network: canopen.Network, node_id: int, *,
                  eds: str | Path | None = None, clock: Clock | None = None,
-                 response_timeout: float = 1.0, heartbeat_ms: int = DEFAULT_HEARTBEAT_MS,
-                 owns_network: bool = True):
+                 response_timeout: float | None = None,
+                 heartbeat_ms: int = DEFAULT_HEARTBEAT_MS, owns_network: bool = True):
         if not 1 <= node_id <= 127:
             raise ValueError(f"node id {node_id} outside 1..127")
         self.network = network
@@ -75,8 +75,9 @@ class CanOpenTransport(Transport):
         self.period = 0.0
         self._warnings: list[str] = []
         self.sdo = SdoAccess(self.node, self.name)
-        self.bus_cycle = BusCycle.of(network, clock if clock is not None else WallClock(),
-                                     response_timeout)
+        clock = clock if clock is not None else WallClock()
+        self.bus_cycle = BusCycle.of(network, clock, response_timeout
+                                     if response_timeout is not None else clock.response_timeout)
         self.clock = self.bus_cycle.clock
         self.row = self.bus_cycle.join(self.name, self._warnings)
         self.health = Health(network, self.node, self.name, clock=self.clock,
@@ -247,6 +248,10 @@ class CanOpenTransport(Transport):
     @property
     def has_warnings(self) -> bool:
         return bool(self._warnings)
+
+    @property
+    def warning_lists(self) -> tuple[list[str], ...]:
+        return (self._warnings,)
 
     def warnings(self) -> list[str]:
         if not self._warnings:

@@ -40,6 +40,10 @@ BOOT_TIMEOUT = 5.0  # s for the drive to answer the reset at bring-up
 _NUMBER = (int, float)  # a command's accepted types (`int | float` would build a union per call)
 
 
+def _nothing() -> None:
+    """The default `Cia402Drive.on_fault`: no segment is looking."""
+
+
 @dataclass(frozen=True)
 class Emergency:
     """An emergency as the drive sent it (CiA 301 codes on CANopen and EtherCAT alike)."""
@@ -82,6 +86,9 @@ class Cia402Drive(Drive):
         self.cycle = 0
         self.last_emergency: Emergency | None = None
         self._fault: DriveError | None = None
+        # called (in whichever thread saw it) each time this drive faults: a segment then
+        # looks at its drives once, instead of asking every drive every cycle
+        self.on_fault: Callable[[], None] = _nothing
         self._latest: Sample | None = None
         self._warnings: list[str] = []
         self._lock = threading.Lock()  # emergencies arrive in the transport's receive thread
@@ -224,10 +231,17 @@ class Cia402Drive(Drive):
             try:
                 self.guard.check_step(previous.position, sample.position, self.name)
             except EncoderGlitch as error:
-                self._fault = error
+                self.fail(error)
                 raise
         self.judge_statusword(sample.statusword)
         return sample
+
+    def fail(self, error: DriveError) -> None:
+        """This drive is stopped by `error` (a glitch its segment found on the arrays, say):
+        raised by `check_healthy` until it is enabled or reset again."""
+        with self._lock:
+            self._fault = error
+        self.on_fault()
 
     def judge_statusword(self, statusword: int) -> None:
         """A statusword in the fault state makes this drive faulted (named by its emergency
@@ -236,18 +250,26 @@ class Cia402Drive(Drive):
             with self._lock:
                 if self._fault is None:
                     self._fault = DriveFault(self._fault_text(), self._emergency_code())
+            self.on_fault()
 
     def read(self) -> Sample | None:
         return self._latest
 
     def warnings(self) -> list[str]:
-        out, self._warnings = self._warnings, []
+        out = self._warnings[:]
+        del self._warnings[:len(out)]  # in place: the list stays the one `warning_lists` gave
         return out + self.transport.warnings()
 
     @property
     def has_warnings(self) -> bool:
         """Whether `warnings()` has anything to say (a cheap look, for a line's cycle)."""
         return bool(self._warnings) or self.transport.has_warnings
+
+    @property
+    def warning_lists(self) -> tuple[list[str], ...]:
+        """The lists `warnings()` drains (the drive's own, its transport's): a segment looks
+        at them all at once each cycle, no call per drive."""
+        return (self._warnings, *self.transport.warning_lists)
 
     def command_current(self, current: float) -> None:
         if not isinstance(current, _NUMBER) or not math.isfinite(current):
@@ -271,6 +293,7 @@ class Cia402Drive(Drive):
             self.last_emergency = Emergency(code, register)
             log.error("%s: EMCY 0x%04X %s", self.name, code, self.last_emergency.description)
             self._fault = DriveFault(self._fault_text(), code)
+        self.on_fault()
 
     def _fault_text(self) -> str:
         if self.last_emergency is None:

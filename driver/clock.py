@@ -95,6 +95,20 @@ class RingStats:
         n = min(self.count, len(self._values))
         return float(np.percentile(self._values[:n], q)) if n else math.nan
 
+    def recent_percentiles(self, qs: tuple[float, ...], last: int) -> list[float]:
+        """Percentiles `qs` of the last `last` values only (at most the window). What a
+        running loop reports every second: one partial sort of that second's values, where
+        one over the whole window took 1.5 ms per percentile at 200 000 values, a missed
+        cycle every second of a long real-time run."""
+        size = len(self._values)
+        n = min(last, self.count, size)
+        if n <= 0:
+            return [math.nan] * len(qs)
+        end = self.count % size
+        values = (self._values[end - n:end] if n <= end else
+                  np.concatenate((self._values[size - (n - end):], self._values[:end])))
+        return np.percentile(values, qs).tolist()
+
     def recent(self) -> np.ndarray:
         """The values kept (the last `window`), oldest first."""
         n = min(self.count, len(self._values))
@@ -116,6 +130,9 @@ class WallClock:
     # time passes between cycles: the watchdogs that time a peer on the wall (an ESC's
     # process data watchdog, a keeper that sends frames while the cycle is busy) are on
     runs_alone = True
+    # s a master waits for a drive's answer (a cycle's samples, a frame back): a sample
+    # 100 ms late is a dead drive, the drives' own default process data watchdog
+    response_timeout = 0.1
 
     @staticmethod
     def advance(seconds: float) -> None:
@@ -156,6 +173,9 @@ class DriveClock:
     the drives answer. Nothing happens between cycles, so no watchdog needs a thread."""
 
     runs_alone = False
+    # s a master waits for a drive's answer: on drive time a late answer is no failure (the
+    # drive is computed on the same, perhaps busy, host), only none is
+    response_timeout = 1.0
 
     def __init__(self) -> None:
         self._now = 0.0

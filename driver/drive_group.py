@@ -139,8 +139,15 @@ class CanOpenBus(Segment):
         self._cycle = drives[0].cycle
         self._warnings: list[str] = []
         self._controlword = cia402.Command.ENABLE_OPERATION.value
+        self._warning_lists = [lst for drive in drives for lst in drive.warning_lists]
+        for drive in drives:
+            drive.on_fault = self._alarm
         self._layout = bus.input_layout(rows)
         bus.watch.restart_count()  # the other drives' bring-up is not load
+
+    def _alarm(self) -> None:
+        """A drive faulted: the bus's next look goes through its drives."""
+        self._bus.alarm = True
 
     def _look_at_drives(self) -> None:
         """Something happened on the bus (an emergency, a drive failed): the first joint whose
@@ -209,7 +216,7 @@ class CanOpenBus(Segment):
                 drive.guard.check_step(float(self._previous[glitch]),
                                        float(table[glitch, SAMPLE_POSITION]), drive.name)
             except EncoderGlitch as error:
-                drive._fault = error
+                drive.fail(error)
                 raise JointFailure(joint, error) from error
 
     def command(self, currents: np.ndarray) -> None:
@@ -231,11 +238,13 @@ class CanOpenBus(Segment):
 
     def warnings(self) -> list[str]:
         """The bus's own (saturated sensors, found on the arrays), then any a drive kept
-        (its transport's: late or doubled frames, an overloaded bus)."""
+        (its transport's: late or doubled frames, an overloaded bus): one look at every
+        drive's lists at once, a call per drive only when one has something."""
         out, self._warnings = self._warnings, []
-        for joint, drive in self.joints:
-            if drive.has_warnings:
-                out += [f"joint {joint}: {warning}" for warning in drive.warnings()]
+        if any(self._warning_lists):
+            for joint, drive in self.joints:
+                if drive.has_warnings:
+                    out += [f"joint {joint}: {warning}" for warning in drive.warnings()]
         return out
 
     def close(self) -> None:
@@ -289,6 +298,26 @@ class EthercatLine(Segment):
         self._previous: np.ndarray | None = None
         self._outputs = np.zeros(len(drives), self._out_dtype)
         self._warnings: list[str] = []
+        self._warning_lists = [lst for drive in drives for lst in drive.warning_lists]
+        # a drive faulted since the line last looked (or the first cycle): one look a cycle
+        # at this flag and the line's failure, not a call per drive, twice a cycle
+        self._alarmed = True
+        for drive in drives:
+            drive.on_fault = self._alarm
+
+    def _alarm(self) -> None:
+        """A drive faulted: the line's next look goes through its drives."""
+        self._alarmed = True
+
+    def _look_at_drives(self) -> None:
+        """The first joint whose drive is stopped (by its fault or the line's failure) is
+        raised, a slave that left OP named first."""
+        self._alarmed = False  # before looking: what comes during the look raises it again
+        for joint, drive in self.joints:
+            if drive.fault is not None:
+                self._alarmed = True
+                self._check_line(joint)
+                raise JointFailure(joint, drive.fault)
 
     def clock(self) -> DcLine | None:
         return self.joints[0][1].transport.line.dc
@@ -299,9 +328,10 @@ class EthercatLine(Segment):
         if not self._image:
             return super().warnings()
         out, self._warnings = self._warnings, []
-        for joint, drive in self.joints:
-            if drive.has_warnings:
-                out += [f"joint {joint}: {warning}" for warning in drive.warnings()]
+        if any(self._warning_lists):
+            for joint, drive in self.joints:
+                if drive.has_warnings:
+                    out += [f"joint {joint}: {warning}" for warning in drive.warnings()]
         return out
 
     def _check_line(self, joint: str) -> None:
@@ -320,10 +350,8 @@ class EthercatLine(Segment):
                 if isinstance(failure.cause, DriveFault):
                     self._check_line(failure.joint)
                 raise self.failed(failure.joint, failure.cause) from failure.cause
-        for joint, drive in self.joints:
-            if drive.fault is not None:
-                self._check_line(joint)
-                raise JointFailure(joint, drive.fault)
+        if self._alarmed or self._line.failure is not None:
+            self._look_at_drives()
         try:
             self._transports[0].exchange()  # this cycle's frame, for every slave on the line
         except DriveError as exc:
@@ -360,7 +388,7 @@ class EthercatLine(Segment):
                     drive.guard.check_step(float(previous[j]), float(table[j, SAMPLE_POSITION]),
                                            drive.name, cycles)
                 except EncoderGlitch as error:
-                    drive._fault = error
+                    drive.fail(error)
                     raise JointFailure(self.joints[j][0], error) from error
         faulted = (statuswords & FAULT_MASK) == FAULT_BITS
         if faulted.any():  # the drive's own path names the emergency behind it
@@ -390,10 +418,8 @@ class EthercatLine(Segment):
                 drive.command_current(float(currents[j]))  # its own words for the refusal
             except (CommandRangeError, DriveError) as exc:
                 raise JointFailure(joint, exc) from exc
-        for joint, drive in self.joints:
-            if drive.fault is not None:
-                self._check_line(joint)
-                raise JointFailure(joint, drive.fault)
+        if self._alarmed or self._line.failure is not None:
+            self._look_at_drives()
         outputs = self._outputs
         outputs["f0"] = cia402.Command.ENABLE_OPERATION.value
         outputs["f1"] = np.rint(currents * self._target_per_amp)
@@ -470,6 +496,8 @@ class DriveGroup:
             segment.command(currents[rows])
 
     def warnings(self) -> list[str]:
+        if self._whole:
+            return self.segments[0].warnings()
         return [warning for segment in self.segments for warning in segment.warnings()]
 
     def clock_trim(self) -> float:

@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 
-from driver.clock import CycleClock, clock_for, prefer_real_time
+from driver.clock import CycleClock, DriveClock, WallClock, prefer_real_time
 from driver.ethercat_master import STATE_CHECK_FRAMES
 from driver.ethercat_transport import EthercatTransport, open_ethercat_transports
 from protocol import objects
@@ -43,7 +43,7 @@ def _cycle(transports: list[EthercatTransport], outputs: tuple[int, ...]) -> Non
 
 def measure_line(interface: str, slaves: int, cycles: int = 5000,
                  period: float = 1e-3, sync: str = "free_run") -> dict:
-    """{'slaves', 'lockstep_cycles_per_s', 'round_trip_median_us', 'round_trip_p99_us',
+    """{'slaves', 'drive_time_cycles_per_s', 'round_trip_median_us', 'round_trip_p99_us',
     'missed_cycles', 'state_check_median_us', 'state_check_p99_us'} for the first `slaves`
     slaves on `interface` (the line must be there).
     `sync` "dc": the line on distributed clocks, the real-time cycles following the reference
@@ -55,8 +55,8 @@ def measure_line(interface: str, slaves: int, cycles: int = 5000,
     dc = sync == "dc"
     refused = prefer_real_time() if dc else "free run"
     # free run: the master on drive time (the slaves' watchdog off) for the lock-step rate
-    transports = open_ethercat_transports(interface, range(slaves), clock=clock_for(not dc),
-                                          sync=sync)
+    transports = open_ethercat_transports(interface, range(slaves),
+                                          clock=WallClock() if dc else DriveClock(), sync=sync)
     try:
         _bring_up(transports, period)
         outputs = (0, 0)  # controlword 0: the drives stay disabled, the frames are real
@@ -69,7 +69,7 @@ def measure_line(interface: str, slaves: int, cycles: int = 5000,
                 _cycle(transports, outputs)
             rate = round(cycles / (time.perf_counter() - start))
         line = transports[0].line
-        clock = CycleClock(period, clock_for(False))
+        clock = CycleClock(period, WallClock())
         round_trips = np.empty(cycles)
         for k in range(cycles):
             clock.wait(line.clock_trim())
@@ -95,7 +95,7 @@ def measure_line(interface: str, slaves: int, cycles: int = 5000,
             **figures,
             "slaves": slaves,
             "frames": line.frames,
-            "lockstep_cycles_per_s": rate,
+            "drive_time_cycles_per_s": rate,
             "round_trip_median_us": round(float(np.median(round_trips)) * 1e6, 1),
             "round_trip_p99_us": round(float(np.percentile(round_trips, 99)) * 1e6, 1),
             "period_us": round(period * 1e6),

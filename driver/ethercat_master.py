@@ -42,8 +42,6 @@ log = logging.getLogger(__name__)
 
 STATE_TIMEOUT_US = 2_000_000  # SOEM's EC_TIMEOUTSTATE: what a state change may take
 OP_FRAMES = 200  # frames sent after the OP request before giving up (OP comes with outputs)
-DRIVE_TIME_RESPONSE_TIMEOUT = 1.0  # s: on drive time a late frame is no failure, only none is
-REALTIME_RESPONSE_TIMEOUT = 0.1  # s: the slaves' default process data watchdog
 DEFAULT_WATCHDOG = 0.1  # s: the ESC's reset value (ETG.1000.4: 1000 x 100 us)
 KEEP_ALIVE = 0.02  # s: a fifth of the ESC's default watchdog
 KEEPER_SWITCH_SHARE = 0.25  # DC: the interpreter's switch interval at most this share of a period
@@ -107,8 +105,7 @@ class EthercatMaster:
         self.esi = esi
         self.clock = clock if clock is not None else WallClock()
         if response_timeout is None:
-            response_timeout = REALTIME_RESPONSE_TIMEOUT if self.clock.runs_alone else (
-                DRIVE_TIME_RESPONSE_TIMEOUT)
+            response_timeout = self.clock.response_timeout
         self.response_timeout_us = int(response_timeout * 1e6)
         self.watchdog = watchdog
         self.master: pysoem.Master | None = None

@@ -107,6 +107,11 @@ class Transport(ABC):
         """Whether `warnings()` has anything to say."""
         return False
 
+    @property
+    def warning_lists(self) -> tuple[list[str], ...]:
+        """The lists `warnings()` drains, each cleared in place (none here)."""
+        return ()
+
     @abstractmethod
     def stop(self) -> None:
         """Leave cyclic operation (CANopen: NMT pre-operational; EtherCAT: PRE-OP). Best

@@ -5,9 +5,14 @@ udp_multicast paths (the master's `driver.canopen_multicast`, the virtual drives
 so that python-can's own udp_multicast bus on the same group reads them as its own.
 """
 
+import ipaddress
+import struct
+
 import msgpack
 
 DATAGRAM_MAX = 4096  # bytes: a CAN FD frame's map is well below
+_BPF = struct.Struct("HBBI")  # struct sock_filter: code, jump if true, jump if false, k
+_SKF_NET_OFF = -0x100000  # BPF offset base of the IP header (0: the UDP header on a UDP socket)
 
 
 def encode(can_id: int, data: bytes, timestamp: float, remote: bool = False) -> bytes:
@@ -30,3 +35,18 @@ def decode(datagram: bytes) -> tuple[int, bytes] | None:
         return frame["arbitration_id"], frame["data"]
     except (ValueError, KeyError, TypeError, msgpack.UnpackException) as exc:
         raise ValueError(f"not a python-can datagram: {exc}") from exc
+
+
+def own_frames_filter(address: str, port: int) -> bytes:
+    """A classic BPF program (Linux SO_ATTACH_FILTER on a UDP socket) that drops the
+    datagrams sent from `address`:`port` (IPv4) and keeps every other: a sender's own frames,
+    which multicast loopback hands back to its receiving socket, dropped by the kernel before
+    they are queued, so they cost the receiving thread no wake-up. Source port from the UDP
+    header, source address from the IP header."""
+    return b"".join(_BPF.pack(*insn) for insn in (
+        (0x28, 0, 0, 0),  # ldh [0]: the UDP source port
+        (0x15, 0, 3, port),  # jeq #port, else keep
+        (0x20, 0, 0, (_SKF_NET_OFF + 12) & 0xFFFFFFFF),  # ld [ip + 12]: the source address
+        (0x15, 0, 1, int(ipaddress.IPv4Address(address))),  # jeq #address, else keep
+        (0x06, 0, 0, 0),  # ret 0: drop
+        (0x06, 0, 0, 0xFFFFFFFF)))  # ret: keep all of it

@@ -41,8 +41,7 @@ def measure_master(joints: int, cycles: int) -> dict:
         joints=tuple(JointSpec(f"joint_{k}", LINE, k, model, None, {},
                                default_reference(model.limits)) for k in range(joints)),
         bitrates={}, source=Path(f"<{joints} elbows on one line>"))
-    connection = open_robot(spec, sim=True, clock=DriveClock(), seed=0, period=1e-3,
-                            response_timeout=1.0)
+    connection = open_robot(spec, sim=True, clock=DriveClock(), seed=0, period=1e-3)
     try:
         group = connection.group
         batch = BatchMpc([JointProblem(joint.model, BENCH_SETTINGS, reference=joint.reference)

@@ -214,7 +214,7 @@ def _open_on_line(bus: str, interface: str, joints: list, **options) -> list[Cia
 # --- a robot: every joint's drive, on its bus or embedded ---------------------------------------
 
 def open_robot(robot: RobotSpec, *, sim: bool, clock: Clock, seed: int, period: float,
-               response_timeout: float,
+               response_timeout: float | None = None,
                faults: Iterable[tuple[str, Fault, float]] = ()) -> Connection:
     """Every joint's drive, grouped by bus: one SYNC per CAN bus and one frame per EtherCAT
     line a cycle (`driver.drive_group`; a line's joints opened in slave order, the group
@@ -224,7 +224,8 @@ def open_robot(robot: RobotSpec, *, sim: bool, clock: Clock, seed: int, period: 
     CANopen link, an EtherCAT line a line of virtual slaves linked to the master's process
     image in this process (`sim_bus.ethercat.linked`: the same PDO layout, state machine and
     CoE objects as on a wire, one image a cycle). Each bus and line runs on a clock of its
-    own from the run's `clock` (`for_bus`). Raises DriveOpenError (exit 1)."""
+    own from the run's `clock` (`for_bus`); `response_timeout` (s, default: the clock's)
+    bounds the wait for a drive's answer. Raises DriveOpenError (exit 1)."""
     from driver.canopen_transport import CanOpenTransport, open_network
     from driver.cia402_drive import Cia402Drive
     from driver.drive_group import CanOpenBus, DriveGroup, EthercatLine

@@ -511,6 +511,12 @@ class Cia402Device:
             return value / objects.MILLI == self._target_current
         return False
 
+    def setting(self, key: tuple[int, int]) -> int:
+        """The value of a setting (an object no cycle writes: neither a line's batch,
+        `LINE_KEYS` and the outputs, nor the sample), as `values[key]` without settling a
+        line's batch: what a bus node checks every frame (0x1019 at each SYNC)."""
+        return self._values[key]
+
     @property
     def values(self) -> Mapping[tuple[int, int], int]:
         """Every object's value by (index, subindex), live objects as sampled by the last

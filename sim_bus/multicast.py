@@ -7,9 +7,16 @@ Through python-can and canopen a frame cost the drives' process about 20 us to s
 listeners, canopen's node scanner), plus the echo of every frame it sent itself, which
 udp_multicast delivers back: talos_arm's four buses (two drives each, nine frames a cycle)
 took about 1.5 ms of CPU a millisecond, more than a core, and the master waited for its
-samples ("late sample"). Here a frame is one msgpack call and one socket call each way, a
-received frame nobody on the network subscribes to (the drives' own echoes: two thirds of
-them) is dropped after decoding, and one thread receives for every bus of the process.
+samples ("late sample"). Here a frame is one msgpack call and one socket call each way, and
+one thread receives for every bus of the process.
+
+Own frames: the drives' TPDOs, heartbeats and SDO answers (two thirds of a bus's datagrams)
+come back to their own socket through multicast loopback. They leave from a socket of the
+network's own (an ephemeral port, connected to the group), and the kernel drops what comes
+from that address before queueing it (`protocol.can_datagram.own_frames_filter`): each echo
+was a wake-up, a receive and a decode of the one thread that answers every bus (talos_arm:
+21 a millisecond). Where the filter is refused (IPv6 groups), an echo is dropped after
+decoding, as any frame no node subscribes to.
 
 The datagrams are python-can's own (`protocol.can_datagram`, as
 `can.interfaces.udp_multicast.utils.pack_message` writes them), so a python-can master on the
@@ -17,21 +24,30 @@ same group reads them as it reads its own. The socket is the one python-can's bu
 joined, loopback on), used through its file descriptor.
 """
 
+import ctypes
 import logging
 import os
 import select
 import socket
+import struct
 import threading
 import time
 
 import can
 import canopen
 
-from protocol.can_datagram import DATAGRAM_MAX, decode, encode
+from protocol.can_datagram import DATAGRAM_MAX, decode, encode, own_frames_filter
 
 log = logging.getLogger(__name__)
 
 POLL_TIMEOUT = 0.05  # s: how long closing waits for the receive thread at most
+SO_ATTACH_FILTER = 26  # Linux: a classic BPF program run on each datagram the socket queues
+_BPF_INSTRUCTION = 8  # bytes of a struct sock_filter
+# TTL of the drives' frames: the bus crosses processes on one machine (README), and python-
+# can's 1 sends each frame out of the host's interface as well as looping it back; that
+# transmit doubled the cost of a send (talos_arm across processes: a SYNC with its three
+# TPDOs took the drive 127 us median at 1, 63 us at 0). A bus spec's own hop_limit wins
+HOP_LIMIT = 0
 
 
 class MulticastNetwork(canopen.Network):
@@ -45,9 +61,16 @@ class MulticastNetwork(canopen.Network):
         self.channel = config["channel"]
         # the bus's socket (its options, its group) through a descriptor of our own; it is
         # bound to the group's port, where the frames go
-        self._socket = socket.socket(fileno=os.dup(self.bus.fileno()))
-        self._socket.setblocking(False)
-        self._destination = (self.channel, self._socket.getsockname()[1])
+        try:
+            self._socket = socket.socket(fileno=os.dup(self.bus.fileno()))
+            self._socket.setblocking(False)
+            self._sender = _sender_socket(self._socket.family,
+                                          (self.channel, self._socket.getsockname()[1]),
+                                          config.get("hop_limit", HOP_LIMIT))
+            _drop_from(self._socket, *self._sender.getsockname()[:2])
+        except Exception:
+            self.bus.shutdown()
+            raise
         self._send_lock = threading.Lock()
 
     def fileno(self) -> int:
@@ -57,7 +80,7 @@ class MulticastNetwork(canopen.Network):
         """One classic CAN frame, as python-can's `pack_message` writes it."""
         datagram = encode(can_id, bytes(data), time.time(), remote)
         with self._send_lock:  # nodes send from their own threads (heartbeats)
-            self._socket.sendto(datagram, self._destination)
+            self._sender.send(datagram)
 
     def receive_ready(self) -> None:
         """Dispatch every datagram waiting on the socket to this network's subscribers, as
@@ -87,8 +110,43 @@ class MulticastNetwork(canopen.Network):
                     log.exception("bus %s: handler of 0x%03X failed", self.channel, can_id)
 
     def disconnect(self) -> None:
+        self._sender.close()
         self._socket.close()
         self.bus.shutdown()
+
+
+def _sender_socket(family: socket.AddressFamily, group: tuple[str, int],
+                   hop_limit: int) -> socket.socket:
+    """A socket that sends to `group` from an address of its own (an ephemeral port), its
+    frames looped back to this host's receivers, `hop_limit` its TTL (0: they stay on this
+    host)."""
+    sender = socket.socket(family, socket.SOCK_DGRAM)
+    try:
+        if family == socket.AF_INET6:
+            sender.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_HOPS, hop_limit)
+            sender.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_LOOP, 1)
+        else:
+            sender.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, hop_limit)
+            sender.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+        sender.connect(group)  # fixes the source address the receivers see
+    except OSError:
+        sender.close()
+        raise
+    return sender
+
+
+def _drop_from(receiver: socket.socket, address: str, port: int) -> None:
+    """Have the kernel drop what `receiver` gets from `address`:`port` (IPv4; the kernel
+    keeps its own copy of the program)."""
+    if receiver.family != socket.AF_INET:
+        return
+    program = own_frames_filter(address, port)
+    buffer = ctypes.create_string_buffer(program, len(program))
+    try:
+        receiver.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, struct.pack(
+            "HL", len(program) // _BPF_INSTRUCTION, ctypes.addressof(buffer)))
+    except OSError as exc:  # echoes are then dropped after decoding (no subscriber)
+        log.info("own frames dropped in user space (socket filter refused: %s)", exc)
 
 
 class MulticastReceiver(threading.Thread):

@@ -63,3 +63,33 @@ def test_a_drive_served_through_it_answers_sdo_and_sync_on_two_buses_from_one_th
             node.close()
         for network in networks:
             network.disconnect()
+
+
+def test_own_frames_do_not_come_back_to_the_network_that_sent_them():
+    """Multicast loopback hands every frame back to its sender's socket: the kernel drops
+    those from the network's own sending address, frames of other senders pass."""
+    spec = udp_bus_spec()
+    network = MulticastNetwork(parse_bus_spec(spec))
+    receiver = MulticastReceiver([network])
+    peer = canopen.Network()
+    got: list[int] = []
+    peer_frame = threading.Event()
+
+    def on_frame(can_id, data, ts):
+        got.append(can_id)
+        if can_id == 0x124:
+            peer_frame.set()
+
+    network.subscribe(0x123, on_frame)
+    network.subscribe(0x124, on_frame)
+    try:
+        receiver.start()
+        peer.connect(**parse_bus_spec(spec))
+        network.send_message(0x123, b"\x01")  # ours: looped back, dropped
+        peer.send_message(0x124, b"\x02")  # sent after ours, so it arrives after it
+        assert peer_frame.wait(2), "the peer's frame did not arrive"
+        assert got == [0x124]
+    finally:
+        peer.disconnect()
+        receiver.stop()
+        network.disconnect()

@@ -217,7 +217,7 @@ def test_without_an_echo_a_tpdo_from_before_the_sync_is_not_taken_for_its_answer
         drive.close()
         sim.close()
     assert objects.position_to_increments(sample.position) != 12345
-    assert any("outside the 1000 ms synchronous window" in w for w in drive.warnings())
+    assert any("outside the 100 ms synchronous window" in w for w in drive.warnings())
 
 
 def test_actuatord_and_recorder_drive_a_standard_cst_sim_bus_from_its_eds(tmp_path):

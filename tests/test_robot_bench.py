@@ -1,0 +1,61 @@
+"""`bus-bench --robot`: a robot of one joint in real time, its drive in a process of its own
+over udp_multicast and embedded in the master's (`--sim`), beside CPU-bound loops. The
+figures are measured, not asserted (a bench is not a timed test); what is checked is that
+each start ran, that the figures are of the run asked for, and that the busy loops are gone
+afterwards."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+pytestmark = [pytest.mark.subprocess, pytest.mark.slow]
+
+ELBOW = """
+[robot]
+name = "elbow"
+period_us = 1000
+
+[[joints]]
+name = "elbow"
+bus = "can0"
+node_id = 2
+"""
+
+
+def _busy_loops() -> list[int]:
+    """Processes of this machine spinning `while True: pass` (the bench's busy loops)."""
+    found = []
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            with open(f"/proc/{pid}/cmdline", "rb") as f:
+                if b"while True: pass" in f.read():
+                    found.append(int(pid))
+        except OSError:
+            continue
+    return found
+
+
+@pytest.mark.parametrize("extra", [[], ["--sim", "--busy-loops", "1"]],
+                         ids=["own-process", "embedded-beside-a-busy-loop"])
+def test_one_joint_runs_in_real_time_and_reports_its_misses(tmp_path, extra):
+    robot = tmp_path / "elbow.toml"
+    robot.write_text(ELBOW)
+    before = set(_busy_loops())
+    bench = subprocess.run([sys.executable, "-m", "commands.bus_bench", "--robot", str(robot),
+                            "--duration", "1", "--starts", "1", *extra],
+                           capture_output=True, text=True, timeout=600)
+    assert bench.returncode == 0, bench.stderr[-2000:]
+    result = json.loads(bench.stdout)
+    assert result["drives"] == ("embedded" if extra else "own process")
+    assert result["busy_loops"] == (1 if extra else 0)
+    assert result["floor"]["cycles"] == 1000
+    assert result["starts"] == {"asked": 1, "started": 1, "ran_to_the_end": 1}, result["runs"]
+    run, = result["runs"]
+    assert run["cycles"] == 1000
+    assert run["missed_percent"] == pytest.approx(100 * run["missed"] / 1000, abs=1e-3)
+    assert result["missed_percent"] == {"median": run["missed_percent"],
+                                        "max": run["missed_percent"]}
+    assert set(_busy_loops()) <= before  # the bench's own loops were stopped
