@@ -12,12 +12,14 @@ to the process data frame, which also feeds every other slave's time control loo
 compensation), `dc_time` after the exchange. `observe` takes the master's offset from the
 reference clock's cycle, the phase at which its frame passed the reference clock, and a PI on
 it moves the master's next wake-up (`take_trim`), as SOEM's ec_sync does in its examples (the
-first frame's offset is taken whole, so the master starts in phase): the
+first frame's offset is taken whole, so the master starts in phase, and so is an offset that
+stays large for several frames, after the loop's clock restarted or slipped): the
 master's cycle follows the reference clock instead of its own crystal, so the frames keep
 their place before SYNC0 however the two clocks drift.
 """
 
 import struct
+from collections import deque
 
 from driver.clock import RingStats
 from driver.interface import DriveError
@@ -28,6 +30,11 @@ MASTER_PHASE = 0.0  # the master's frame at this share of the reference clock's 
 PROPORTIONAL = 0.01
 INTEGRAL_STEP = 0.05  # ns of trim per cycle the offset kept its sign
 KEEPER_PHASE = 0.2  # share of the cycle at which the keeper looks for a frame in the window
+# a phase error this share of the period or more in RELOCK_FRAMES frames in a row, one way, is
+# stepped out at once (by the smallest of them: a frame the host sent late only adds to its
+# wake-up's error); the PI alone moves 1 % a cycle, hundreds of cycles from a phase slip
+RELOCK_SHARE = 0.1
+RELOCK_FRAMES = 8
 SETTLE_TIME = 2.0  # s: offsets count for the figures from then on
 REG_SYSTEM_TIME_DELAY = 0x0928
 _U32 = struct.Struct("<I")
@@ -47,6 +54,7 @@ class DcLine:
         self._integral = 0
         self._trim = 0.0
         self._anchor: tuple[float, int] | None = None  # (host time, reference time) of a frame
+        self._recent: deque[int] = deque(maxlen=RELOCK_FRAMES)  # the last frames' offsets, ns
         self.elapsed_periods = 1  # SYNC0 periods between the last two cycles' frames
 
     def configure(self, master, slaves) -> None:
@@ -87,6 +95,16 @@ class DcLine:
         self.cycles += 1
         if self.cycles == 1:  # the first frame: straight to the phase, then follow it
             self._trim = -offset * 1e-9
+            return
+        recent = self._recent
+        recent.append(offset)
+        if len(recent) == RELOCK_FRAMES and (
+                min(recent) >= RELOCK_SHARE * period or max(recent) <= -RELOCK_SHARE * period):
+            # off the phase for good (the loop restarted its clock after the cold solve, or
+            # slipped): back to it at once, then follow it
+            self._trim = -min(recent, key=abs) * 1e-9
+            self._integral = 0
+            recent.clear()
             return
         self._integral += (offset > 0) - (offset < 0)
         self._trim = -(offset * PROPORTIONAL + self._integral * INTEGRAL_STEP) * 1e-9

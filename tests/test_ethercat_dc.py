@@ -321,3 +321,27 @@ def test_pysoem_config_dc_against_the_virtual_slaves_over_a_veth(link):
             master.close()
         report = slaves.report()
     assert all(r["cycles"] >= 1 for r in report)
+
+
+def test_the_master_steps_back_onto_the_reference_phase_after_a_slip():
+    """DcLine's trim: the first frame's offset is taken whole; small offsets move the wake-up
+    by the PI (1 %); an offset that stays past a tenth of the period for RELOCK_FRAMES frames
+    (the loop restarted its clock after the cold solve) is stepped out at once, by the
+    smallest of them (a frame sent late only adds to its wake-up's error)."""
+    from driver import ethercat_dc
+
+    line = DcLine("eth1", 1e-3)
+    reference = 5_000_000_000
+    line.observe(reference + 200_000, 0.0)
+    assert line.take_trim() == pytest.approx(-200e-6)
+    line.observe(reference + PERIOD_NS + 3_000, 1e-3)
+    assert line.take_trim() == pytest.approx(-3_000 * ethercat_dc.PROPORTIONAL * 1e-9
+                                             - ethercat_dc.INTEGRAL_STEP * 1e-9)
+    lateness = [480_000, 470_000, 499_000, 455_000, 490_000, 495_000, 470_000, 475_000]
+    for k, late in enumerate(lateness):
+        line.observe(reference + (k + 2) * PERIOD_NS + late, (k + 2) * 1e-3)
+        trim = line.take_trim()
+        if k < len(lateness) - 1:
+            assert -10e-6 < trim < 0  # the PI's step
+    assert trim == pytest.approx(-455e-6)  # the least late frame's offset, whole
+    assert line.last_offset_ns == 475_000

@@ -346,6 +346,12 @@ class LineClocks:
         """Load the compiled register copies now, not in the first frame (about 0.1 s)."""
         none = np.zeros(0, dtype=np.int64)
         write_registers(self.memories, none, 0, read_registers(self.memories, none, 0, 1))
+        self.compare(none, bytes(8), np.zeros(0))
+
+    def cycle_times(self, rows: np.ndarray) -> np.ndarray:
+        """SYNC0 cycle time of each clock of `rows`, s."""
+        return read_registers(self.memories, rows, REG_SYNC0_CYCLE_TIME, 4).view(
+            "<u4")[:, 0] * 1e-9
 
     def upcoming(self, t: float) -> np.ndarray:
         """Each clock's next SYNC0 in host time (inf: none coming), seen from `t`; the few not
@@ -376,38 +382,52 @@ class LineClocks:
         written to the clocks `rows`, each at its own host time `times`: what
         `DistributedClock.written` does for that write (the compare value in 0x0910, the time
         control loop's step, the difference in 0x092C, the next SYNC0's host time at the new
-        rate), in the same arithmetic and order, so the same results."""
-        t = times
-        local_at_zero, drift = self.local_at_zero[rows], self.drift[rows]
-        correction, slew = self.correction[rows], self.slew[rows]
-        anchor, integral = self.anchor[rows], self.integral[rows]
-        registers = read_registers(self.memories, rows, REG_SYSTEM_TIME_OFFSET, 12)
-        offsets = registers[:, :8].copy().view("<u8")[:, 0]
-        delays = registers[:, 8:].copy().view("<u4")[:, 0].astype(np.uint64)
+        rate), in the same arithmetic and order, so the same results, in one compiled call."""
+        _compare_rows(self.memories, rows, times, np.frombuffer(bytes(data[:8]), np.uint8),
+                      self.local_at_zero, self.drift, self.correction, self.slew, self.anchor,
+                      self.integral, self.next_sync0, self.armed, self.next_host)
+
+
+@numba.njit(cache=True)
+def _compare_rows(memories, rows, times, data, local_at_zero, drift, correction, slew, anchor,
+                  integral, next_sync0, armed, next_host) -> None:
+    """`LineClocks.compare` for each row: `DistributedClock._compare` then the next SYNC0's
+    host time (`host_time_of`), on the line's arrays and the ESCs' memories."""
+    reference = np.uint64(0)
+    for b in range(8):
+        reference |= np.uint64(data[b]) << np.uint64(8 * b)
+    for n in range(rows.shape[0]):
+        k = rows[n]
+        t = times[n]
+        memory = memories[k]
+        offset = np.uint64(0)
+        for b in range(8):
+            offset |= np.uint64(memory[REG_SYSTEM_TIME_OFFSET + b]) << np.uint64(8 * b)
+        delay = np.uint64(0)
+        for b in range(4):
+            delay |= np.uint64(memory[REG_SYSTEM_TIME_DELAY + b]) << np.uint64(8 * b)
         # local_time: the float sum truncated, as int() does; then the 64-bit system time
-        local = (local_at_zero + t * 1e9 * (1.0 + drift) + correction
-                 + (t - anchor) * 1e9 * slew).astype(np.int64).astype(np.uint64)
-        reference = np.uint64(int.from_bytes(data[:8], "little"))
-        difference = (reference + delays - (local + offsets)).view(np.int64)  # mod 2**64
-        magnitude = np.minimum(np.abs(difference), 0x7FFFFFFF).astype(np.uint32)
-        register = magnitude | np.where(difference > 0, 0x80000000, 0).astype(np.uint32)
-        correction = correction + (t - anchor) * 1e9 * slew
-        # _clamp(value, bound) = max(-bound, min(bound, value))
-        integral = np.maximum(-MAX_SLEW, np.minimum(MAX_SLEW, integral
-                                                    + LOOP_INTEGRAL_GAIN * difference))
-        slew = np.maximum(-MAX_SLEW, np.minimum(MAX_SLEW, integral + LOOP_GAIN * difference))
-        self.correction[rows], self.anchor[rows] = correction, t
-        self.integral[rows], self.slew[rows] = integral, slew
-        # the next SYNC0's host time at the new rate, as `host_time_of` works it out at `t`
-        local = (local_at_zero + t * 1e9 * (1.0 + drift) + correction
-                 + (t - t) * 1e9 * slew).astype(np.int64).astype(np.uint64)
-        ahead = (self.next_sync0[rows] - (local + offsets)).view(np.int64)
-        self.next_host[rows] = np.where(self.armed[rows],
-                                        t + ahead * 1e-9 / (1.0 + drift + slew), math.nan)
-        write_registers(self.memories, rows, REG_SYSTEM_TIME,
-                        np.frombuffer(bytes(data[:8]) * rows.size, np.uint8).reshape(-1, 8))
-        write_registers(self.memories, rows, REG_SYSTEM_TIME_DIFFERENCE,
-                        register.astype("<u4").view(np.uint8).reshape(-1, 4))
+        local = np.uint64(np.int64(local_at_zero[k] + t * 1e9 * (1.0 + drift[k])
+                                   + correction[k] + (t - anchor[k]) * 1e9 * slew[k]))
+        difference = np.int64(reference + delay - (local + offset))  # mod 2**64
+        magnitude = min(abs(difference), 0x7FFFFFFF)
+        register = magnitude | (0x80000000 if difference > 0 else 0)
+        corrected = correction[k] + (t - anchor[k]) * 1e9 * slew[k]
+        summed = max(-MAX_SLEW, min(MAX_SLEW, integral[k] + LOOP_INTEGRAL_GAIN * difference))
+        slewed = max(-MAX_SLEW, min(MAX_SLEW, summed + LOOP_GAIN * difference))
+        correction[k], anchor[k], integral[k], slew[k] = corrected, t, summed, slewed
+        if armed[k]:
+            # the next SYNC0's host time at the new rate, as `host_time_of` works it out at t
+            local = np.uint64(np.int64(local_at_zero[k] + t * 1e9 * (1.0 + drift[k])
+                                       + corrected + (t - t) * 1e9 * slewed))
+            ahead = np.int64(next_sync0[k] - (local + offset))
+            next_host[k] = t + ahead * 1e-9 / (1.0 + drift[k] + slewed)
+        else:
+            next_host[k] = np.nan
+        for b in range(8):
+            memory[REG_SYSTEM_TIME + b] = data[b]
+        for b in range(4):
+            memory[REG_SYSTEM_TIME_DIFFERENCE + b] = (register >> (8 * b)) & 0xFF
 
 
 def _signed64(value: int) -> int:

@@ -28,8 +28,12 @@ option 0x6007: quick stop by default).
 """
 
 import logging
+import math
 import operator
 from collections import deque
+from collections.abc import Sequence
+
+import numpy as np
 
 from protocol import ethercat as ec
 from protocol.dictionary import mappable_object
@@ -55,8 +59,84 @@ SYNC0_LOSS_CYCLES = 3  # cycle times without SYNC0 in OP: the sync is lost
 _VALID_REQUESTS = frozenset(s.value for s in ec.AlState if s is not ec.AlState.NONE)
 
 
+class LineSync:
+    """The SYNC0 bookkeeping of a line's slaves (SSC's counters, what came in each window), a
+    row each (`SlaveFirmware.join`), in one set of arrays: a segment's batch does a frame's or
+    a SYNC0's bookkeeping for every slave steady in OP at once (`outputs_in`, `sync0_in_op`);
+    a slave's firmware does the same for itself, on its row, in every other case."""
+
+    def __init__(self, count: int):
+        self.fresh = np.zeros(count, dtype=bool)  # outputs completed for the next SYNC0
+        self.errors = np.zeros(count, dtype=np.int64)  # SSC's SM event missed counter
+        self.since = np.zeros(count, dtype=np.int64)  # SYNC0 events since the last outputs
+        self.last_sync0 = np.full(count, math.nan)  # host time of the last SYNC0 (NaN: none)
+        self.missed = np.zeros(count, dtype=np.int64)  # SYNC0 events in OP without outputs
+
+    def join(self, firmwares: Sequence["SlaveFirmware"]) -> None:
+        for row, firmware in enumerate(firmwares):
+            firmware.join(self, row)
+
+    def outputs_in(self, rows: np.ndarray, now: np.ndarray, upcoming: np.ndarray,
+                   cycle_times: np.ndarray) -> np.ndarray:
+        """Outputs completed at `now` (per row) for slaves in OP on SYNC0, their next SYNC0
+        at `upcoming` (inf: none) every `cycle_times` s: `SlaveFirmware._outputs_for_sync0`
+        for each at once. The rows whose SYNC0 stopped coming (their firmware says so)."""
+        lost = np.isinf(upcoming) | (now - self.last_sync0[rows]
+                                     > SYNC0_LOSS_CYCLES * cycle_times)
+        taken = rows[~lost & (upcoming - now >= OUTPUT_MARGIN)]
+        self.fresh[taken] = True
+        self.since[taken] = 0
+        self.errors[taken] = np.maximum(self.errors[taken] - 1, 0)
+        return rows[lost]
+
+    def sync0_in_op(self, rows: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The SYNC0 at `times` of slaves in OP on SYNC0: `SlaveFirmware.sync0_window` for
+        each at once. (whether each applies outputs, the rows whose sync is lost: their
+        firmware drops them out of OP)."""
+        self.last_sync0[rows] = times
+        fresh = self.fresh[rows]
+        self.fresh[rows] = False
+        self.missed[rows[~fresh]] += 1
+        counted = ~fresh & (self.since[rows] > FREE_SYNC0)
+        self.errors[rows[counted]] += SYNC_ERROR_WEIGHT
+        lost = counted & (self.errors[rows] >= SYNC_ERROR_LIMIT)
+        self.since[rows] += 1
+        return fresh & ~lost, rows[lost]
+
+
+def _sync_field(name: str, kind: type) -> property:
+    """An attribute of one firmware kept in its row of its line's `LineSync` array `name`."""
+    def get(self):
+        return kind(getattr(self._sync, name)[self._row])
+
+    def put(self, value) -> None:
+        getattr(self._sync, name)[self._row] = value
+
+    return property(get, put)
+
+
 class SlaveFirmware:
     """One slave's application; `attach` it to its ESC before the first frame."""
+
+    _fresh = _sync_field("fresh", bool)
+    _sync_errors = _sync_field("errors", int)
+    _since_outputs = _sync_field("since", int)
+    missed_sync0 = _sync_field("missed", int)
+
+    @property
+    def _last_sync0(self) -> float | None:
+        value = float(self._sync.last_sync0[self._row])
+        return None if math.isnan(value) else value
+
+    @_last_sync0.setter
+    def _last_sync0(self, value: float | None) -> None:
+        self._sync.last_sync0[self._row] = math.nan if value is None else value
+
+    def join(self, line: LineSync, row: int) -> None:
+        """Keep this firmware's SYNC0 bookkeeping in row `row` of `line` from now on."""
+        for name in ("fresh", "errors", "since", "last_sync0", "missed"):
+            getattr(line, name)[row] = getattr(self._sync, name)[self._row]
+        self._sync, self._row = line, row
 
     def __init__(self, device: Cia402Device, esi: EsiDevice):
         self.device = device
@@ -82,11 +162,8 @@ class SlaveFirmware:
         self._input_values = None  # the device's value table -> the inputs, in PDO order
         self.cycles = 0
         self._dc = False  # the device cycle runs on SYNC0 (decided at the OP request)
-        self._fresh = False  # outputs completed in the window before the next SYNC0
-        self._sync_errors = 0  # SSC's SM event missed counter
-        self._since_outputs = 0  # SYNC0 events since the last output buffer (SSC's count)
-        self._last_sync0: float | None = None
-        self.missed_sync0 = 0  # SYNC0 events in OP without fresh outputs (counted or free)
+        # SYNC0 bookkeeping, in a row of its line's arrays (`LineSync`; its own until joined)
+        self._sync, self._row = LineSync(1), 0
         self.refused_outputs = 0  # output values the device refused (out of its range)
         self.delay_next_frame = 0.0  # s, fault injection: hold the frame this long
         self.repeat_next_frame = False  # fault injection: send the frame twice

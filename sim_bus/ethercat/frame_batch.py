@@ -34,7 +34,7 @@ from protocol.pdo import PdoLayout
 from sim_bus.device import LINE_KEYS
 from sim_bus.ethercat import dc
 from sim_bus.ethercat.esc import Esc
-from sim_bus.ethercat.firmware import SlaveFirmware
+from sim_bus.ethercat.firmware import LineSync, SlaveFirmware
 from sim_bus.line_physics import DriveLine
 
 _LOGICAL = frozenset((ec.Command.LRD, ec.Command.LWR, ec.Command.LRW))
@@ -128,12 +128,12 @@ class _Plan:
 
 class FrameBatch:
     """The batch of one segment's slaves (`escs`, `firmwares`, `line` in line order, their
-    distributed clocks joined in `clocks`)."""
+    distributed clocks joined in `clocks`, their SYNC0 bookkeeping in `sync`)."""
 
     def __init__(self, escs: Sequence[Esc], firmwares: Sequence[SlaveFirmware],
-                 line: DriveLine, clocks: dc.LineClocks):
+                 line: DriveLine, clocks: dc.LineClocks, sync: LineSync):
         self.escs, self.firmwares, self.line = list(escs), list(firmwares), line
-        self.clocks = clocks
+        self.clocks, self.sync = clocks, sync
         count = len(self.escs)
         self.stale = True  # the slaves may have changed: find which are steady again
         # their registers may have changed (FMMUs, sync managers): the frame plans too
@@ -354,8 +354,12 @@ class FrameBatch:
             for k in plan.rows[~done].tolist():
                 others[k] = None
         firmwares, dc_steady = self.firmwares, self._dc
-        for k, esc in enumerate(self.escs):
-            esc.now = now + esc.dc.hop
+        # the outputs' bookkeeping of the slaves in OP on SYNC0 at once, each at its own time;
+        # slaves entering OP, and any whose SYNC0 stopped, each through its firmware
+        alone = self._outputs_in_op(plan.rows[on_sync0 & done], now) if on_sync0.any() else ()
+        for k, (esc, at) in enumerate(zip(self.escs, (now + self.clocks.hop).tolist(),
+                                          strict=True)):
+            esc.now = at
             rest = others[k]
             if rest is None:
                 esc.process(frame, view, spans)
@@ -363,14 +367,14 @@ class FrameBatch:
             if plan.watchdogs[k]:
                 esc._trigger_watchdog()
             firmware = firmwares[k]
-            if dc_steady[k]:
+            if not dc_steady[k]:
+                firmware.cycles += 1
+            elif k in alone:
                 memory = esc.memory
                 status = memory[ec.REG_AL_STATUS]
                 firmware.outputs_received(esc)
                 if memory[ec.REG_AL_STATUS] != status:  # its sync lost: slave by slave again
                     self.stale = True
-            else:
-                firmware.cycles += 1
             if rest:
                 esc.process(frame, view, rest)
             else:
@@ -383,6 +387,20 @@ class FrameBatch:
             ec.WKC.pack_into(frame, counter, (ec.WKC.unpack_from(frame, counter)[0]
                                               + rows.size) & 0xFFFF)
         return True
+
+    def _outputs_in_op(self, rows: np.ndarray, now: float) -> set[int]:
+        """The frame's outputs reached the slaves `rows` (steady on SYNC0) at `now` plus each
+        one's hop: those in OP counted for their next SYNC0 at once (`LineSync.outputs_in`).
+        The rows left to their firmware: not in OP yet, or their SYNC0 stopped."""
+        clocks = self.clocks
+        status = dc.read_registers(clocks.memories, rows, ec.REG_AL_STATUS, 1)[:, 0]
+        in_op = rows[status == ec.AlState.OP]
+        alone = set(rows[status != ec.AlState.OP].tolist())
+        if in_op.size:
+            lost = self.sync.outputs_in(in_op, now + clocks.hop[in_op],
+                                        clocks.upcoming(now)[in_op], clocks.cycle_times(in_op))
+            alone.update(lost.tolist())
+        return alone
 
     def _outputs(self, outputs: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, list]:
         """The controlwords and target columns (a row per slave of the line) of `outputs`,
@@ -443,7 +461,7 @@ class FrameBatch:
 
     # --- SYNC0 -------------------------------------------------------------------------------
 
-    def sync0(self, rows: Sequence[int]) -> None:
+    def sync0(self, rows: np.ndarray, times: np.ndarray) -> None:
         """The SYNC0 each slave of `rows` has just taken (`Esc.take_sync0`): its firmware's
         window bookkeeping (`SlaveFirmware.sync0_window`), then the drives' cycles: every
         slave steady on SYNC0 in one compiled call, on its SM2 buffer when outputs came in
@@ -465,7 +483,19 @@ class FrameBatch:
         # (none came) with those their drives hold, as the device's cycle without new
         # outputs runs; only a slave that left its steady state goes through its firmware
         fresh, held, single = [], [], []
-        for k in rows:
+        # the bookkeeping of the slaves steady in OP at once; the others each by its firmware
+        status = dc.read_registers(self.clocks.memories, rows, ec.REG_AL_STATUS, 1)[:, 0]
+        in_op = steady[rows] & (status == ec.AlState.OP)
+        if in_op.any():
+            applies, lost = self.sync.sync0_in_op(rows[in_op], times[in_op])
+            for k in lost.tolist():
+                firmwares[k]._sync_lost(escs[k], ec.AL_SYNC_ERROR, "outputs missed their "
+                                        f"SYNC0 window {firmwares[k].missed_sync0} times")
+                single.append((k, False))
+            ok = rows[in_op][applies].tolist()
+            fresh.extend(ok)
+            held.extend(sorted(set(rows[in_op].tolist()) - set(ok) - set(lost.tolist())))
+        for k in rows[~in_op].tolist():
             apply = firmwares[k].sync0_window(escs[k])
             if apply is None:
                 continue

@@ -31,7 +31,7 @@ from protocol.sii import build_sii
 from sim_bus.device import Cia402Device
 from sim_bus.ethercat.dc import LineClocks
 from sim_bus.ethercat.esc import Esc
-from sim_bus.ethercat.firmware import SlaveFirmware
+from sim_bus.ethercat.firmware import LineSync, SlaveFirmware
 from sim_bus.ethercat.frame_batch import FrameBatch
 from sim_bus.line_physics import DriveLine
 
@@ -68,8 +68,11 @@ class Segment:
         self.clocks.warm()
         # the steady slaves' process data of a frame at once (None: slave by slave, the
         # reference the batch is tested against)
+        # their SYNC0 bookkeeping in rows of one set of arrays
+        self.sync = LineSync(len(self.firmwares))
+        self.sync.join(self.firmwares)
         self.batch: FrameBatch | None = FrameBatch(self.escs, self.firmwares, self.drives,
-                                                   self.clocks)
+                                                   self.clocks, self.sync)
         self.frames = 0
         self.dropped = 0
         # no process data watchdog can expire before this time (s): `check_watchdogs` looks
@@ -99,6 +102,8 @@ class Segment:
         reference), so the loop wakes once for all that fall within SYNC0_GATHER of the
         first, at the last of them, and the batch runs them in one pass. Exact all the same:
         a frame that arrives before is preceded by the SYNC0 events due by its arrival."""
+        if not self.clocks.armed.any():  # free run: no SYNC0 anywhere
+            return None
         times = self.clocks.upcoming(now)[self._present()]
         first = times.min(initial=math.inf)
         if first == math.inf:
@@ -116,6 +121,8 @@ class Segment:
         The number fired."""
         fired = 0
         escs, batch, clocks = self.escs, self.batch, self.clocks
+        if not clocks.armed.any():  # free run: no SYNC0 anywhere
+            return 0
         with self.lock:
             present = self._present()
             while True:
@@ -130,7 +137,9 @@ class Segment:
                     for k in due:
                         self.firmwares[k].sync0(escs[k])
                 else:
-                    batch.sync0(due)
+                    batch.sync0(rows, times)
+                if not (clocks.next_host[rows] <= now).any():  # none of them due again
+                    return fired
 
     def check_watchdogs(self, now: float) -> None:
         """The ESCs' process data watchdogs, and the drives' own time once their master is
