@@ -20,8 +20,6 @@ frame's stamp is the kernel's receive time, as python-can gives it: the freshnes
 `driver.canopen_cycle` relies on it.
 """
 
-import ctypes
-import ipaddress
 import logging
 import os
 import select
@@ -33,7 +31,15 @@ import time
 import can
 import canopen
 
-from protocol.can_datagram import DATAGRAM_MAX, decode, encode
+from protocol.can_datagram import (
+    DATAGRAM_MAX,
+    HOP_LIMIT,
+    SO_ATTACH_FILTER,
+    decode,
+    encode,
+    own_frames_fprog,
+    sender_options,
+)
 
 log = logging.getLogger(__name__)
 
@@ -41,9 +47,6 @@ POLL_TIMEOUT = 0.05  # s: how long stopping waits for the receive thread at most
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux's value where Python lacks it
 _TIMESPEC = struct.Struct("@ll")  # the kernel's struct timespec: seconds, nanoseconds
 _ANCILLARY = socket.CMSG_SPACE(_TIMESPEC.size)
-SO_ATTACH_FILTER = 26  # Linux: a classic BPF program run on each datagram the socket queues
-_BPF = struct.Struct("HBBI")  # struct sock_filter: code, jump if true, jump if false, k
-_SKF_NET_OFF = -0x100000  # BPF offset base of the IP header (0: the UDP header on a UDP socket)
 
 
 class MulticastNetwork(canopen.Network):
@@ -60,7 +63,7 @@ class MulticastNetwork(canopen.Network):
             self._socket.setblocking(False)
             group = (self.channel, self._socket.getsockname()[1])
             self._sender = _sender_socket(self._socket.family, group,
-                                          config.get("hop_limit", 1))
+                                          config.get("hop_limit", HOP_LIMIT))
             self._source = self._sender.getsockname()[:2]
             _drop_from(self._socket, *self._source)
         except Exception:
@@ -124,15 +127,12 @@ class MulticastNetwork(canopen.Network):
 def _sender_socket(family: socket.AddressFamily, group: tuple[str, int],
                    hop_limit: int) -> socket.socket:
     """A socket that sends to `group` from an address of its own (an ephemeral port), its
-    frames looped back to this host's receivers, `hop_limit` its TTL, as python-can's are."""
+    frames looped back to this host's receivers, `hop_limit` its TTL (`HOP_LIMIT`: they stay
+    on this host)."""
     sender = socket.socket(family, socket.SOCK_DGRAM)
     try:
-        if family == socket.AF_INET6:
-            sender.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_HOPS, hop_limit)
-            sender.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_LOOP, 1)
-        else:
-            sender.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, hop_limit)
-            sender.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+        for option in sender_options(family, hop_limit):
+            sender.setsockopt(*option)
         sender.connect(group)  # fixes the source address the receivers see
     except OSError:
         sender.close()
@@ -148,17 +148,9 @@ def _drop_from(receiver: socket.socket, address: str, port: int) -> None:
     header) and source address (IP header) ours: drop, else keep."""
     if receiver.family != socket.AF_INET:
         return
-    program = b"".join(_BPF.pack(*insn) for insn in (
-        (0x28, 0, 0, 0),  # ldh [0]: the UDP source port
-        (0x15, 0, 3, port),  # jeq #port, else keep
-        (0x20, 0, 0, (_SKF_NET_OFF + 12) & 0xFFFFFFFF),  # ld [ip + 12]: the source address
-        (0x15, 0, 1, int(ipaddress.IPv4Address(address))),  # jeq #address, else keep
-        (0x06, 0, 0, 0),  # ret 0: drop
-        (0x06, 0, 0, 0xFFFFFFFF)))  # ret: keep all of it
-    buffer = ctypes.create_string_buffer(program, len(program))
+    program, fprog = own_frames_fprog(address, port)  # the program lives through the call
     try:
-        receiver.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, struct.pack(
-            "HL", len(program) // _BPF.size, ctypes.addressof(buffer)))
+        receiver.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, fprog)
     except OSError as exc:  # the check in receive_ready drops them instead
         log.info("own frames dropped in user space (socket filter refused: %s)", exc)
 

@@ -24,30 +24,29 @@ same group reads them as it reads its own. The socket is the one python-can's bu
 joined, loopback on), used through its file descriptor.
 """
 
-import ctypes
 import logging
 import os
 import select
 import socket
-import struct
 import threading
 import time
 
 import can
 import canopen
 
-from protocol.can_datagram import DATAGRAM_MAX, decode, encode, own_frames_filter
+from protocol.can_datagram import (
+    DATAGRAM_MAX,
+    HOP_LIMIT,
+    SO_ATTACH_FILTER,
+    decode,
+    encode,
+    own_frames_fprog,
+    sender_options,
+)
 
 log = logging.getLogger(__name__)
 
 POLL_TIMEOUT = 0.05  # s: how long closing waits for the receive thread at most
-SO_ATTACH_FILTER = 26  # Linux: a classic BPF program run on each datagram the socket queues
-_BPF_INSTRUCTION = 8  # bytes of a struct sock_filter
-# TTL of the drives' frames: the bus crosses processes on one machine (README), and python-
-# can's 1 sends each frame out of the host's interface as well as looping it back; that
-# transmit doubled the cost of a send (talos_arm across processes: a SYNC with its three
-# TPDOs took the drive 127 us median at 1, 63 us at 0). A bus spec's own hop_limit wins
-HOP_LIMIT = 0
 
 
 class MulticastNetwork(canopen.Network):
@@ -122,12 +121,8 @@ def _sender_socket(family: socket.AddressFamily, group: tuple[str, int],
     host)."""
     sender = socket.socket(family, socket.SOCK_DGRAM)
     try:
-        if family == socket.AF_INET6:
-            sender.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_HOPS, hop_limit)
-            sender.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_LOOP, 1)
-        else:
-            sender.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, hop_limit)
-            sender.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+        for option in sender_options(family, hop_limit):
+            sender.setsockopt(*option)
         sender.connect(group)  # fixes the source address the receivers see
     except OSError:
         sender.close()
@@ -140,11 +135,9 @@ def _drop_from(receiver: socket.socket, address: str, port: int) -> None:
     keeps its own copy of the program)."""
     if receiver.family != socket.AF_INET:
         return
-    program = own_frames_filter(address, port)
-    buffer = ctypes.create_string_buffer(program, len(program))
+    program, fprog = own_frames_fprog(address, port)  # the program lives through the call
     try:
-        receiver.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, struct.pack(
-            "HL", len(program) // _BPF_INSTRUCTION, ctypes.addressof(buffer)))
+        receiver.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, fprog)
     except OSError as exc:  # echoes are then dropped after decoding (no subscriber)
         log.info("own frames dropped in user space (socket filter refused: %s)", exc)
 
