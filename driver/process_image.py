@@ -1,7 +1,9 @@
 """A bus's process image worked on in one compiled call a cycle, whatever the number of joints.
 
 A CAN bus's input image holds, per drive, the bytes of the TPDOs that answered this cycle's
-SYNC (`driver.canopen_cycle.BusCycle`); its output image the bytes of the RPDOs going out.
+SYNC (`driver.canopen_cycle.BusCycle`); its output image the bytes of the RPDOs going out. An
+EtherCAT line's images are its slaves' process data one after the other
+(`driver.drive_group.EthercatLine`).
 Where each cyclic object sits is decided when the PDOs are mapped and given here as a layout
 array: per joint and object, its offset in the image and a code, its size in bytes, negative
 when signed, 0 when the drive does not have it. `decode` turns the inputs into a table of
