@@ -280,7 +280,7 @@ def _run(args: argparse.Namespace, setup: _Setup, stop: threading.Event,
         # collection of this heap held the interpreter past the slaves' 100 ms watchdog
         # (see driver.clock.collector_off_the_cycle)
         with collector_off_the_cycle():
-            group.start()
+            group.start(configured=loop.solve_first)
             print(f"actuatord: {setup.started(connection)}", flush=True)
             for clock in group.clocks:  # EtherCAT lines on distributed clocks
                 print(f"actuatord: {clock.describe()}", flush=True)

@@ -255,6 +255,14 @@ class Cia402Drive(Drive):
     def read(self) -> Sample | None:
         return self._latest
 
+    def measured_state(self) -> tuple[float, float]:
+        """Position (rad) and velocity (rad/s) read acyclically once configured: where the
+        joint is before it is enabled, for a controller to make its first plan from while
+        no cycle waits for it."""
+        read, per_increment = self.transport.read, self.scaling.rad_per_increment
+        return (read(objects.POSITION_ACTUAL) * per_increment,
+                read(objects.VELOCITY_ACTUAL) * per_increment)
+
     def warnings(self) -> list[str]:
         out = self._warnings[:]
         del self._warnings[:len(out)]  # in place: the list stays the one `warning_lists` gave

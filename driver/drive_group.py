@@ -11,7 +11,9 @@ others were planned on the assumption that the whole arm moves together.
 """
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from operator import methodcaller
+from typing import TypeVar
 
 import can
 import canopen
@@ -24,6 +26,7 @@ from driver.interface import (
     SAMPLE_JOINT_TORQUE,
     SAMPLE_POSITION,
     SAMPLE_STATUSWORD,
+    SAMPLE_VELOCITY,
     CommandRangeError,
     DriveError,
     DriveFault,
@@ -35,6 +38,7 @@ from driver.process_image import FAULT_BITS, FAULT_MASK, decode, encode
 from protocol import cia402
 
 SAMPLE_COLUMNS = Sample._fields
+T = TypeVar("T")
 
 log = logging.getLogger(__name__)
 
@@ -462,22 +466,36 @@ class DriveGroup:
     def __len__(self) -> int:
         return len(self.names)
 
-    def start(self) -> None:
+    def start(self, configured: Callable[[np.ndarray], None] | None = None) -> None:
         """Configure every drive, then enable every one, in joint order: a drive that does not
-        fit its joint is refused before any is enabled. A failure names the joint (the caller
-        closes the group, which disables those already enabled)."""
-        segment_of = {joint: segment for segment in self.segments for joint, _ in segment.joints}
-        for step in ("configure", "enable"):
-            for name, drive in zip(self.names, self.drives, strict=True):
-                try:
-                    getattr(drive, step)()
-                except DriveError as exc:
-                    raise segment_of[name].failed(name, exc) from exc
+        fit its joint is refused before any is enabled. In between, `configured` is given
+        every joint's measured state (a row per joint, `driver.interface.SAMPLE_*` columns,
+        position and velocity read acyclically): a controller's cold solve runs there,
+        before any drive is enabled, not in the first cycle. A failure names the joint (the
+        caller closes the group, which disables those already enabled)."""
+        self._each(methodcaller("configure"))
+        if configured is not None:
+            table = np.zeros((len(self.names), len(SAMPLE_COLUMNS)))
+            table[:, [SAMPLE_POSITION, SAMPLE_VELOCITY]] = self._each(
+                methodcaller("measured_state"))
+            configured(table)
+        self._each(methodcaller("enable"))
         for segment in self.segments:
             segment.started()
         # the distributed clocks of the lines that run on them (made as the lines went to OP)
         self.clocks = [clock for segment in self.segments
                        if (clock := segment.clock()) is not None]
+
+    def _each(self, step: Callable[[Cia402Drive], T]) -> list[T]:
+        """`step` of every drive in joint order, a failure naming its joint."""
+        out = []
+        for name, drive in zip(self.names, self.drives, strict=True):
+            try:
+                out.append(step(drive))
+            except DriveError as exc:
+                segment = next(s for s in self.segments if any(j == name for j, _ in s.joints))
+                raise segment.failed(name, exc) from exc
+        return out
 
     def sync(self) -> np.ndarray:
         """One cycle: trigger every segment, then every joint's sample, a row per joint in

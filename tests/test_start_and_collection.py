@@ -23,6 +23,7 @@ from controller.messages import JointStates
 from controller.mpc import BatchMpc, JointProblem
 from controller.problem import OcpSettings
 from driver.clock import clock_for, collector_off_the_cycle
+from driver.interface import SAMPLE_POSITION
 from protocol.cia402 import State
 from robot.description import load_robot, robot_path
 from robot.wiring import open_robot
@@ -88,3 +89,36 @@ def test_a_cold_start_of_every_joint_and_a_full_collection_cost_no_watchdog(lock
     # the collection happened mid-run, found the garbage, and stopped the loop for real
     assert collection.seconds is not None and collection.collected >= GARBAGE - 1
     assert collection.seconds >= STALL_AT_LEAST, collection.seconds
+
+
+def test_the_first_plans_are_solved_from_where_the_joints_are_before_any_drive_is_enabled():
+    """`DriveGroup.start(configured=loop.solve_first)`, as actuatord starts: every joint's
+    cold solve runs between configuring and enabling, from the measured positions, and the
+    run keeps its time as the cold solve (the first cycle then starts warm)."""
+    robot = load_robot(robot_path("talos_arm"))
+    connection = open_robot(robot, sim=True, clock=clock_for(True), seed=0, period=1e-3)
+    seen: dict = {}
+    try:
+        group = connection.group
+        batch = BatchMpc([JointProblem(joint.model, OcpSettings(), reference=joint.reference)
+                          for joint in robot.joints])
+        loop = ControlLoop(group, batch, LoopOptions(period=1e-3, clock=clock_for(True),
+                                                   duration=0.05))
+
+        def configured(table):
+            seen["states"] = [drive.state() for drive in group.drives]
+            seen["measured"] = table[:, SAMPLE_POSITION].copy()
+            seen["actual"] = [connection.devices[joint.name].plant.position
+                              for joint in robot.joints]
+            loop.solve_first(table)
+            seen["cold_solve_us"] = loop.report.cold_solve_us
+
+        group.start(configured=configured)
+        report = loop.run()
+    finally:
+        connection.close()
+    assert State.OPERATION_ENABLED not in seen["states"], seen["states"]
+    # the encoder's reading of where each joint rests (a count's resolution)
+    assert seen["measured"] == pytest.approx(seen["actual"], abs=1e-4)
+    assert report.exit_code == 0, report.reason
+    assert seen["cold_solve_us"] > 0 and report.cold_solve_us == seen["cold_solve_us"]
