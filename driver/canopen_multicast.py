@@ -38,6 +38,7 @@ from protocol.can_datagram import (
     decode,
     encode,
     own_frames_fprog,
+    receiver_options,
     sender_options,
 )
 
@@ -66,6 +67,7 @@ class MulticastNetwork(canopen.Network):
                                           config.get("hop_limit", HOP_LIMIT))
             self._source = self._sender.getsockname()[:2]
             _drop_from(self._socket, *self._source)
+            _own_group_only(self._socket)
         except Exception:
             self.bus.shutdown()
             raise
@@ -138,6 +140,15 @@ def _sender_socket(family: socket.AddressFamily, group: tuple[str, int],
         sender.close()
         raise
     return sender
+
+
+def _own_group_only(receiver: socket.socket) -> None:
+    """Have `receiver` get its own group's datagrams only (`receiver_options`)."""
+    try:
+        for option in receiver_options(receiver.family):
+            receiver.setsockopt(*option)
+    except OSError as exc:
+        log.warning("buses on one port with several groups hear each other (%s)", exc)
 
 
 def _drop_from(receiver: socket.socket, address: str, port: int) -> None:

@@ -109,6 +109,22 @@ def sender_options(family: socket.AddressFamily,
             (socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)]
 
 
+# Linux's <linux/in.h>, <linux/in6.h> (Python's socket module has neither name)
+IP_MULTICAST_ALL = 49
+IPV6_MULTICAST_ALL = 29
+
+
+def receiver_options(family: socket.AddressFamily) -> list[tuple[int, int, int]]:
+    """The `setsockopt` arguments of a socket that receives one bus: only its own group's
+    datagrams. Linux's default (IP_MULTICAST_ALL on) hands a socket bound to the group's
+    port every group's datagrams to that port that any socket of the host joined: buses
+    on one port and several groups would each read all the others' frames, and take
+    their SYNCs and PDOs for their own where node ids repeat."""
+    if family == socket.AF_INET6:
+        return [(socket.IPPROTO_IPV6, IPV6_MULTICAST_ALL, 0)]
+    return [(socket.IPPROTO_IP, IP_MULTICAST_ALL, 0)]
+
+
 def own_frames_fprog(address: str, port: int) -> tuple[ctypes.Array, bytes]:
     """`own_frames_filter` as SO_ATTACH_FILTER takes it: (the program's buffer, to be kept
     alive until the option is set, and the struct sock_fprog pointing at it)."""

@@ -2,9 +2,13 @@
 datagrams: a canopen master on python-can's own udp_multicast bus reads a drive served through
 it (SDO, NMT, SYNC -> TPDOs) as it reads any other, and one thread receives for several buses."""
 
+import random
 import threading
+import time
 
+import can
 import canopen
+import pytest
 
 from driver.clock import WallClock
 from model.parameters import Payload, load_model
@@ -93,3 +97,26 @@ def test_own_frames_do_not_come_back_to_the_network_that_sent_them():
         peer.disconnect()
         receiver.stop()
         network.disconnect()
+
+
+def test_a_bus_does_not_hear_another_group_on_the_same_port():
+    """Two buses on one port, groups of their own: a frame sent on the first reaches a
+    python-can reader of the first group, and the second bus's socket never gets it
+    (Linux's IP_MULTICAST_ALL default would queue it there too)."""
+    port = random.randint(20000, 60000)
+    first, second = (f"udp_multicast:239.0.1.{n}:{port}"
+                     for n in random.sample(range(1, 250), 2))
+    witness = can.Bus(ignore_config=True, **parse_bus_spec(first))
+    other = MulticastNetwork(parse_bus_spec(second))
+    sender = MulticastNetwork(parse_bus_spec(first))
+    try:
+        sender.send_message(0x202, b"\x0f\x00")
+        received = witness.recv(timeout=2.0)
+        assert received is not None and received.arbitration_id == 0x202
+        time.sleep(0.05)  # a datagram to the other group's socket would be queued by now
+        with pytest.raises(BlockingIOError):
+            other._socket.recv(4096)
+    finally:
+        sender.disconnect()
+        other.disconnect()
+        witness.shutdown()
