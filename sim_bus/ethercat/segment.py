@@ -117,8 +117,9 @@ class Segment:
     def run_sync0(self, now: float) -> int:
         """Every SYNC0 due by `now`, each at its own time (a late wake-up catches up, each
         slave's events in order; slaves do not depend on each other), taken for the whole
-        line at once (`LineClocks.take_due`), the drives' cycles of each round in one batch.
-        The number fired."""
+        line at once: with the batch, the whole round in one compiled call
+        (`FrameBatch.sync0`); slave by slave, `LineClocks.take_due` then each firmware's
+        `sync0`. The number fired."""
         fired = 0
         escs, batch, clocks = self.escs, self.batch, self.clocks
         if not clocks.armed.any():  # free run: no SYNC0 anywhere
@@ -126,18 +127,16 @@ class Segment:
         with self.lock:
             present = self._present()
             while True:
-                rows, times = clocks.take_due(now, present)
+                if batch is not None:
+                    rows = batch.sync0(now, present)
+                else:
+                    rows, times = clocks.take_due(now, present)
+                    for k, t in zip(rows.tolist(), times.tolist(), strict=True):
+                        escs[k].now = t
+                        self.firmwares[k].sync0(escs[k])
                 if not rows.size:
                     return fired
-                due = rows.tolist()
-                for k, t in zip(due, times.tolist(), strict=True):
-                    escs[k].now = t
-                fired += len(due)
-                if batch is None:
-                    for k in due:
-                        self.firmwares[k].sync0(escs[k])
-                else:
-                    batch.sync0(rows, times)
+                fired += rows.size
                 if not (clocks.next_host[rows] <= now).any():  # none of them due again
                     return fired
 
