@@ -61,6 +61,8 @@ class DcLine:
         self._recent: deque[int] = deque(maxlen=RELOCK_FRAMES)  # the last frames' offsets, ns
         self.elapsed_periods = 1  # SYNC0 periods between the last two cycles' frames
         self.kept = 0  # frames the keeper sent into windows the cycle left empty
+        self.waits_us = RingStats()  # the cycle's wait for the line's lock
+        self.round_trips_us = RingStats()  # the cycle's frame, sent to answered
         self.looks = 0  # the keeper's looks
 
     def configure(self, master, slaves) -> None:
@@ -117,6 +119,11 @@ class DcLine:
         if self.cycles * period > SETTLE_TIME * 1e9:
             self.offsets_ns.add(abs(offset))
 
+    def exchanged(self, waited: float, round_trip: float) -> None:
+        """A cycle's exchange (s): how long it waited for the line, its frame's round trip."""
+        self.waits_us.add(waited * 1e6)
+        self.round_trips_us.add(round_trip * 1e6)
+
     def window(self, now: float) -> tuple[float, float]:
         """Host times (monotonic) of the last SYNC0 before `now` (the start of the window the
         next SYNC0 takes its outputs from) and of the next keeper's look (KEEPER_LEAD before
@@ -135,8 +142,14 @@ class DcLine:
         return trim
 
     def summary(self) -> str:
-        kept = f"; the keeper filled {self.kept} of {self.looks} windows it looked at"
-        return self._offsets() + kept
+        text = (self._offsets() + f"; the keeper filled {self.kept} of {self.looks} windows "
+                "it looked at")
+        if self.round_trips_us.count:
+            waits, trips = self.waits_us, self.round_trips_us
+            text += (f"; the cycle's frame waited for the line {waits.percentile(50):.0f} us "
+                     f"median (p99 {waits.percentile(99):.0f}), its round trip "
+                     f"{trips.percentile(50):.0f} us median (p99 {trips.percentile(99):.0f})")
+        return text
 
     def _offsets(self) -> str:
         if not self.offsets_ns.count:

@@ -341,6 +341,7 @@ class EthercatMaster:
         """Send the one frame of this cycle and check its working counter (DC: and the
         master's offset from the reference clock); every STATE_CHECK_FRAMES cycles, every
         slave's AL status too."""
+        asked = time.monotonic()
         with self.lock:
             self.frames += 1
             self._frame()
@@ -348,6 +349,9 @@ class EthercatMaster:
                 self.clock.advance(self.period)  # drive time: frames x period
             if self.dc is not None:
                 self.dc.observe(self.master.dc_time, self._sent_at)
+                # where the cycle's exchange went: waiting for the line (the keeper's or a
+                # CoE access's frame), or the frame's round trip
+                self.dc.exchanged(self._sent_at - asked, self._last_frame - self._sent_at)
             if self.frames % STATE_CHECK_FRAMES == 0:
                 self._check_states()
 
