@@ -21,6 +21,7 @@ against the cycle does not matter. Any other frame goes slave by slave, and the 
 made again before the next.
 """
 
+import math
 from collections.abc import Sequence
 
 import numba
@@ -319,12 +320,15 @@ class FrameBatch:
         self._warm()
 
     def _warm(self) -> None:
-        """Load the compiled code now, not in the first frame in OP: loading it takes about
-        0.1 s, longer than a master waits for its frame."""
+        """Load the compiled code now, not in the first frame in OP or the first SYNC0:
+        loading it takes about 0.1 s, longer than a master waits for its frame (the SYNC0
+        pass loaded at the first SYNC0 cost the slaves their first windows: a sync error
+        before OP)."""
         count, none = len(self.escs), np.zeros(0, dtype=np.int64)
         if not count:
             return
         self.line.load_kernel()
+        self._pass(-math.inf, np.zeros(count, dtype=bool))  # no SYNC0 is due before all time
         empty = np.zeros((count, 1), dtype=np.uint8)
         into_buffers(none, self._memories, self._starts, empty, empty)
         from_buffers(none, self._memories, self._starts, 0, 1)
@@ -629,6 +633,23 @@ class FrameBatch:
 
     # --- SYNC0 -------------------------------------------------------------------------------
 
+    def _pass(self, now: float, present: np.ndarray) -> int:
+        """`sync0_pass` on this line's arrays (its result in `_scratch`): how many were due."""
+        clocks, sync, scratch = self.clocks, self.sync, self._scratch
+        out_fields, in_fields, torque_field, current_field = self._fields
+        return sync0_pass(now, present, self._dc, self._memories, self._starts,
+                          clocks.local_at_zero, clocks.drift, clocks.correction, clocks.slew,
+                          clocks.anchor, clocks.next_sync0, clocks.armed, clocks.next_host,
+                          clocks.sync0_count, sync.fresh, sync.errors, sync.since,
+                          sync.last_sync0, sync.missed, out_fields, in_fields, torque_field,
+                          current_field, scratch["controlwords"],
+                          scratch["torque"] if torque_field >= 0 else _NONE,
+                          scratch["current"] if current_field >= 0 else _NONE,
+                          self._encoder.bytes if self._encoder is not None
+                          else self._no_inputs, self._line_arrays, dynamics.SUBSTEPS,
+                          scratch["cycle_rows"], scratch["done"], self.line._unwritten,
+                          scratch["due_rows"], scratch["due_times"], scratch["kinds"])
+
     def sync0(self, now: float, present: np.ndarray) -> np.ndarray:
         """One round of the line's SYNC0 events due by `now` (the slaves `present`), each at
         its own time (`LineClocks.take_due`): the rows whose SYNC0 fired. Every slave steady
@@ -640,7 +661,7 @@ class FrameBatch:
         late master the line fell further behind with every window missed, 7 ms an answer
         over a veth, and lost its sync. As many small numpy operations the pass cost 250 us
         for 32 slaves, more than the frame.)"""
-        line, clocks, sync = self.line, self.clocks, self.sync
+        line = self.line
         if self.stale:
             self._find_steady()
         if self._drives_unknown:
@@ -648,22 +669,10 @@ class FrameBatch:
             self._drives_unknown = False
         if line.refresh():
             self._find_steady()
-        out_fields, in_fields, torque_field, current_field = self._fields
         if self._keys is not None:
             line.prepare(self._keys[0])
+        due = self._pass(now, present)
         scratch = self._scratch
-        due = sync0_pass(now, present, self._dc, self._memories, self._starts,
-                         clocks.local_at_zero, clocks.drift, clocks.correction, clocks.slew,
-                         clocks.anchor, clocks.next_sync0, clocks.armed, clocks.next_host,
-                         clocks.sync0_count, sync.fresh, sync.errors, sync.since,
-                         sync.last_sync0, sync.missed, out_fields, in_fields, torque_field,
-                         current_field, scratch["controlwords"],
-                         scratch["torque"] if torque_field >= 0 else _NONE,
-                         scratch["current"] if current_field >= 0 else _NONE,
-                         self._encoder.bytes if self._encoder is not None else self._no_inputs,
-                         self._line_arrays, dynamics.SUBSTEPS, scratch["cycle_rows"],
-                         scratch["done"], line._unwritten, scratch["due_rows"],
-                         scratch["due_times"], scratch["kinds"])
         rows = scratch["due_rows"][:due].copy()
         if not due:
             return rows

@@ -15,6 +15,7 @@ this process wakes late.
 
 import logging
 import math
+import select
 import socket
 import struct
 import threading
@@ -277,13 +278,21 @@ def run(sock: socket.socket, segment: Segment, stop: threading.Event) -> None:
     buffer = bytearray(FRAME_BUFFER)
     view = memoryview(buffer)
     clock = time.monotonic
+    # waits in select(), to the microsecond: a socket's own timeout waits in poll(), whose
+    # timeout CPython rounds up to the millisecond, so a SYNC0 half a period away ran a whole
+    # period later, just when the master's next frame came, and that frame's answer waited
+    # behind the SYNC0 pass (0.3 ms asked: 1.14 ms median in poll, 0.45 ms in select)
+    sock.setblocking(True)  # select says when a frame is there; sends wait as they would
+    readable = (sock,)
     while not stop.is_set():
         now = clock()
         sync0 = segment.next_sync0(now)
-        sock.settimeout(POLL if sync0 is None else min(POLL, max(0.0, sync0 - now)))
+        timeout = POLL if sync0 is None else min(POLL, max(0.0, sync0 - now))
         try:
+            if not select.select(readable, (), (), timeout)[0]:
+                raise BlockingIOError
             length, ancillary, _, _ = sock.recvmsg_into([buffer], _TIMESPEC.size + 32)
-        except (TimeoutError, BlockingIOError):  # a timeout of 0 makes a non-blocking call
+        except BlockingIOError:  # no frame: a SYNC0 (or a look at the watchdogs) is due
             now = clock()
             segment.run_sync0(now)
             segment.check_watchdogs(now)
