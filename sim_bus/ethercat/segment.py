@@ -129,6 +129,11 @@ class Segment:
             present = self._present()
             while True:
                 if batch is not None:
+                    # the batch's pass only when a SYNC0 is due: its look at the drives and
+                    # the slaves before it (refresh, steady slaves) at every frame besides
+                    # cost talos' DC start its OP (2 of 3 veth starts refused, sync error)
+                    if not (clocks.upcoming(now)[present] <= now).any():
+                        return fired
                     rows = batch.sync0(now, present)
                 else:
                     rows, times = clocks.take_due(now, present)
