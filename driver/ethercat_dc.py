@@ -29,7 +29,11 @@ MASTER_PHASE = 0.0  # the master's frame at this share of the reference clock's 
 # the PI of SOEM's ec_sync example: a hundredth of the offset, plus an integral of its sign
 PROPORTIONAL = 0.01
 INTEGRAL_STEP = 0.05  # ns of trim per cycle the offset kept its sign
-KEEPER_PHASE = 0.2  # share of the cycle at which the keeper looks for a frame in the window
+# the keeper looks for a frame in the window this share of the period before its SYNC0: late
+# enough that a running cycle's frame (at MASTER_PHASE, a late wake-up included) went before,
+# early enough that its own frame still lands in the window when the cycle's did not, after
+# waiting for the interpreter (the switch interval, KEEPER_SWITCH_SHARE of the period)
+KEEPER_LEAD = 0.3
 # a phase error this share of the period or more in RELOCK_FRAMES frames in a row, one way, is
 # stepped out at once (by the smallest of them: a frame the host sent late only adds to its
 # wake-up's error); the PI alone moves 1 % a cycle, hundreds of cycles from a phase slip
@@ -56,6 +60,10 @@ class DcLine:
         self._anchor: tuple[float, int] | None = None  # (host time, reference time) of a frame
         self._recent: deque[int] = deque(maxlen=RELOCK_FRAMES)  # the last frames' offsets, ns
         self.elapsed_periods = 1  # SYNC0 periods between the last two cycles' frames
+        self.kept = 0  # frames the keeper sent into windows the cycle left empty
+        self.waits_us = RingStats()  # the cycle's wait for the line's lock
+        self.round_trips_us = RingStats()  # the cycle's frame, sent to answered
+        self.looks = 0  # the keeper's looks
 
     def configure(self, master, slaves) -> None:
         """Delays and offsets measured and written, SYNC0 activated on every slave."""
@@ -111,14 +119,21 @@ class DcLine:
         if self.cycles * period > SETTLE_TIME * 1e9:
             self.offsets_ns.add(abs(offset))
 
+    def exchanged(self, waited: float, round_trip: float) -> None:
+        """A cycle's exchange (s): how long it waited for the line, its frame's round trip."""
+        self.waits_us.add(waited * 1e6)
+        self.round_trips_us.add(round_trip * 1e6)
+
     def window(self, now: float) -> tuple[float, float]:
         """Host times (monotonic) of the last SYNC0 before `now` (the start of the window the
-        next SYNC0 takes its outputs from) and of the next KEEPER_PHASE instant after `now`."""
+        next SYNC0 takes its outputs from) and of the next keeper's look (KEEPER_LEAD before
+        a SYNC0) after `now`."""
         sent_at, dc_time = self._anchor
         period = self.period_ns
         reference = dc_time + int((now - sent_at) * 1e9)  # drift: ppm over a few periods
         since_sync0 = (reference - self.shift_ns) % period
-        to_keeper = (int(KEEPER_PHASE * period) - reference) % period or period
+        look = self.shift_ns - int(KEEPER_LEAD * period)
+        to_keeper = (look - reference) % period or period
         return now - since_sync0 * 1e-9, now + to_keeper * 1e-9
 
     def take_trim(self) -> float:
@@ -127,6 +142,16 @@ class DcLine:
         return trim
 
     def summary(self) -> str:
+        text = (self._offsets() + f"; the keeper filled {self.kept} of {self.looks} windows "
+                "it looked at")
+        if self.round_trips_us.count:
+            waits, trips = self.waits_us, self.round_trips_us
+            text += (f"; the cycle's frame waited for the line {waits.percentile(50):.0f} us "
+                     f"median (p99 {waits.percentile(99):.0f}), its round trip "
+                     f"{trips.percentile(50):.0f} us median (p99 {trips.percentile(99):.0f})")
+        return text
+
+    def _offsets(self) -> str:
         if not self.offsets_ns.count:
             return (f"{self.name}: master-to-reference-clock offset not settled yet "
                     f"({self.cycles} cycles, last {self.last_offset_ns / 1e3:.1f} us)")

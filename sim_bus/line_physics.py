@@ -258,17 +258,7 @@ class DriveLine:
         if refresh and self.changed:
             self.refresh()
         devices = self.devices
-        for j in self._drifting:
-            devices[j].plant.renew_parameters()
-        if outputs is not self._outputs_given:
-            if outputs != self._output_keys:
-                if self.pending:
-                    self.flush()
-                self._output_keys = outputs
-            self._outputs_given = outputs
-            targets = outputs[1:]
-            self._torque_at = targets.index(_TORQUE_KEY) if _TORQUE_KEY in targets else -1
-            self._current_at = targets.index(_CURRENT_KEY) if _CURRENT_KEY in targets else -1
+        self.prepare(outputs)
         count = len(rows)
         done = self._done if count == len(devices) else self._done[:count]
         ran = advance_line(rows, controlwords,
@@ -280,7 +270,6 @@ class DriveLine:
                            self.packed_braked, self.draws, self.cursor, self.values,
                            self.applied, self.outputs, dynamics.SUBSTEPS, done,
                            self._unwritten)
-        self.pending = True
         if ran == len(devices):
             return done
         if others_idle:
@@ -290,6 +279,37 @@ class DriveLine:
             self.cycled_elsewhere(np.setdiff1d(self._rows, rows[done],
                                                assume_unique=True).tolist())
         return done
+
+    def prepare(self, outputs: tuple) -> tuple[int, int]:
+        """Before a cycle of the drives under outputs of the objects `outputs` (run by
+        `cycle`, or by a caller's compiled code through `advance_line`): the drifting
+        plants' parameters renewed, the output keys taken (what the devices were last given
+        written back first when they change), the line marked as holding results to write
+        back. Where target torque and current are among the targets (-1: not carried)."""
+        for j in self._drifting:
+            self.devices[j].plant.renew_parameters()
+        if outputs is not self._outputs_given:
+            if outputs != self._output_keys:
+                if self.pending:
+                    self.flush()
+                self._output_keys = outputs
+            self._outputs_given = outputs
+            targets = outputs[1:]
+            self._torque_at = targets.index(_TORQUE_KEY) if _TORQUE_KEY in targets else -1
+            self._current_at = targets.index(_CURRENT_KEY) if _CURRENT_KEY in targets else -1
+        self.pending = True
+        return self._torque_at, self._current_at
+
+    def kernel_arrays(self) -> tuple:
+        """The line's arrays `advance_line` takes after `counter`, up to `done` (exclusive),
+        for compiled code of a caller that runs the cycle inside its own (a segment's SYNC0
+        pass): steady, controlword, next_due, cycles, terms, flags, ranges, torque and
+        current targets, state, packed, packed_braked, draws, cursor, values, applied,
+        outputs; then `unwritten` is the last argument."""
+        return (self._steady, self._controlword, self._next_due, self._cycles, self.terms,
+                self.flags, self.ranges, self.torque_targets, self.current_targets, self.state,
+                self.packed, self.packed_braked, self.draws, self.cursor, self.values,
+                self.applied, self.outputs)
 
     def held_outputs(self, rows: np.ndarray, outputs: tuple) -> tuple[np.ndarray, list]:
         """The outputs the drives `rows` hold (their last controlword and targets), as

@@ -21,12 +21,14 @@ against the cycle does not matter. Any other frame goes slave by slave, and the 
 made again before the next.
 """
 
+import math
 from collections.abc import Sequence
 
 import numba
 import numpy as np
 from numba.typed import List
 
+from model import dynamics
 from protocol import ethercat as ec
 from protocol import objects
 from protocol.dictionary import mappable_object
@@ -34,8 +36,14 @@ from protocol.pdo import PdoLayout
 from sim_bus.device import LINE_KEYS
 from sim_bus.ethercat import dc
 from sim_bus.ethercat.esc import Esc
-from sim_bus.ethercat.firmware import LineSync, SlaveFirmware
-from sim_bus.line_physics import DriveLine
+from sim_bus.ethercat.firmware import (
+    FREE_SYNC0,
+    SYNC_ERROR_LIMIT,
+    SYNC_ERROR_WEIGHT,
+    LineSync,
+    SlaveFirmware,
+)
+from sim_bus.line_physics import DriveLine, advance_line
 
 _LOGICAL = frozenset((ec.Command.LRD, ec.Command.LWR, ec.Command.LRW))
 _READS = frozenset((ec.Command.APRD, ec.Command.FPRD, ec.Command.BRD))
@@ -47,7 +55,8 @@ _WATCHDOG_REGISTERS = (ec.REG_WATCHDOG_DIVIDER, ec.REG_WATCHDOG_COUNTER_PROCESS_
 # what other datagrams may write beside a batch: the distributed clock's times (an FRMW of
 # the reference clock's system time rides in every cyclic frame of a DC master)
 _CLOCK_TIMES = (dc.REG_RECEIVE_TIME_PORT0, dc.REG_SPEED_COUNTER_START)
-_TARGETS = frozenset(((objects.TARGET_TORQUE, 0), (objects.TARGET_CURRENT, 0)))
+_TORQUE, _CURRENT = (objects.TARGET_TORQUE, 0), (objects.TARGET_CURRENT, 0)
+_TARGETS = frozenset((_TORQUE, _CURRENT))
 _CONTROLWORD = (objects.CONTROLWORD, 0)
 # AL status of a slave steady on SYNC0 that a window without outputs leaves as it was: in OP,
 # or in SAFE-OP waiting to enter OP (no error indicator: a slave that just lost its sync has it)
@@ -80,6 +89,135 @@ def from_buffers(rows: np.ndarray, memories, starts: np.ndarray, which: int,
     return out
 
 
+# what the SYNC0 pass (`sync0_pass`) did with each slave whose SYNC0 it took
+RAN = 1  # its window's bookkeeping and its drive's cycle, inputs in SM3
+FRESH_LEFT = 2  # the bookkeeping; its firmware runs the cycle, on the window's outputs
+HELD_LEFT = 3  # the bookkeeping; its firmware runs the cycle, on what its drive holds
+LOST = 4  # the bookkeeping found its sync lost: its firmware drops it out of OP
+ELSEWHERE = 5  # not steady in OP on SYNC0: its firmware does the bookkeeping too
+_OP = int(ec.AlState.OP)
+_NONE = np.zeros(0, dtype=np.int64)  # an output the layout does not carry
+_MILLI = objects.MILLI
+
+
+@numba.njit(cache=True)
+def _field(memory: np.ndarray, at: int, size: int, signed: bool) -> int:
+    """A little-endian integer of `size` bytes at `at`."""
+    value = 0
+    for b in range(size):
+        value |= np.int64(memory[at + b]) << (8 * b)
+    if signed and value >= 1 << (8 * size - 1):
+        value -= 1 << (8 * size)
+    return value
+
+
+@numba.njit(cache=True)
+def sync0_pass(now, present, steady_dc, memories, starts, local_at_zero, drift, correction,
+               slew, anchor, next_sync0, armed, next_host, sync0_count, fresh, errors, since,
+               last_sync0, missed, out_fields, in_fields, torque_field, current_field,
+               controlwords, torque_out, current_out, encoded, line_arrays, substeps,
+               cycle_rows, done, unwritten, due_rows, due_times, kinds) -> int:
+    """A SYNC0 pass of the whole line in one call: what `LineClocks.take_due`,
+    `LineSync.sync0_in_op`, the decode of the SM2 buffers (or the outputs the drives hold),
+    `DriveLine.cycle` and the encode of the inputs into SM3 do for every slave steady in OP
+    on SYNC0, in the same arithmetic, so the same results. Each present slave's SYNC0 due by
+    `now` is taken (its host time first worked out where a register write cleared it, for
+    every armed clock as `LineClocks.upcoming` does); the due rows and their times go into
+    `due_rows`/`due_times`, what became of each into `kinds` (RAN ... ELSEWHERE). Returns
+    how many were due. `out_fields` (offset, size, signed) and `in_fields` (offset, size,
+    column of the line's values) describe the PDOs; `torque_field`/`current_field` are the
+    output fields of the targets (-1: not carried)."""
+    (steady, line_controlword, next_due, cycles, terms, flags, ranges, torque_targets,
+     current_targets, state, packed, packed_braked, draws, cursor, values, applied,
+     outputs) = line_arrays
+    count = present.shape[0]
+    due = 0
+    cycling = 0
+    for k in range(count):
+        kinds[k] = 0
+        if not armed[k]:
+            continue
+        memory = memories[k]
+        if np.isnan(next_host[k]):  # `DistributedClock.host_time_of` at `now`
+            offset = np.uint64(0)
+            for b in range(8):
+                offset |= np.uint64(memory[dc.REG_SYSTEM_TIME_OFFSET + b]) << np.uint64(8 * b)
+            local = np.uint64(np.int64(local_at_zero[k] + now * 1e9 * (1.0 + drift[k])
+                                       + correction[k] + (now - anchor[k]) * 1e9 * slew[k]))
+            ahead = np.int64(next_sync0[k] - (local + offset))
+            next_host[k] = now + ahead * 1e-9 / (1.0 + drift[k] + slew[k])
+        at = next_host[k]
+        if not present[k] or not at <= now:
+            continue
+        cycle = np.uint64(0)
+        for b in range(4):
+            cycle |= np.uint64(memory[dc.REG_SYNC0_CYCLE_TIME + b]) << np.uint64(8 * b)
+        next_sync0[k] += cycle
+        next_host[k] = at + cycle * 1e-9 / (1.0 + drift[k] + slew[k])
+        sync0_count[k] += 1
+        memory[dc.REG_SYNC0_STATUS] = 1
+        due_rows[due], due_times[due] = k, at
+        due += 1
+        kinds[k] = ELSEWHERE
+        if not steady_dc[k] or memory[ec.REG_AL_STATUS] != _OP:
+            continue
+        # the window's bookkeeping (`SlaveFirmware.sync0_window` in OP)
+        last_sync0[k] = at
+        got = fresh[k]
+        fresh[k] = False
+        since_before = since[k]
+        since[k] += 1
+        if not got:
+            missed[k] += 1
+            if since_before > FREE_SYNC0:
+                errors[k] += SYNC_ERROR_WEIGHT
+                if errors[k] >= SYNC_ERROR_LIMIT:
+                    kinds[k] = LOST
+                    continue
+        # the outputs the cycle takes: the window's (SM2) or those the drive holds
+        if got:
+            start = starts[k, 0]
+            controlwords[k] = _field(memory, start + out_fields[0, 0], out_fields[0, 1],
+                                     out_fields[0, 2] != 0)
+            if torque_field >= 0:
+                torque_out[k] = _field(memory, start + out_fields[torque_field, 0],
+                                       out_fields[torque_field, 1],
+                                       out_fields[torque_field, 2] != 0)
+            if current_field >= 0:
+                current_out[k] = _field(memory, start + out_fields[current_field, 0],
+                                        out_fields[current_field, 1],
+                                        out_fields[current_field, 2] != 0)
+            kinds[k] = FRESH_LEFT
+        else:
+            controlwords[k] = line_controlword[k]
+            if torque_field >= 0:
+                torque_out[k] = np.int64(torque_targets[k])
+            if current_field >= 0:
+                current_out[k] = np.int64(np.rint(current_targets[k] * _MILLI))
+            kinds[k] = HELD_LEFT
+        cycle_rows[cycling] = k
+        cycling += 1
+    if cycling:
+        advance_line(cycle_rows[:cycling], controlwords, torque_out, current_out, 0, steady,
+                     line_controlword, next_due, cycles, terms, flags, ranges, torque_targets,
+                     current_targets, state, packed, packed_braked, draws, cursor, values,
+                     applied, outputs, substeps, done, unwritten)
+        for n in range(cycling):
+            if not done[n]:
+                continue
+            k = cycle_rows[n]
+            kinds[k] = RAN
+            memory = memories[k]
+            start = starts[k, 1]
+            for f in range(in_fields.shape[0]):
+                at_, size, value = in_fields[f, 0], in_fields[f, 1], values[k, in_fields[f, 2]]
+                for b in range(size):
+                    byte = (value >> (8 * b)) & 0xFF
+                    encoded[k, at_ + b] = byte
+                    memory[start + at_ + b] = byte
+    return due
+
+
 def batchable_keys(out_keys: Sequence[tuple[int, int]],
                    in_keys: Sequence[tuple[int, int]]) -> bool:
     """Whether a layout is one the line's batch can cycle: the controlword first, then
@@ -87,6 +225,27 @@ def batchable_keys(out_keys: Sequence[tuple[int, int]],
     return (bool(out_keys) and bool(in_keys) and out_keys[0] == _CONTROLWORD
             and set(out_keys[1:]) <= _TARGETS and len(set(out_keys)) == len(out_keys)
             and set(in_keys) <= set(LINE_KEYS))
+
+
+def _pdo_fields(out_layout: PdoLayout, in_layout: PdoLayout,
+                keys: tuple) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """What `sync0_pass` decodes and encodes with: the output fields' (offset, size,
+    signed), the input fields' (offset, size, column in `LINE_KEYS`), and the output fields
+    of target torque and current (-1: not carried)."""
+    def offsets(layout: PdoLayout) -> list[int]:
+        sizes = [o.bits // 8 for o in layout.objects]
+        return [sum(sizes[:n]) for n in range(len(sizes))]
+
+    out_fields = np.array([(at, o.bits // 8, o.signed) for at, o in
+                           zip(offsets(out_layout), out_layout.objects, strict=True)],
+                          dtype=np.int64)
+    in_fields = np.array([(at, o.bits // 8, LINE_KEYS.index((o.index, o.subindex)))
+                          for at, o in zip(offsets(in_layout), in_layout.objects, strict=True)],
+                         dtype=np.int64)
+    out_keys = list(keys[0])
+    return (out_fields, in_fields,
+            out_keys.index(_TORQUE) if _TORQUE in out_keys else -1,
+            out_keys.index(_CURRENT) if _CURRENT in out_keys else -1)
 
 
 class InputEncoder:
@@ -145,6 +304,15 @@ class FrameBatch:
         self._keys: tuple | None = None
         self._layouts: tuple[PdoLayout, PdoLayout] | None = None
         self._encoder: InputEncoder | None = None
+        # the PDOs as `sync0_pass` takes them (none until a layout is found)
+        self._fields = (np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3), dtype=np.int64),
+                        -1, -1)
+        self._no_inputs = np.zeros((count, 0), dtype=np.uint8)
+        self._line_arrays = line.kernel_arrays()
+        self._scratch = {name: np.zeros(count, dtype=dtype) for name, dtype in (
+            ("controlwords", np.int64), ("torque", np.int64), ("current", np.int64),
+            ("cycle_rows", np.int64), ("done", np.bool_), ("due_rows", np.int64),
+            ("due_times", np.float64), ("kinds", np.int64))}
         self._plans: dict = {}  # frame layout -> _Plan (or None: not batched)
         self._memories = List([np.frombuffer(esc.memory, np.uint8) for esc in self.escs])
         self._starts = np.zeros((count, 2), dtype=np.int64)
@@ -152,12 +320,15 @@ class FrameBatch:
         self._warm()
 
     def _warm(self) -> None:
-        """Load the compiled code now, not in the first frame in OP: loading it takes about
-        0.1 s, longer than a master waits for its frame."""
+        """Load the compiled code now, not in the first frame in OP or the first SYNC0:
+        loading it takes about 0.1 s, longer than a master waits for its frame (the SYNC0
+        pass loaded at the first SYNC0 cost the slaves their first windows: a sync error
+        before OP)."""
         count, none = len(self.escs), np.zeros(0, dtype=np.int64)
         if not count:
             return
         self.line.load_kernel()
+        self._pass(-math.inf, np.zeros(count, dtype=bool))  # no SYNC0 is due before all time
         empty = np.zeros((count, 1), dtype=np.uint8)
         into_buffers(none, self._memories, self._starts, empty, empty)
         from_buffers(none, self._memories, self._starts, 0, 1)
@@ -189,6 +360,7 @@ class FrameBatch:
                 for assign in (ec.RXPDO_ASSIGN, ec.TXPDO_ASSIGN))
             self._keys = common
             self._encoder = InputEncoder(self._layouts[1], len(self.escs))
+            self._fields = _pdo_fields(*self._layouts, common)
         sizes = (self._layouts[0].size, self._layouts[1].size)
         for k, (esc, firmware) in enumerate(zip(self.escs, self.firmwares, strict=True)):
             if keys[k] != common or esc._plan is None:
@@ -461,15 +633,34 @@ class FrameBatch:
 
     # --- SYNC0 -------------------------------------------------------------------------------
 
-    def sync0(self, rows: np.ndarray, times: np.ndarray) -> None:
-        """The SYNC0 each slave of `rows` has just taken (`Esc.take_sync0`): its firmware's
-        window bookkeeping (`SlaveFirmware.sync0_window`), then the drives' cycles: every
-        slave steady on SYNC0 in one compiled call, on its SM2 buffer when outputs came in
-        the window and on what its drive holds when none did, its inputs into SM3; the
-        others each through its firmware (`run_cycle`), exactly as `SlaveFirmware.sync0`
-        runs them one by one. (A window without outputs went slave by slave, a device cycle
-        in Python each: on a late master the line fell further behind with every window
-        missed, 7 ms an answer over a veth, and lost its sync.)"""
+    def _pass(self, now: float, present: np.ndarray) -> int:
+        """`sync0_pass` on this line's arrays (its result in `_scratch`): how many were due."""
+        clocks, sync, scratch = self.clocks, self.sync, self._scratch
+        out_fields, in_fields, torque_field, current_field = self._fields
+        return sync0_pass(now, present, self._dc, self._memories, self._starts,
+                          clocks.local_at_zero, clocks.drift, clocks.correction, clocks.slew,
+                          clocks.anchor, clocks.next_sync0, clocks.armed, clocks.next_host,
+                          clocks.sync0_count, sync.fresh, sync.errors, sync.since,
+                          sync.last_sync0, sync.missed, out_fields, in_fields, torque_field,
+                          current_field, scratch["controlwords"],
+                          scratch["torque"] if torque_field >= 0 else _NONE,
+                          scratch["current"] if current_field >= 0 else _NONE,
+                          self._encoder.bytes if self._encoder is not None
+                          else self._no_inputs, self._line_arrays, dynamics.SUBSTEPS,
+                          scratch["cycle_rows"], scratch["done"], self.line._unwritten,
+                          scratch["due_rows"], scratch["due_times"], scratch["kinds"])
+
+    def sync0(self, now: float, present: np.ndarray) -> np.ndarray:
+        """One round of the line's SYNC0 events due by `now` (the slaves `present`), each at
+        its own time (`LineClocks.take_due`): the rows whose SYNC0 fired. Every slave steady
+        in OP on SYNC0 in one compiled call (`sync0_pass`: its window's bookkeeping, its
+        drive's cycle on the SM2 buffer when outputs came in the window and on what it holds
+        when none did, its inputs into SM3); the others each through its firmware
+        (`sync0_window`, `run_cycle`), exactly as `SlaveFirmware.sync0` runs them one by one.
+        (A window without outputs went slave by slave, a device cycle in Python each: on a
+        late master the line fell further behind with every window missed, 7 ms an answer
+        over a veth, and lost its sync. As many small numpy operations the pass cost 250 us
+        for 32 slaves, more than the frame.)"""
         line = self.line
         if self.stale:
             self._find_steady()
@@ -478,24 +669,34 @@ class FrameBatch:
             self._drives_unknown = False
         if line.refresh():
             self._find_steady()
+        if self._keys is not None:
+            line.prepare(self._keys[0])
+        due = self._pass(now, present)
+        scratch = self._scratch
+        rows = scratch["due_rows"][:due].copy()
+        if not due:
+            return rows
         escs, firmwares, steady = self.escs, self.firmwares, self._dc
-        # slaves steady on SYNC0 cycle in the batch: with the outputs of their window, or
-        # (none came) with those their drives hold, as the device's cycle without new
-        # outputs runs; only a slave that left its steady state goes through its firmware
-        fresh, held, single = [], [], []
-        # the bookkeeping of the slaves steady in OP at once; the others each by its firmware
-        status = dc.read_registers(self.clocks.memories, rows, ec.REG_AL_STATUS, 1)[:, 0]
-        in_op = steady[rows] & (status == ec.AlState.OP)
-        if in_op.any():
-            applies, lost = self.sync.sync0_in_op(rows[in_op], times[in_op])
-            for k in lost.tolist():
-                firmwares[k]._sync_lost(escs[k], ec.AL_SYNC_ERROR, "outputs missed their "
-                                        f"SYNC0 window {firmwares[k].missed_sync0} times")
-                single.append((k, False))
-            ok = rows[in_op][applies].tolist()
-            fresh.extend(ok)
-            held.extend(sorted(set(rows[in_op].tolist()) - set(ok) - set(lost.tolist())))
-        for k in rows[~in_op].tolist():
+        for k, t in zip(rows.tolist(), scratch["due_times"][:due].tolist(), strict=True):
+            escs[k].now = t
+        kinds = scratch["kinds"][rows]
+        ran = rows[kinds == RAN].tolist()
+        for k in ran:
+            firmwares[k].cycles += 1
+        self.batched += len(ran)
+        if len(ran) == due:
+            return rows
+        single = []
+        for k in rows[kinds == LOST].tolist():
+            firmwares[k]._sync_lost(escs[k], ec.AL_SYNC_ERROR, "outputs missed their "
+                                    f"SYNC0 window {firmwares[k].missed_sync0} times")
+            single.append((k, False))
+        single.extend((k, True) for k in rows[kinds == FRESH_LEFT].tolist())
+        single.extend((k, False) for k in rows[kinds == HELD_LEFT].tolist())
+        # the slaves not steady in OP (entering OP, or not on SYNC0): their firmware's
+        # bookkeeping; those steady and waiting for OP cycle in the batch all the same
+        fresh, held = [], []
+        for k in rows[kinds == ELSEWHERE].tolist():
             apply = firmwares[k].sync0_window(escs[k])
             if apply is None:
                 continue
@@ -515,16 +716,16 @@ class FrameBatch:
                     column[kept] = values
             done = line.cycle(rows_, controlwords, self._keys[0], targets, refresh=False,
                               others_idle=True)
-            ran = rows_[done]
-            self._encoder.encode(line.values, ran)
+            ran_ = rows_[done]
+            self._encoder.encode(line.values, ran_)
             full_outputs = np.zeros((len(self.escs), outputs.shape[1]), dtype=np.uint8)
             full_outputs[rows_] = outputs  # a held slave's buffer written back as it was
-            into_buffers(ran, self._memories, self._starts, full_outputs, self._encoder.bytes)
-            for k in ran.tolist():
+            into_buffers(ran_, self._memories, self._starts, full_outputs, self._encoder.bytes)
+            for k in ran_.tolist():
                 firmwares[k].cycles += 1
             single.extend((k, n < len(fresh)) for n, k in zip(
                 np.flatnonzero(~done).tolist(), rows_[~done].tolist(), strict=True))
-            self.batched += len(ran)
+            self.batched += len(ran_)
         if single:
             line.cycled_elsewhere([k for k, _ in single])
             for k, apply in single:
@@ -533,3 +734,4 @@ class FrameBatch:
                 # at again; one that only missed a window stays as it was
                 if steady[k] != (firmwares[k].sync0_steady_keys() is not None):
                     self.stale = True
+        return rows
