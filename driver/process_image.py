@@ -113,9 +113,14 @@ def compile_ahead() -> None:
     """Load `decode` and `encode` now (compile them on a first run after an install): called
     before any drive is enabled, so a fresh install's compile (seconds) is not the first
     cycle's, which would leave the drives without SYNC past their watchdog (EMCY 0x8130 and a
-    failed start, seen on the first run after a fresh compile)."""
+    failed start, seen on the first run after a fresh compile). `decode` twice: a CAN bus's
+    image is an array of its own, an EtherCAT line's the frame's bytes as they came (read-only
+    to numba, a specialization of its own: loaded in the first cycle, it took a DC line's
+    SYNC0 windows at the start)."""
     table = np.empty((1, len(Sample._fields)))
-    decode(np.zeros(2 * INPUTS, dtype=np.uint8), np.zeros((1, 2 * INPUTS), dtype=np.int64),
-           np.ones((1, 4)), 0.0, np.full(1, np.nan), 1, table)
+    for image in (np.zeros(2 * INPUTS, dtype=np.uint8),
+                  np.frombuffer(bytes(2 * INPUTS), dtype=np.uint8)):
+        decode(image, np.zeros((1, 2 * INPUTS), dtype=np.int64), np.ones((1, 4)), 0.0,
+               np.full(1, np.nan), 1, table)
     encode(np.zeros(1), np.ones(1), np.ones(1), 0, np.zeros((1, 2 * OUTPUTS), dtype=np.int64),
            np.zeros(2 * OUTPUTS, dtype=np.uint8))
