@@ -587,7 +587,8 @@ class Terminal:
 
 def test_terminal_dashboard_keeps_up_with_a_real_time_actuatord_and_quits_cleanly():
     """`dashboard tui` on a terminal under actuatord --sim in real time (1 kHz): the clock it
-    shows stays within 0.5 s of the newest state on the wire, it shows actuatord's death,
+    shows stays within 0.5 s of the newest state on the wire (every look but one, the last
+    one included), it shows actuatord's death,
     and `q` quits with exit 0 and no traceback.
 
     Runs 10 s, not the issue's 30: a dashboard that cannot keep up falls behind linearly (the
@@ -638,7 +639,9 @@ def test_terminal_dashboard_keeps_up_with_a_real_time_actuatord_and_quits_cleanl
             actuatord.kill()
         actuatord.communicate(timeout=30)
     assert len(lags) >= 10
-    assert max(abs(lag) for lag in lags) < 0.5, lags
+    # one look may land in a stall of the host itself (1.3 s once beside two busy loops, every
+    # other look under 0.1 s); a dashboard that cannot keep up falls behind and stays behind
+    assert sum(abs(lag) >= 0.5 for lag in lags) <= 1 and abs(lags[-1]) < 0.5, lags
     assert vanished
     assert code == 0
     assert "Traceback" not in terminal.text and "App is not running" not in terminal.text
