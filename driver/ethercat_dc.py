@@ -136,6 +136,19 @@ class DcLine:
         to_keeper = (look - reference) % period or period
         return now - since_sync0 * 1e-9, now + to_keeper * 1e-9
 
+    def next_frame(self, now: float) -> tuple[float, float]:
+        """Host times (monotonic) of the master's next frame phase (MASTER_PHASE of the
+        reference clock's cycle) at or after `now`, and of the SYNC0 that takes the outputs
+        of a frame sent then: where a frame outside the cycle goes (`EthercatMaster.
+        pass_image`), so it lands where the cycle's would, early in a window, not at
+        whatever phase the caller came by."""
+        sent_at, dc_time = self._anchor
+        period = self.period_ns
+        reference = dc_time + int((now - sent_at) * 1e9)
+        to_phase = (int(MASTER_PHASE * period) - reference) % period
+        to_sync0 = (self.shift_ns - reference - to_phase) % period or period
+        return now + to_phase * 1e-9, now + (to_phase + to_sync0) * 1e-9
+
     def take_trim(self) -> float:
         """s to add to the next period of the master's clock (then 0 until the next frame)."""
         trim, self._trim = self._trim, 0.0

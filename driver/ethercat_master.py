@@ -52,6 +52,7 @@ DEFAULT_DC_PERIOD = 1e-3  # s: SYNC0 period when no transport said (start sets i
 DC_OP_TIMEOUT = 1.0  # s for the slaves to take OP at a SYNC0 (the first comes 100 ms after set-up)
 DC_OP_CHECK_FRAMES = 8  # DC: frames between two reads of the slaves' states on the way to OP
 DC_SETTLE_FRAMES = 2  # DC: frames before the first cycle (see `settle`)
+PAST_SYNC0 = 50e-6  # s: DC, a frame's SYNC0 surely run by the slaves this long after it
 # cycles between two reads of the slaves' AL status: a slave out of OP is named within 10 ms
 # at 1 kHz, at the cost of one broadcast read in ten cycles (counted in cycles, so lock-step
 # finds it in the same cycle every run)
@@ -283,18 +284,27 @@ class EthercatMaster:
         counted as cycles), so the first cycle's sample shows the enabled drives."""
         if self.dc is None:
             return
-        with self.lock:
-            for _ in range(DC_SETTLE_FRAMES):
-                self._frame()
-                self.clock.sleep_until(self.clock.now() + self.dc.period_ns * 1e-9)
+        for _ in range(DC_SETTLE_FRAMES):
+            self.pass_image()
 
     def pass_image(self) -> None:
-        """DC: a frame now, then a period for the slaves' SYNC0 to take its outputs and sample
-        the inputs the next one reads (`driver.ethercat_transport` steers through the
-        process data this way)."""
+        """DC: a frame, then the SYNC0 that takes its outputs and samples the inputs the next
+        one reads (`driver.ethercat_transport` steers through the process data this way).
+        In real time the frame goes at the cycle's own phase of the reference clock
+        (`DcLine.next_frame`) and the line's lock is held for the frame only: a frame sent
+        whenever the caller came by landed late in a window as often as early, and one
+        held back by the lock over a period's sleep kept the keeper from its window (the
+        second of talos_32's DC starts out with 0x001A before its first cycle)."""
+        if not self.clock.runs_alone:
+            with self.lock:
+                self._frame()
+            self.clock.sleep_until(self.clock.now() + self.dc.period_ns * 1e-9)
+            return
+        send, sync0 = self.dc.next_frame(time.monotonic())
+        self.clock.sleep_until(send)
         with self.lock:
             self._frame()
-        self.clock.sleep_until(self.clock.now() + self.dc.period_ns * 1e-9)
+        self.clock.sleep_until(max(sync0, self._last_frame) + PAST_SYNC0)
 
     def clock_trim(self) -> float:
         """s to add to the next period of the cycle's clock (DC: follow the reference)."""
