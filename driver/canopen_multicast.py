@@ -73,7 +73,7 @@ class MulticastNetwork(canopen.Network):
             self._sender = _sender_socket(self._socket.family, group,
                                           config.get("hop_limit", HOP_LIMIT))
             self._source = self._sender.getsockname()[:2]
-            _drop_from(self._socket, *self._source)
+            self._filtered = _drop_from(self._socket, *self._source)
             _own_group_only(self._socket)
         except Exception:
             self.bus.shutdown()
@@ -95,6 +95,8 @@ class MulticastNetwork(canopen.Network):
         count and then canopen's subscribers), stamped with the kernel's receive time; error
         and remote frames ignored, as canopen's listener does."""
         recvmsg, source = self._socket.recvmsg, self._source
+        # where the kernel drops our own frames (`_drop_from`), no look at the sender
+        check = not self._filtered
         while True:
             try:
                 datagram, ancillary, _, sender = recvmsg(DATAGRAM_MAX, _ANCILLARY)
@@ -102,7 +104,7 @@ class MulticastNetwork(canopen.Network):
                 return
             except OSError:  # closed under us by disconnect: the receiver forgets it
                 return
-            if sender[:2] == source:  # where the kernel could not drop it (IPv6)
+            if check and sender[:2] == source:
                 continue
             try:
                 frame = decode(datagram)
@@ -111,11 +113,12 @@ class MulticastNetwork(canopen.Network):
                 continue
             if frame is None:
                 continue
-            stamp = time.time()
-            for level, kind, value in ancillary:
-                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
-                    seconds, nanoseconds = _TIMESPEC.unpack_from(value)
-                    stamp = seconds + nanoseconds * 1e-9
+            # the socket's one ancillary item: SO_TIMESTAMPNS
+            if ancillary and ancillary[0][1] == SO_TIMESTAMPNS:
+                seconds, nanoseconds = _TIMESPEC.unpack_from(ancillary[0][2])
+                stamp = seconds + nanoseconds * 1e-9
+            else:
+                stamp = time.time()
             try:
                 self.notify(frame[0], frame[1], stamp)
             except Exception:  # one handler's failure must not stop the bus
@@ -164,19 +167,22 @@ def _own_group_only(receiver: socket.socket) -> None:
         log.warning("buses on one port with several groups hear each other (%s)", exc)
 
 
-def _drop_from(receiver: socket.socket, address: str, port: int) -> None:
+def _drop_from(receiver: socket.socket, address: str, port: int) -> bool:
     """Have the kernel drop, before queueing, what `receiver` gets from `address`:`port` (our
     own frames, looped back): about a third of a bus's datagrams (its SYNC and RPDOs), each a
     wake-up of the receive thread, which then takes the interpreter from the loop thread in
     the middle of its cycle. The program (IPv4 only; the kernel copies it): source port (UDP
-    header) and source address (IP header) ours: drop, else keep."""
+    header) and source address (IP header) ours: drop, else keep. Whether the kernel
+    took it (else `receive_ready` drops them by their sender)."""
     if receiver.family != socket.AF_INET:
-        return
+        return False
     program, fprog = own_frames_fprog(address, port)  # the program lives through the call
     try:
         receiver.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, fprog)
     except OSError as exc:  # the check in receive_ready drops them instead
         log.info("own frames dropped in user space (socket filter refused: %s)", exc)
+        return False
+    return True
 
 
 class MulticastReceiver:
