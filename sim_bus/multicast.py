@@ -55,6 +55,7 @@ POLL_TIMEOUT = 0.05  # s: how long closing waits for the receive thread at most
 AHEAD = 150e-6  # s before the next cycle's expected SYNC from which the thread looks, awake
 CYCLE_GAP = 300e-6  # s without a SYNC before one that starts a cycle (a bus's SYNCs: < 100 us)
 RHYTHM = 5  # cycles whose median interval is the expected period
+SELECT_FDS = 1024  # FD_SETSIZE: select's descriptors end below it
 
 
 class MulticastNetwork(canopen.Network):
@@ -210,11 +211,21 @@ class MulticastReceiver(threading.Thread):
         networks, stopping, clock, rhythm = (self._networks, self._stopping,
                                              time.perf_counter, self.rhythm)
         fds = list(networks)
+        # select, not epoll: its timeout has microseconds, epoll's milliseconds; but it takes
+        # descriptors below FD_SETSIZE only (a process with that many open sleeps in poll
+        # until a frame comes, and keeps no rhythm)
+        timed = max(fds, default=0) < SELECT_FDS
+        if not timed:
+            poller = select.poll()
+            for fd in fds:
+                poller.register(fd, select.POLLIN)
         while not stopping.is_set():
             now = clock()
-            # select, not epoll: its timeout has microseconds, epoll's milliseconds
-            wait = rhythm.due - AHEAD - now
-            ready = select.select(fds, (), (), min(wait, POLL_TIMEOUT) if wait > 0 else 0)[0]
+            if timed:
+                wait = rhythm.due - AHEAD - now
+                ready = select.select(fds, (), (), min(wait, POLL_TIMEOUT) if wait > 0 else 0)[0]
+            else:
+                ready = [fd for fd, _ in poller.poll(POLL_TIMEOUT * 1e3)]
             if not ready:
                 if now > rhythm.due + AHEAD:
                     rhythm.missed()

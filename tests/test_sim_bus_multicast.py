@@ -3,7 +3,9 @@ datagrams: a canopen master on python-can's own udp_multicast bus reads a drive 
 it (SDO, NMT, SYNC -> TPDOs) as it reads any other, and one thread receives for several buses."""
 
 import math
+import os
 import random
+import socket
 import threading
 import time
 
@@ -144,3 +146,24 @@ def test_the_rhythm_expects_the_next_cycle_from_the_median_interval_of_the_last_
     assert rhythm.due == math.inf
     rhythm.sync(t + period)  # the next cycle's SYNC: expected again
     assert rhythm.due == pytest.approx(t + 2 * period)
+
+
+def test_a_bus_on_a_descriptor_select_cannot_take_is_still_served():
+    spec = udp_bus_spec()
+    network = MulticastNetwork(parse_bus_spec(spec))
+    high = 2000  # above FD_SETSIZE: the receiver sleeps in poll instead
+    os.dup2(network._socket.fileno(), high)
+    moved = socket.socket(fileno=high)
+    network._socket.close()
+    network._socket = moved
+    got = threading.Event()
+    network.subscribe(0x181, lambda can_id, data, ts: got.set())
+    receiver = MulticastReceiver([network])
+    receiver.start()
+    try:
+        with can.Bus(ignore_config=True, **parse_bus_spec(spec)) as other:
+            other.send(can.Message(arbitration_id=0x181, data=b"\x01", is_extended_id=False))
+            assert got.wait(2), "the frame was not received"
+    finally:
+        receiver.stop()
+        network.disconnect()
