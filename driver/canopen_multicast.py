@@ -9,9 +9,9 @@ millisecond including the echoes of the master's own SYNCs and RPDOs, and sendin
 (`can.Message`, `pack_message`, a socket timeout set, sendto) about 60 % of the loop thread;
 bus-bench missed about 290 % of cycles. Here the cycle's thread reads every udp_multicast bus
 of the process while it waits for its TPDOs, one thread of its own otherwise
-(`MulticastReceiver`), a frame is one recvmsg and one msgpack call in, one msgpack call and
-one send out, and the master's own frames are dropped by their sender address before
-decoding.
+(`MulticastReceiver`), a frame is one recvmsg and one decode in place in
+(`protocol.can_datagram.decode`), one join of bytes and one send out, and the kernel drops
+the master's own frames by their sender address before they are queued.
 
 Own frames: python-can's socket is bound to the group's port and every process on the group
 sends from that same port, so an echo cannot be told by its source. Frames here leave from a

@@ -7,8 +7,9 @@ Through python-can and canopen a frame cost the drives' process about 20 us to s
 listeners, canopen's node scanner), plus the echo of every frame it sent itself, which
 udp_multicast delivers back: talos_arm's four buses (two drives each, nine frames a cycle)
 took about 1.5 ms of CPU a millisecond, more than a core, and the master waited for its
-samples ("late sample"). Here a frame is one msgpack call and one socket call each way, and
-one thread receives for every bus of the process.
+samples ("late sample"). Here a frame is one decode in place (`protocol.can_datagram`) and
+one socket call each way, and one thread receives for every bus of the process, awake when
+the master's next SYNC is due (`MulticastReceiver`).
 
 Own frames: the drives' TPDOs, heartbeats and SDO answers (two thirds of a bus's datagrams)
 come back to their own socket through multicast loopback. They leave from a socket of the
