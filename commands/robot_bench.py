@@ -6,6 +6,14 @@ the MPC tick and the master's own cost. `--sim` runs the drives embedded in the 
 process instead (`actuatord --robot --sim` in real time); `--busy-loops N` runs N CPU-bound
 processes at normal priority beside the floor and every start, as a busy host has them.
 
+The drives' process stands in for hardware, which has processors of its own: it runs on the
+last CPU the bench may use and the master on the others (on a machine of one CPU, both on
+it). Measured on talos_arm across processes (2 CPUs, 15 s runs, load 2.3-2.5): with both
+free to run anywhere the drives (real-time priority above the master's, as hardware never
+waits for the master's host) woke on the master's CPU at each SYNC and preempted it inside
+its send, and 40 % of cycles were missed (jitter p99 1.2 ms); the drives alone on one CPU,
+18 %; each on a CPU of its own, 1.2 % (jitter p99 183 us).
+
 EtherCAT lines run over a veth between two network namespaces of the bench's own, each end
 named as the robot file names the line (root); CAN buses, which this kind of machine has no
 kernel driver for, run over `udp_multicast` (a group and port per bus). The robot file is
@@ -13,6 +21,7 @@ rewritten for that into a folder of the bench's own; the user's is only read."""
 
 import contextlib
 import json
+import os
 import random
 import subprocess
 import sys
@@ -53,6 +62,7 @@ def run(robot_path: str, duration: float, starts: int, sync: str | None = None, 
         lines = sorted({parse_bus_spec(bus)["channel"] for bus in robot.buses()
                         if is_ethercat(bus)}) if not sim else []
         runs = []
+        cpus = _cpus()
         folder = stack.enter_context(tempfile.TemporaryDirectory(prefix="bus-bench-"))
         path = _with_buses_here(Path(robot_path), Path(folder), sync)
         pair = stack.enter_context(NamespacePair(lines)) if lines else None
@@ -60,7 +70,7 @@ def run(robot_path: str, duration: float, starts: int, sync: str | None = None, 
             stage(f"start {start}/{starts}: {len(robot.joints)} joints of {robot.name}, "
                   f"{duration:g} s in real time{', drives embedded' if sim else ''}")
             runs.append(_one_start(pair, path, duration, Path(folder) / f"run{start}.json",
-                                   robot.period_us, sim))
+                                   robot.period_us, sim, cpus))
     cycles = round(duration * 1e6 / robot.period_us)
     for one in runs:
         if "missed" in one:
@@ -69,6 +79,8 @@ def run(robot_path: str, duration: float, starts: int, sync: str | None = None, 
     return {
         "robot": robot.name, "joints": len(robot.joints), "duration_s": duration,
         "drives": "embedded" if sim else "own process", "busy_loops": busy_loops,
+        "cpus": {"drives": sorted(cpus[0]), "master": sorted(cpus[1])}
+        if cpus is not None and not sim else None,
         "ethercat_sync": {bus: sync or robot.sync(bus) for bus in robot.buses()
                           if is_ethercat(bus)},
         "floor": {"cycles": cycles, "missed": floor.missed_cycles,
@@ -97,16 +109,37 @@ def _busy_loops(count: int) -> Iterator[None]:
             loop.wait()
 
 
+def _cpus() -> tuple[set[int], set[int]] | None:
+    """(the drives' CPUs, the master's): the last CPU this process may use, and the others;
+    None on a single CPU."""
+    allowed = sorted(os.sched_getaffinity(0))
+    if len(allowed) < 2:
+        return None
+    return {allowed[-1]}, set(allowed[:-1])
+
+
+def _place(process: subprocess.Popen, cpus: set[int] | None) -> None:
+    """`process` on `cpus` (None: anywhere). Set as it starts, before the interpreter has
+    started a thread of its own (they inherit it); it outlives `ip netns exec`'s exec."""
+    if cpus is not None:
+        try:
+            os.sched_setaffinity(process.pid, cpus)
+        except ProcessLookupError:
+            pass  # it ended already: its exit code says why
+
+
 def _one_start(pair: NamespacePair | None, path: Path, duration: float, report: Path,
-               period_us: int, sim: bool = False) -> dict:
+               period_us: int, sim: bool = False,
+               cpus: tuple[set[int], set[int]] | None = None) -> dict:
     """One start: the drives' process until ready (none with `sim`), actuatord for
     `duration`, the drives stopped; actuatord's figures (its --report) with whether it
-    started."""
+    started. `cpus`: the drives' CPUs and the master's (`_cpus`)."""
     def inside(side: str, argv: list[str]) -> list[str]:
         return pair.command(side, argv) if pair is not None else argv
 
     if sim:
         return _master(inside, path, duration, report, period_us, ["--sim"])
+    drives_cpus, master_cpus = cpus if cpus is not None else (None, None)
 
     errors = report.with_suffix(".sim-bus.err")
     with errors.open("w") as stderr:
@@ -115,13 +148,14 @@ def _one_start(pair: NamespacePair | None, path: Path, duration: float, report: 
         drives = subprocess.Popen(
             inside("line", [sys.executable, "-m", "commands.sim_bus", "--robot", str(path)]),
             stdout=subprocess.PIPE, stderr=stderr, text=True)
+    _place(drives, drives_cpus)
     try:
         ready = drives.stdout.readline()
         if "ready" not in ready:
             return {"started": False, "error": f"sim-bus did not start: {ready.strip()} "
                                                f"{errors.read_text().strip()[-300:]}"}
         threading.Thread(target=drives.stdout.read, daemon=True).start()
-        return _master(inside, path, duration, report, period_us)
+        return _master(inside, path, duration, report, period_us, cpus=master_cpus)
     finally:
         drives.send_signal(2)  # SIGINT: sim-bus reports and ends
         try:
@@ -132,25 +166,33 @@ def _one_start(pair: NamespacePair | None, path: Path, duration: float, report: 
 
 
 def _master(inside: Callable[[str, list[str]], list[str]], path: Path, duration: float,
-            report: Path, period_us: int, extra: Sequence[str] = ()) -> dict:
-    """actuatord on the robot for `duration`: its figures (its --report) with whether it
-    started."""
-    master = subprocess.run(
+            report: Path, period_us: int, extra: Sequence[str] = (),
+            cpus: set[int] | None = None) -> dict:
+    """actuatord on the robot for `duration` (on `cpus`, None: anywhere): its figures (its
+    --report) with whether it started."""
+    master = subprocess.Popen(
         inside("master", [sys.executable, "-m", "commands.actuatord", "--robot", str(path),
                           "--duration", f"{duration:g}", "--no-multicast-scouting",
                           # the MPC steps as the robot cycles (the default dt is 1 ms)
                           "--period-us", str(period_us), "--dt", f"{period_us * 1e-6:g}",
                           "--report", str(report), *extra]),
-        capture_output=True, text=True, timeout=duration * 20 + START_TIMEOUT)
-    out = {"started": " enabled;" in master.stdout}
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _place(master, cpus)
+    try:
+        stdout, stderr = master.communicate(timeout=duration * 20 + START_TIMEOUT)
+    except subprocess.TimeoutExpired:
+        master.kill()
+        master.communicate()
+        raise
+    out = {"started": " enabled;" in stdout}
     if report.exists():
         out.update(json.loads(report.read_text()))
     # an EtherCAT line on distributed clocks: its delays at start, its offset at the end
-    clocks = [line.removeprefix("actuatord: ") for line in master.stdout.splitlines()
+    clocks = [line.removeprefix("actuatord: ") for line in stdout.splitlines()
               if "distributed clocks" in line or "reference-clock offset" in line]
     if clocks:
         out["clocks"] = clocks
-    errors = [line for line in master.stderr.splitlines() if ": error: " in line]
+    errors = [line for line in stderr.splitlines() if ": error: " in line]
     if errors:
         out["error"] = errors[0]
     return out

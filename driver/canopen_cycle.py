@@ -250,8 +250,13 @@ class BusCycle:
     def collect(self) -> None:
         """Wait (up to the response timeout) for every TPDO answering the SYNC, then the
         bus's once-a-cycle jobs (`BusWatch.count_cycle`). A missing TPDO fails its drive."""
+        receive = getattr(self.network, "receive_until", None)
+        if receive is not None and self._pending and not self.failed:
+            # the network lets the waiting thread read its frames itself
+            # (`driver.canopen_multicast`): no hand-over from a receive thread
+            receive(lambda: not self._pending or self.failed, self.response_timeout)
         with self._lock:  # the condition's lock (its own `with` costs two Python calls)
-            if self._pending and not self.failed:
+            if self._pending and not self.failed and receive is None:
                 self._waiting = True
                 try:
                     self._arrived.wait_for(lambda: not self._pending or self.failed,

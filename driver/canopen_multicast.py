@@ -7,9 +7,11 @@ Measured on talos_arm (7 joints on 4 buses) across processes: about 0.9 of a cor
 msgpack, a checked `can.Message`), canopen's listener and node scanner, about 40 frames a
 millisecond including the echoes of the master's own SYNCs and RPDOs, and sending
 (`can.Message`, `pack_message`, a socket timeout set, sendto) about 60 % of the loop thread;
-bus-bench missed about 290 % of cycles. Here one thread receives for every udp_multicast bus
-of the process, a frame is one recvmsg and one msgpack call in, one msgpack call and one send
-out, and the master's own frames are dropped by their sender address before decoding.
+bus-bench missed about 290 % of cycles. Here the cycle's thread reads every udp_multicast bus
+of the process while it waits for its TPDOs, one thread of its own otherwise
+(`MulticastReceiver`), a frame is one recvmsg and one decode in place in
+(`protocol.can_datagram.decode`), one join of bytes and one send out, and the kernel drops
+the master's own frames by their sender address before they are queued.
 
 Own frames: python-can's socket is bound to the group's port and every process on the group
 sends from that same port, so an echo cannot be told by its source. Frames here leave from a
@@ -27,6 +29,7 @@ import socket
 import struct
 import threading
 import time
+from collections.abc import Callable
 
 import can
 import canopen
@@ -45,6 +48,10 @@ from protocol.can_datagram import (
 log = logging.getLogger(__name__)
 
 POLL_TIMEOUT = 0.05  # s: how long stopping waits for the receive thread at most
+# s without the cycle reading the buses after which the receive thread reads them again (a
+# loop between cycles reads again within a period; a cold solve or a stop takes longer)
+STALL = 0.005
+POLL_SLICE = 0.001  # s: how often a cycle waiting for frames asks whether to stop waiting
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux's value where Python lacks it
 _TIMESPEC = struct.Struct("@ll")  # the kernel's struct timespec: seconds, nanoseconds
 _ANCILLARY = socket.CMSG_SPACE(_TIMESPEC.size)
@@ -66,7 +73,7 @@ class MulticastNetwork(canopen.Network):
             self._sender = _sender_socket(self._socket.family, group,
                                           config.get("hop_limit", HOP_LIMIT))
             self._source = self._sender.getsockname()[:2]
-            _drop_from(self._socket, *self._source)
+            self._filtered = _drop_from(self._socket, *self._source)
             _own_group_only(self._socket)
         except Exception:
             self.bus.shutdown()
@@ -88,6 +95,8 @@ class MulticastNetwork(canopen.Network):
         count and then canopen's subscribers), stamped with the kernel's receive time; error
         and remote frames ignored, as canopen's listener does."""
         recvmsg, source = self._socket.recvmsg, self._source
+        # where the kernel drops our own frames (`_drop_from`), no look at the sender
+        check = not self._filtered
         while True:
             try:
                 datagram, ancillary, _, sender = recvmsg(DATAGRAM_MAX, _ANCILLARY)
@@ -95,7 +104,7 @@ class MulticastNetwork(canopen.Network):
                 return
             except OSError:  # closed under us by disconnect: the receiver forgets it
                 return
-            if sender[:2] == source:  # where the kernel could not drop it (IPv6)
+            if check and sender[:2] == source:
                 continue
             try:
                 frame = decode(datagram)
@@ -104,15 +113,22 @@ class MulticastNetwork(canopen.Network):
                 continue
             if frame is None:
                 continue
-            stamp = time.time()
-            for level, kind, value in ancillary:
-                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
-                    seconds, nanoseconds = _TIMESPEC.unpack_from(value)
-                    stamp = seconds + nanoseconds * 1e-9
+            # the socket's one ancillary item: SO_TIMESTAMPNS
+            if ancillary and ancillary[0][1] == SO_TIMESTAMPNS:
+                seconds, nanoseconds = _TIMESPEC.unpack_from(ancillary[0][2])
+                stamp = seconds + nanoseconds * 1e-9
+            else:
+                stamp = time.time()
             try:
                 self.notify(frame[0], frame[1], stamp)
             except Exception:  # one handler's failure must not stop the bus
                 log.exception("bus %s: handler of 0x%03X failed", self.channel, frame[0])
+
+    def receive_until(self, done: Callable[[], bool], timeout: float) -> None:
+        """Handle the frames of every bus of the process in the calling thread until
+        `done()`, at most `timeout` s (`MulticastReceiver.receive_until`): the cycle waiting
+        for its TPDOs reads them itself."""
+        RECEIVER.receive_until(done, timeout)
 
     def disconnect(self) -> None:
         RECEIVER.detach(self)
@@ -151,27 +167,42 @@ def _own_group_only(receiver: socket.socket) -> None:
         log.warning("buses on one port with several groups hear each other (%s)", exc)
 
 
-def _drop_from(receiver: socket.socket, address: str, port: int) -> None:
+def _drop_from(receiver: socket.socket, address: str, port: int) -> bool:
     """Have the kernel drop, before queueing, what `receiver` gets from `address`:`port` (our
     own frames, looped back): about a third of a bus's datagrams (its SYNC and RPDOs), each a
     wake-up of the receive thread, which then takes the interpreter from the loop thread in
     the middle of its cycle. The program (IPv4 only; the kernel copies it): source port (UDP
-    header) and source address (IP header) ours: drop, else keep."""
+    header) and source address (IP header) ours: drop, else keep. Whether the kernel
+    took it (else `receive_ready` drops them by their sender)."""
     if receiver.family != socket.AF_INET:
-        return
+        return False
     program, fprog = own_frames_fprog(address, port)  # the program lives through the call
     try:
         receiver.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, fprog)
     except OSError as exc:  # the check in receive_ready drops them instead
         log.info("own frames dropped in user space (socket filter refused: %s)", exc)
+        return False
+    return True
 
 
 class MulticastReceiver:
-    """One thread receiving for every `MulticastNetwork` of the process (a thread per bus
-    contends for the interpreter every frame), running while one is attached. It is started
-    by the first network opened, after `apply_real_time` in the commands, so it inherits
-    the real-time priority of the thread that opens the buses, as python-can's notifiers
-    did."""
+    """Reads every `MulticastNetwork` of the process, in one of two threads, never both at
+    once (a bus's frames are handled in the order they came):
+
+    - the cycle's own (`receive_until`, from `driver.canopen_cycle.BusCycle.collect`), which
+      reads every bus while it waits for its TPDOs: measured on talos_arm across processes,
+      a receive thread woke four times a cycle and handed each bus's last TPDO to the
+      waiting loop through a Condition, and the loop had the sample 157 us median (418 us
+      p90) after the kernel had its last frame, each hand-over a wake-up and a contention
+      for the interpreter on a host of two cores that the drives' process shares;
+    - a thread of its own, started by the first network opened, while the cycle does not
+      read: at bring-up (SDO, NMT) and whenever the cycle has not read for `STALL` s (a
+      stalled or ended loop: heartbeats, emergencies and SDO answers are still handled
+      within STALL). While the cycle reads, it takes the sockets out of the thread's epoll,
+      so the thread sleeps through the cycle's frames and wakes only every STALL to look.
+
+    The thread is started after `apply_real_time` in the commands, so it inherits the
+    real-time priority of the thread that opens the buses."""
 
     def __init__(self) -> None:
         self._forget()
@@ -179,21 +210,30 @@ class MulticastReceiver:
         os.register_at_fork(after_in_child=self._forget)
 
     def _forget(self) -> None:
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # the networks, the epolls, who reads
+        # held by whichever thread is reading the sockets (the cycle's or the receiver's)
+        self._reading = threading.Lock()
         self._networks: dict[int, MulticastNetwork] = {}
-        self._poll: select.epoll | None = None
+        self._poll: select.epoll | None = None  # the thread's: the sockets while it reads
+        self._pump: select.epoll | None = None  # the cycle's: every socket
         self._thread: threading.Thread | None = None
+        self._cycle_reads = False
+        self._pumped = 0.0  # time.monotonic() the cycle last stopped reading
 
     def attach(self, network: MulticastNetwork) -> None:
         with self._lock:
             if self._thread is None:
-                self._poll = select.epoll()
+                self._poll, self._pump = select.epoll(), select.epoll()
+                self._cycle_reads = False
                 self._thread = threading.Thread(target=self._run, args=(self._poll,),
                                                 daemon=True, name="multicast-receiver")
                 self._thread.start()
-            self._networks[network.fileno()] = network
-            # epoll takes a descriptor at once, even while the thread waits
-            self._poll.register(network.fileno(), select.EPOLLIN)
+            fd = network.fileno()
+            self._networks[fd] = network
+            # epoll takes a descriptor at once, even while a thread waits on it
+            self._pump.register(fd, select.EPOLLIN)
+            if not self._cycle_reads:
+                self._poll.register(fd, select.EPOLLIN)
 
     def detach(self, network: MulticastNetwork) -> None:
         with self._lock:
@@ -201,25 +241,80 @@ class MulticastReceiver:
             if self._networks.get(fd) is not network:
                 return
             del self._networks[fd]
-            self._poll.unregister(fd)
+            self._pump.unregister(fd)
+            if not self._cycle_reads:
+                self._poll.unregister(fd)
             if self._networks:
                 return
-            thread, self._thread, poll, self._poll = self._thread, None, self._poll, None
+            thread, self._thread = self._thread, None
+            poll, pump, self._poll, self._pump = self._poll, self._pump, None, None
         if thread is not threading.current_thread():
-            thread.join()  # it sees its poll closed within POLL_TIMEOUT
+            thread.join()  # it sees its poll gone within POLL_TIMEOUT
         poll.close()
+        pump.close()
 
-    def _run(self, poll: select.epoll) -> None:
-        networks = self._networks
-        while self._poll is poll:
+    def receive_until(self, done: Callable[[], bool], timeout: float) -> None:
+        """Read every bus in the calling thread (the cycle's) until `done()` or `timeout` s
+        have passed; `done` is asked again at least every POLL_SLICE s (a drive's failure,
+        raised by another thread, ends the wait that soon)."""
+        deadline = time.monotonic() + timeout
+        with self._reading:
+            if not self._cycle_reads:
+                self._hand_over(to_cycle=True)
+            pump, networks = self._pump, self._networks
             try:
-                events = poll.poll(POLL_TIMEOUT)
+                while not done():
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0 or pump is None:
+                        return
+                    for fd, _ in pump.poll(min(remaining, POLL_SLICE)):
+                        network = networks.get(fd)
+                        if network is not None:
+                            network.receive_ready()
             except (OSError, ValueError):  # closed: the last network left
                 return
-            for fd, _ in events:
-                network = networks.get(fd)
-                if network is not None:
-                    network.receive_ready()
+            finally:
+                self._pumped = time.monotonic()
+
+    def _hand_over(self, to_cycle: bool) -> None:
+        """The sockets out of the thread's epoll (the cycle reads them) or back in (the
+        thread does). The caller holds `_reading`."""
+        with self._lock:
+            if self._poll is None or self._cycle_reads == to_cycle:
+                return
+            for fd in self._networks:
+                if to_cycle:
+                    self._poll.unregister(fd)
+                else:
+                    self._poll.register(fd, select.EPOLLIN)
+            self._cycle_reads = to_cycle
+
+    def _run(self, poll: select.epoll) -> None:
+        networks, reading = self._networks, self._reading
+        while self._poll is poll:
+            try:
+                events = poll.poll(STALL if self._cycle_reads else POLL_TIMEOUT)
+            except (OSError, ValueError):  # closed: the last network left
+                return
+            if self._cycle_reads:
+                # no sockets in the epoll: a look whether the cycle still reads them
+                if (time.monotonic() - self._pumped > STALL
+                        and reading.acquire(blocking=False)):  # not while it reads
+                    try:
+                        if time.monotonic() - self._pumped > STALL:
+                            self._hand_over(to_cycle=False)
+                    finally:
+                        reading.release()
+                continue
+            if not events:
+                continue
+            with reading:
+                if self._cycle_reads:  # the cycle took the sockets meanwhile: its frames
+                    continue
+                for fd, _ in events:
+                    network = networks.get(fd)
+                    if network is not None:
+                        network.receive_ready()
 
 
 RECEIVER = MulticastReceiver()  # the process's one

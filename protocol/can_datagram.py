@@ -86,9 +86,41 @@ def encode(can_id: int, data: bytes, timestamp: float, remote: bool = False) -> 
                      _MIDDLE[(extended, bool(remote), size)], data, _TAIL))
 
 
+# where `decode`'s fast path finds the parts of a classic data frame's map
+_ID_AT = len(_HEAD) + _DOUBLE.size
+_ID_VALUE_AT = _ID_AT + len(_ID)
+_DATA_FLAGS = {extended: _FLAGS[(extended, False)] for extended in (False, True)}
+
+
 def decode(datagram: bytes) -> tuple[int, bytes] | None:
     """(CAN id, data) of a data frame; None for an error or remote frame (canopen ignores
-    both). Raises ValueError for a datagram that is not python-can's."""
+    both). Raises ValueError for a datagram that is not python-can's.
+
+    A classic data frame's map, as `encode` and python-can write it, is read in place (its
+    fixed parts compared, the id and the data sliced out): each side of a bus decodes every
+    frame it receives, dozens a millisecond, and msgpack's dict of eleven keys took about
+    twice as long. Any other datagram is read by msgpack."""
+    if datagram.startswith(_HEAD) and datagram.startswith(_ID, _ID_AT):
+        at = _ID_VALUE_AT
+        kind = datagram[at]
+        if kind < 0x80:  # positive fixint
+            can_id, at = kind, at + 1
+        elif kind == 0xCC:
+            can_id, at = datagram[at + 1], at + 2
+        elif kind == 0xCD:
+            can_id, at = _UINT16.unpack_from(datagram, at)[1], at + 3
+        elif kind == 0xCE:
+            can_id, at = _UINT32.unpack_from(datagram, at)[1], at + 5
+        else:
+            can_id = -1
+        flags = _DATA_FLAGS[can_id > 0x7FF]
+        if can_id >= 0 and datagram.startswith(flags, at):
+            at += len(flags) + 1  # the dlc, a positive fixint in a classic frame
+            size_at = at + len(_DATA)
+            if (datagram[at - 1] < 0x80 and datagram.startswith(_DATA, at)
+                    and len(datagram) == size_at + 1 + datagram[size_at] + len(_TAIL)
+                    and datagram.endswith(_TAIL)):
+                return can_id, datagram[size_at + 1:size_at + 1 + datagram[size_at]]
     try:
         frame = msgpack.unpackb(datagram, raw=False)
         if frame["is_error_frame"] or frame["is_remote_frame"]:

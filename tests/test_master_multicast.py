@@ -9,6 +9,7 @@ import time
 import can
 import canopen
 
+from driver import canopen_multicast
 from driver.canopen_multicast import MulticastNetwork
 from driver.canopen_transport import open_network
 from protocol.bus_spec import parse_bus_spec
@@ -82,3 +83,40 @@ def test_other_interfaces_keep_python_cans_path():
         assert isinstance(network, canopen.Network) and network.notifier is not None
     finally:
         network.disconnect()
+
+
+def test_the_cycle_reads_the_buses_itself_and_the_thread_takes_them_back_when_it_stops(
+        monkeypatch):
+    # the receive thread takes the buses back after STALL without the cycle reading: long
+    # enough here that a busy host's pause between the test's steps does not pass it
+    monkeypatch.setattr(canopen_multicast, "STALL", 0.3)
+    spec = udp_bus_spec()
+    network = open_network(spec)
+    other = can.Bus(ignore_config=True, **parse_bus_spec(spec))
+    try:
+        readers: list[str] = []
+        arrived = threading.Event()
+
+        def on_frame(can_id: int, data: bytes, timestamp: float) -> None:
+            readers.append(threading.current_thread().name)
+            arrived.set()
+
+        network.subscribe(TPDO1, on_frame)
+        # the cycle waits for its frame: its own thread handles it, the receiver sleeps
+        network.receive_until(lambda: True, 0.0)  # the cycle takes the buses
+        other.send(can.Message(arbitration_id=TPDO1, data=b"\x01", is_extended_id=False))
+        network.receive_until(arrived.is_set, 2.0)
+        assert readers == [threading.current_thread().name]
+        # nothing arrives: the wait ends at its timeout
+        started = time.monotonic()
+        network.receive_until(lambda: False, 0.02)
+        assert time.monotonic() - started >= 0.02
+        # the cycle stopped reading: the receive thread reads again (after STALL)
+        arrived.clear()
+        other.send(can.Message(arbitration_id=TPDO1, data=b"\x02", is_extended_id=False))
+        assert arrived.wait(2), "the receive thread did not take the bus back"
+        assert readers[1:] == ["multicast-receiver"]
+    finally:
+        other.shutdown()
+        network.disconnect()
+    assert _receivers() == []

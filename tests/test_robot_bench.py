@@ -1,8 +1,8 @@
 """`bus-bench --robot`: a robot of one joint in real time, its drive in a process of its own
 over udp_multicast and embedded in the master's (`--sim`), beside CPU-bound loops. The
 figures are measured, not asserted (a bench is not a timed test); what is checked is that
-each start ran, that the figures are of the run asked for, and that the busy loops are gone
-afterwards."""
+each start ran, that the figures are of the run asked for, where the processes ran, and that
+the busy loops are gone afterwards."""
 
 import json
 import os
@@ -51,6 +51,10 @@ def test_one_joint_runs_in_real_time_and_reports_its_misses(tmp_path, extra):
     result = json.loads(bench.stdout)
     assert result["drives"] == ("embedded" if extra else "own process")
     assert result["busy_loops"] == (1 if extra else 0)
+    # the drives' process on the last CPU, the master on the others (one process with --sim)
+    allowed = sorted(os.sched_getaffinity(0))
+    assert result["cpus"] == (None if extra or len(allowed) < 2 else
+                              {"drives": allowed[-1:], "master": allowed[:-1]})
     assert result["floor"]["cycles"] == 1000
     assert result["starts"] == {"asked": 1, "started": 1, "ran_to_the_end": 1}, result["runs"]
     run, = result["runs"]
@@ -59,3 +63,23 @@ def test_one_joint_runs_in_real_time_and_reports_its_misses(tmp_path, extra):
     assert result["missed_percent"] == {"median": run["missed_percent"],
                                         "max": run["missed_percent"]}
     assert set(_busy_loops()) <= before  # the bench's own loops were stopped
+
+
+def test_the_drives_get_the_last_cpu_and_the_master_the_others():
+    from commands import robot_bench
+
+    allowed = sorted(os.sched_getaffinity(0))
+    if len(allowed) < 2:
+        assert robot_bench._cpus() is None
+        return
+    drives, master = robot_bench._cpus()
+    assert (drives, master) == ({allowed[-1]}, set(allowed[:-1]))
+    # a process placed as it starts runs there, and so do the threads it starts later
+    child = subprocess.Popen(
+        [sys.executable, "-c", "import os, threading; input(); seen = []; "
+         "t = threading.Thread(target=lambda: seen.append(sorted(os.sched_getaffinity(0)))); "
+         "t.start(); t.join(); print(seen[0])"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    robot_bench._place(child, drives)
+    out, _ = child.communicate("\n", timeout=60)
+    assert out.strip() == str(sorted(drives))

@@ -2,7 +2,10 @@
 datagrams: a canopen master on python-can's own udp_multicast bus reads a drive served through
 it (SDO, NMT, SYNC -> TPDOs) as it reads any other, and one thread receives for several buses."""
 
+import math
+import os
 import random
+import socket
 import threading
 import time
 
@@ -16,7 +19,7 @@ from protocol import cia301, objects
 from protocol.bus_spec import parse_bus_spec
 from sim_bus.canopen_node import CanOpenNode
 from sim_bus.device import Cia402Device
-from sim_bus.multicast import MulticastNetwork, MulticastReceiver
+from sim_bus.multicast import RHYTHM, MulticastNetwork, MulticastReceiver, Rhythm
 from tests.conftest import udp_bus_spec
 
 
@@ -120,3 +123,47 @@ def test_a_bus_does_not_hear_another_group_on_the_same_port():
         sender.disconnect()
         other.disconnect()
         witness.shutdown()
+
+
+def test_the_rhythm_expects_the_next_cycle_from_the_median_interval_of_the_last_ones():
+    rhythm = Rhythm()
+    period = 1e-3
+    t = 100.0
+    for k in range(RHYTHM):  # too few cycles yet to expect one
+        rhythm.sync(t)
+        rhythm.sync(t + 30e-6)  # another bus's SYNC of the same cycle
+        assert rhythm.due == math.inf, k
+        t += period
+    rhythm.sync(t)
+    assert rhythm.due == pytest.approx(t + period)
+    # one late cycle (and the early one after it) does not move the median
+    t += 1.6 * period
+    rhythm.sync(t)
+    t += 0.4 * period
+    rhythm.sync(t)
+    assert rhythm.due == pytest.approx(t + period)
+    rhythm.missed()
+    assert rhythm.due == math.inf
+    rhythm.sync(t + period)  # the next cycle's SYNC: expected again
+    assert rhythm.due == pytest.approx(t + 2 * period)
+
+
+def test_a_bus_on_a_descriptor_select_cannot_take_is_still_served():
+    spec = udp_bus_spec()
+    network = MulticastNetwork(parse_bus_spec(spec))
+    high = 2000  # above FD_SETSIZE: the receiver sleeps in poll instead
+    os.dup2(network._socket.fileno(), high)
+    moved = socket.socket(fileno=high)
+    network._socket.close()
+    network._socket = moved
+    got = threading.Event()
+    network.subscribe(0x181, lambda can_id, data, ts: got.set())
+    receiver = MulticastReceiver([network])
+    receiver.start()
+    try:
+        with can.Bus(ignore_config=True, **parse_bus_spec(spec)) as other:
+            other.send(can.Message(arbitration_id=0x181, data=b"\x01", is_extended_id=False))
+            assert got.wait(2), "the frame was not received"
+    finally:
+        receiver.stop()
+        network.disconnect()
