@@ -33,8 +33,7 @@ class OwnTime(Protocol):
 
     def tick(self, period: float) -> None: ...
 
-    def every(self, interval: float, job: Callable[[float], None],
-              name: str) -> Callable[[], None]: ...
+    def every(self, interval: float, job: Callable[[float], None]) -> Callable[[], None]: ...
 
     def later(self, delay: float, job: Callable[[], None]) -> None: ...
 
@@ -67,8 +66,7 @@ class HeartbeatProducer:
         with self._lock:
             self._stop_beating()
             if period_ms > 0:
-                self._stop = self._time.every(period_ms * 1e-3, self._beat,
-                                              f"heartbeat-0x{self._cob_id:X}")
+                self._stop = self._time.every(period_ms * 1e-3, self._beat)
 
     def stop(self) -> None:
         with self._lock:
@@ -114,7 +112,7 @@ class MasterWatch:
         self._subscribed: set[int] = set()
         self._last_activity: float | None = None
         self._lost = False
-        self._stop = time.every(WATCH_POLL, self._look, f"master-watch-{name}")
+        self._stop = time.every(WATCH_POLL, self._look)
 
     def configure(self) -> None:
         """(Re)read 0x1016 after a reset or a write to it."""

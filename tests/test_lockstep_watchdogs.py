@@ -46,7 +46,7 @@ def test_the_drives_own_time_in_lockstep_is_its_cycles_and_its_jobs_fall_on_them
     time_ = DriveClock().timers()
     ran: list[tuple[int, float]] = []
     cycle = 0
-    stop = time_.every(0.1, lambda now: ran.append((cycle, now)), "beat")
+    stop = time_.every(0.1, lambda now: ran.append((cycle, now)))
     for cycle in range(1, 1001):  # the job reads `cycle`
         time_.tick(1e-3)
         if cycle == 700:
