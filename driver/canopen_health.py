@@ -87,7 +87,7 @@ class BusWatch:
         # what counts the frames received (`frames`, `last_stamp`): the network itself where
         # it does (`counts_frames`, the in-process link), else this watch, through one wrap
         # of the network's entry point for received frames
-        self._counts: "BusWatch | canopen.Network" = self
+        self._counts: BusWatch | canopen.Network = self
         if getattr(network, "counts_frames", False):
             self._counts = network
             return
