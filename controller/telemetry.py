@@ -5,7 +5,6 @@ reference and weights of every joint."""
 import collections
 import json
 import logging
-import math
 import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -32,11 +31,14 @@ DRAIN_PERIOD = 1e-3
 # waited for the loop's next release (each compiled call releases it) to publish the next
 # message, two thread switches and a wait a message, three or four messages a cycle (one
 # joint: 70-90 us a cycle against 45-50 with nothing published). Such a loop gives the
-# thread turns instead (`take_turn`): from TURN_MESSAGES queued it waits, off the lock,
-# while the thread publishes them all, at most TURN_TIMEOUT (a put that blocks, a fault's
-# under congestion, holds drive time up no longer); while turns come the thread's own
-# passes pause (looking every TURN_LAPSE whether they still come).
+# thread turns instead (`take_turn`): from TURN_MESSAGES queued, or TURN_PERIOD after the
+# last turn (a robot's one message a cycle, its cycles slower), it waits, off the lock, while
+# the thread publishes them all, at most TURN_TIMEOUT (a put that blocks, a fault's under
+# congestion, holds drive time up no longer). From the loop's first look the thread's own
+# passes stop (else they kept the queue short of a turn, and ran beside the loop); they
+# resume TURN_LAPSE after its last look.
 TURN_MESSAGES = 256
+TURN_PERIOD = 0.02  # s
 TURN_TIMEOUT = 0.1  # s
 TURN_LAPSE = 0.1  # s
 
@@ -65,8 +67,9 @@ class TelemetryPublisher:
         self._go.acquire()
         self._done.acquire()
         self._turn_pending = False  # a turn given whose end the loop has not seen yet
+        self._looks = 0  # `take_turn`'s calls: while they grow, the thread waits for turns
         self.turns = 0  # given by a loop on drive time
-        self._last_turn = -math.inf  # time.monotonic() of the last turn given
+        self._turn_at = 0.0  # time.monotonic() of the last
         self._publishers = {
             topic: session.declare_publisher(
                 schema.key_expr(prefix, topic), encoding=zenoh.Encoding.APPLICATION_PROTOBUF,
@@ -149,31 +152,40 @@ class TelemetryPublisher:
         """From a loop on drive time (lock-step), once a cycle: with TURN_MESSAGES or more
         queued, the publisher thread publishes them while the loop waits (see TURN_MESSAGES
         for why). Never from a loop on the wall clock: it would wait on the network."""
-        if len(self._queue) < TURN_MESSAGES:
+        self._looks += 1
+        queued = len(self._queue)
+        if queued < TURN_MESSAGES and not (
+                queued and time.monotonic() - self._turn_at >= TURN_PERIOD):
             return
         if self._turn_pending:  # the last turn outlasted TURN_TIMEOUT: over by now?
             if not self._done.acquire(blocking=False):
                 return
             self._turn_pending = False
-        self._last_turn = time.monotonic()
         self._turn_pending = True
+        self._turn_at = time.monotonic()
         self.turns += 1
         self._go.release()
         if self._done.acquire(timeout=TURN_TIMEOUT):
             self._turn_pending = False
 
     def _run(self) -> None:
-        # a plain lock's timed acquire, not `Event.wait`'s timeout: each wake-up of a timed
+        # between turns a plain sleep, not `Event.wait`'s timeout: each wake-up of a timed
         # Condition cost 60 us of CPU here against 40 (a thousand a second in real time), and
-        # `close` waits one period at most
+        # `close` waits one period at most (TURN_LAPSE while turns come)
         closing, go, done = self._closing, self._go, self._done
+        looks = 0
         while not closing.is_set():
-            turns = time.monotonic() - self._last_turn < TURN_LAPSE
-            if go.acquire(timeout=TURN_LAPSE if turns else DRAIN_PERIOD):
-                self._drain()
+            if self._looks != looks:  # a loop on drive time gives turns: wait for the next
+                looks = self._looks
+                if go.acquire(timeout=TURN_LAPSE):
+                    self._drain()
+                    done.release()
+                continue
+            time.sleep(DRAIN_PERIOD)
+            turn = go.acquire(blocking=False)  # the first turn, given during the sleep
+            self._drain()
+            if turn:
                 done.release()
-            elif not turns:
-                self._drain()
         self._drain()
 
     def _drain(self) -> None:
@@ -191,7 +203,7 @@ class TelemetryPublisher:
 
     def close(self) -> None:
         """Flush what is queued, then undeclare everything."""
-        self._closing.set()  # seen within TURN_LAPSE at most
+        self._closing.set()
         self._thread.join(5)
         for entity in [*self._publishers.values(), *self._queryables, self._audit, self._alive]:
             entity.undeclare()
