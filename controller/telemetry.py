@@ -68,6 +68,7 @@ class TelemetryPublisher:
         self._done.acquire()
         self._turn_pending = False  # a turn given whose end the loop has not seen yet
         self._looks = 0  # `take_turn`'s calls: while they grow, the thread waits for turns
+        self.in_turns = False  # the thread publishes in turns only (for a look from outside)
         self.turns = 0  # given by a loop on drive time
         self._turn_at = 0.0  # time.monotonic() of the last
         self._publishers = {
@@ -177,10 +178,12 @@ class TelemetryPublisher:
         while not closing.is_set():
             if self._looks != looks:  # a loop on drive time gives turns: wait for the next
                 looks = self._looks
+                self.in_turns = True
                 if go.acquire(timeout=TURN_LAPSE):
                     self._drain()
                     done.release()
                 continue
+            self.in_turns = False
             time.sleep(DRAIN_PERIOD)
             turn = go.acquire(blocking=False)  # the first turn, given during the sleep
             self._drain()

@@ -4,12 +4,14 @@ on the wall clock never waits on it."""
 
 import json
 import threading
+import time
 
 import zenoh
 
+from controller import messages
 from controller.loop import ControlLoop, LoopOptions
 from controller.mpc import Mpc
-from controller.telemetry import TURN_MESSAGES, TelemetryPublisher
+from controller.telemetry import TURN_MESSAGES, TURN_PERIOD, TelemetryPublisher
 from driver.clock import DriveClock, WallClock
 from driver.drive_group import single_joint
 from model.parameters import load_model
@@ -72,3 +74,27 @@ def test_a_real_time_loop_never_waits_on_the_publisher():
         report = loop.run()
     assert report.exit_code == 0 and report.cycles == 20, report.reason
     assert called == []
+
+
+def test_a_slow_loop_still_gets_a_turn_every_turn_period():
+    """A robot's one message a cycle may take long to fill a turn: TURN_PERIOD after the
+    last turn, what is queued goes out in a turn of its own."""
+    session = _session()
+    try:
+        publisher = TelemetryPublisher(session, PREFIX)
+        publisher.take_turn()  # the first look: the thread publishes in turns from now on
+        deadline = time.monotonic() + 5.0
+        while not publisher.in_turns and time.monotonic() < deadline:
+            time.sleep(1e-3)
+        fault = messages.fault(0.0, "controller", "a test", "none")
+        queued = []
+        for _ in range(2):
+            publisher.publish(fault)
+            time.sleep(TURN_PERIOD)
+            publisher.take_turn()
+            queued.append(len(publisher._queue))
+        in_turns = publisher.in_turns
+        publisher.close()
+    finally:
+        session.close()
+    assert in_turns and queued == [0, 0] and publisher.turns == 2
