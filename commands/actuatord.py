@@ -264,7 +264,7 @@ def _run(args: argparse.Namespace, setup: _Setup, stop: threading.Event,
                        LoopOptions(period=setup.period, clock=clock_for(args.lockstep),
                                    duration=args.duration, keep_history=bool(args.plot)),
                        [publisher.publish], lambda: publisher.dropped, stop,
-                       settle=TRACKING_SETTLE)
+                       settle=TRACKING_SETTLE, take_turn=publisher.take_turn)
     signal.signal(signal.SIGINT, lambda *_: loop.stop())
     signal.signal(signal.SIGTERM, lambda *_: loop.stop())
     failure = None

@@ -376,11 +376,14 @@ class ControlLoop:
     def __init__(self, joints: Joints, policy: "JointPolicies | BatchMpc | Mpc | Policy",
                  options: LoopOptions, subscribers: Sequence[Subscriber] = (),
                  dropped: Callable[[], int] = lambda: 0, stop: threading.Event | None = None,
-                 settle: float = 0.0):
+                 settle: float = 0.0, take_turn: Callable[[], None] | None = None):
         """`dropped` counts the messages subscribers could not pass on (for LoopStats); `stop`,
         when given, is the caller's flag to end the run (a signal handler sets it); `settle`
         (s of drive time): tracking errors count from then on (the approach from where a
-        joint rests to its reference is not tracking)."""
+        joint rests to its reference is not tracking). `take_turn`: called after each cycle
+        on a clock that does not run alone (drive time), where the loop never sleeps, to let
+        a subscriber's thread work in turns with it
+        (`controller.telemetry.TelemetryPublisher.take_turn`); never on the wall clock."""
         self.policy = policies = joint_policies(policy)
         self.names = list(joints.names)
         count = len(self.names)
@@ -388,6 +391,7 @@ class ControlLoop:
             raise ValueError(f"{count} joints, {len(policies.limits)} policies")
         self.options = options
         self._subscribers = tuple(subscribers)
+        self._take_turn = None if options.clock.runs_alone else take_turn
         self._dropped = dropped
         # appended by other threads, drained by the loop: deque's append and popleft are atomic
         self._requests: collections.deque[Callable[[], None]] = collections.deque()
@@ -485,6 +489,7 @@ class ControlLoop:
         behind = (0.0, 0.0, 0.0, 0.0)
         perf_counter, requests = time.perf_counter, self._requests
         solve, master, published_view = report.solve, report.master, self._published
+        take_turn = self._take_turn
         # an EtherCAT line on distributed clocks leads the cycle's clock
         joints_clock_trim = self._joints.clock_trim
         while not self._stop.is_set():
@@ -525,6 +530,8 @@ class ControlLoop:
                 self.publish(self._stats(t))
             behind = (clock.wake_lateness, self._exchange_time, decide_time,
                       perf_counter() - published)
+            if take_turn is not None:
+                take_turn()
             if options.duration is not None and t >= options.duration - 1e-9:
                 return self._finish(0, f"ran {options.duration} s", t=t)
             if self._decided.finished:

@@ -47,22 +47,37 @@ def joint_view(t: float, sample: list, drive_state: str, current: float, header:
     """One joint's cycle as its own State, Command and SolverStats, from the cycle's row of
     samples (`sample`: `driver.Sample` fields as a list) and the decision's header
     (`header`: a `controller.workspace` header as a list); `current` went out, `fallback`
-    says the safety net chose it."""
+    says the safety net chose it. Fields are set one by one, not as keyword arguments:
+    protobuf checks each name and type the same way, and the three messages cost 2.0 us
+    against 3.7 (every cycle, in the loop's thread)."""
     planned = header[ws.PLANNED_CURRENT]
-    return (State(t=t, position=sample[SAMPLE_POSITION], velocity=sample[SAMPLE_VELOCITY],
-                  motor_current=sample[SAMPLE_MOTOR_CURRENT],
-                  joint_torque=sample[SAMPLE_JOINT_TORQUE],
-                  statusword=int(sample[SAMPLE_STATUSWORD]), drive_state=drive_state),
-            Command(t=t, current=current, planned_current=planned,
-                    reference_position=header[ws.REFERENCE_POSITION],
-                    reference_velocity=header[ws.REFERENCE_VELOCITY],
-                    current_limit=limits.current_max, position_min=limits.position_min,
-                    position_max=limits.position_max,
-                    saturated=not fallback and planned != current, fallback=fallback),
-            SolverStats(t=t, solve_time_us=decide_time * 1e6,
-                        iterations=int(header[ws.ITERATIONS]),
-                        rollouts=int(header[ws.ROLLOUTS]), status=status,
-                        cost=header[ws.COST]))
+    state = State()
+    state.t = t
+    state.position = sample[SAMPLE_POSITION]
+    state.velocity = sample[SAMPLE_VELOCITY]
+    state.motor_current = sample[SAMPLE_MOTOR_CURRENT]
+    state.joint_torque = sample[SAMPLE_JOINT_TORQUE]
+    state.statusword = int(sample[SAMPLE_STATUSWORD])
+    state.drive_state = drive_state
+    command = Command()
+    command.t = t
+    command.current = current
+    command.planned_current = planned
+    command.reference_position = header[ws.REFERENCE_POSITION]
+    command.reference_velocity = header[ws.REFERENCE_VELOCITY]
+    command.current_limit = limits.current_max
+    command.position_min = limits.position_min
+    command.position_max = limits.position_max
+    command.saturated = not fallback and planned != current
+    command.fallback = fallback
+    stats = SolverStats()
+    stats.t = t
+    stats.solve_time_us = decide_time * 1e6
+    stats.iterations = int(header[ws.ITERATIONS])
+    stats.rollouts = int(header[ws.ROLLOUTS])
+    stats.status = status
+    stats.cost = header[ws.COST]
+    return state, command, stats
 
 
 @functools.cache  # a plan's lengths are two (N and N + 1 points)

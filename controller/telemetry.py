@@ -26,6 +26,21 @@ _FAULT = schema.message_class("Fault")
 # no lock, no wake-up of another thread per message (in lock-step each wake-up handed the
 # interpreter lock back and forth three times a cycle); telemetry waits at most this long.
 DRAIN_PERIOD = 1e-3
+# A loop on drive time (lock-step) never sleeps, so the thread's passes ran beside it, and
+# each of Zenoh's puts releases the interpreter's lock: the loop took it, and the thread
+# waited for the loop's next release (each compiled call releases it) to publish the next
+# message, two thread switches and a wait a message, three or four messages a cycle (one
+# joint: 70-90 us a cycle against 45-50 with nothing published). Such a loop gives the
+# thread turns instead (`take_turn`): from TURN_MESSAGES queued, or TURN_PERIOD after the
+# last turn (a robot's one message a cycle, its cycles slower), it waits, off the lock, while
+# the thread publishes them all, at most TURN_TIMEOUT (a put that blocks, a fault's under
+# congestion, holds drive time up no longer). From the loop's first look the thread's own
+# passes stop (else they kept the queue short of a turn, and ran beside the loop); they
+# resume TURN_LAPSE after its last look.
+TURN_MESSAGES = 256
+TURN_PERIOD = 0.02  # s
+TURN_TIMEOUT = 0.1  # s
+TURN_LAPSE = 0.1  # s
 
 
 class TelemetryPublisher:
@@ -45,6 +60,17 @@ class TelemetryPublisher:
         self.dropped = 0
         self._queue: collections.deque = collections.deque()
         self._closing = threading.Event()
+        # a turn (`take_turn`): the loop releases `_go` and waits on `_done`, which the thread
+        # releases once it has published the queue; plain locks (a Condition's wait and
+        # notify are Python code, under the interpreter's lock the turn is to free)
+        self._go, self._done = threading.Lock(), threading.Lock()
+        self._go.acquire()
+        self._done.acquire()
+        self._turn_pending = False  # a turn given whose end the loop has not seen yet
+        self._looks = 0  # `take_turn`'s calls: while they grow, the thread waits for turns
+        self.in_turns = False  # the thread publishes in turns only (for a look from outside)
+        self.turns = 0  # given by a loop on drive time
+        self._turn_at = 0.0  # time.monotonic() of the last
         self._publishers = {
             topic: session.declare_publisher(
                 schema.key_expr(prefix, topic), encoding=zenoh.Encoding.APPLICATION_PROTOBUF,
@@ -123,14 +149,46 @@ class TelemetryPublisher:
             self.serve_json(schema.REFERENCE, handlers[0].set_reference)
             self.serve_json(schema.WEIGHTS, handlers[0].set_weights)
 
+    def take_turn(self) -> None:
+        """From a loop on drive time (lock-step), once a cycle: with TURN_MESSAGES or more
+        queued, the publisher thread publishes them while the loop waits (see TURN_MESSAGES
+        for why). Never from a loop on the wall clock: it would wait on the network."""
+        self._looks += 1
+        queued = len(self._queue)
+        if queued < TURN_MESSAGES and not (
+                queued and time.monotonic() - self._turn_at >= TURN_PERIOD):
+            return
+        if self._turn_pending:  # the last turn outlasted TURN_TIMEOUT: over by now?
+            if not self._done.acquire(blocking=False):
+                return
+            self._turn_pending = False
+        self._turn_pending = True
+        self._turn_at = time.monotonic()
+        self.turns += 1
+        self._go.release()
+        if self._done.acquire(timeout=TURN_TIMEOUT):
+            self._turn_pending = False
+
     def _run(self) -> None:
-        # a plain sleep, not `Event.wait`'s timeout: each wake-up of a timed Condition cost 60
-        # us of CPU here against 40 (a thousand a second in real time), and `close` waits one
-        # period at most
-        closing = self._closing
+        # between turns a plain sleep, not `Event.wait`'s timeout: each wake-up of a timed
+        # Condition cost 60 us of CPU here against 40 (a thousand a second in real time), and
+        # `close` waits one period at most (TURN_LAPSE while turns come)
+        closing, go, done = self._closing, self._go, self._done
+        looks = 0
         while not closing.is_set():
+            if self._looks != looks:  # a loop on drive time gives turns: wait for the next
+                looks = self._looks
+                self.in_turns = True
+                if go.acquire(timeout=TURN_LAPSE):
+                    self._drain()
+                    done.release()
+                continue
+            self.in_turns = False
             time.sleep(DRAIN_PERIOD)
+            turn = go.acquire(blocking=False)  # the first turn, given during the sleep
             self._drain()
+            if turn:
+                done.release()
         self._drain()
 
     def _drain(self) -> None:

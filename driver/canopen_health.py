@@ -71,12 +71,6 @@ class BusWatch:
     def __init__(self, network: canopen.Network, clock: Clock):
         self.network = network
         self.clock = clock
-        # every frame this network received: ours too where the interface echoes them
-        # (python-can's udp_multicast; the lean path, driver.canopen_multicast, drops them)
-        self.frames = 0
-        # the receive stamp of the last frame through (the kernel's on SocketCAN and
-        # udp_multicast): how far the receive thread has caught up with the bus
-        self.last_stamp = 0.0
         self._frames_at_cycle = 0
         # more than this in one cycle is a flood: the bus's cyclic frames plus the margin
         # (`expect_cyclic_frames`; a lone drive's own SYNC and PDOs are well inside it)
@@ -90,14 +84,37 @@ class BusWatch:
         # early `_due` costs one look too many, never a late verdict
         self._due = -math.inf
         self._thread_stop: threading.Event | None = None
+        # what counts the frames received (`frames`, `last_stamp`): the network itself where
+        # it does (`counts_frames`, the in-process link), else this watch, through one wrap
+        # of the network's entry point for received frames
+        self._counts: BusWatch | canopen.Network = self
+        if getattr(network, "counts_frames", False):
+            self._counts = network
+            return
+        self._frames = 0
+        self._last_stamp = 0.0
         deliver = network.notify
 
         def counting_notify(can_id: int, data: bytearray, timestamp: float) -> None:
-            self.frames += 1
-            self.last_stamp = timestamp
+            self._frames += 1
+            self._last_stamp = timestamp
             deliver(can_id, data, timestamp)
 
         network.notify = counting_notify
+
+    @property
+    def frames(self) -> int:
+        """Every frame this network received: ours too where the interface echoes them
+        (python-can's udp_multicast; the lean path, driver.canopen_multicast, drops them)."""
+        counts = self._counts
+        return counts._frames if counts is self else counts.frames
+
+    @property
+    def last_stamp(self) -> float:
+        """The receive stamp of the last frame through (the kernel's on SocketCAN and
+        udp_multicast): how far the receive thread has caught up with the bus."""
+        counts = self._counts
+        return counts._last_stamp if counts is self else counts.last_stamp
 
     def join(self, health: "Health") -> None:
         with self._lock:
@@ -121,7 +138,8 @@ class BusWatch:
 
     def count_cycle(self, warnings: list[str]) -> None:
         """Once per cycle of the bus, after its TPDOs: the load, then the clock's jobs."""
-        frames, self._frames_at_cycle = self.frames - self._frames_at_cycle, self.frames
+        total = self.frames
+        frames, self._frames_at_cycle = total - self._frames_at_cycle, total
         if frames > self.frame_limit:
             warnings.append(f"bus overloaded: {frames} frames in one cycle (at most "
                             f"{self.frame_limit} expected)")

@@ -2,15 +2,16 @@
 (canopen's, answering from the device), PDOs configured from the dictionary, SYNC, EMCY.
 
 A SYNC is handled once per network for every virtual drive on it (`_BusSync`), as a bus
-carries one SYNC to all its nodes: from two drives on a bus their steady cycles advance in one
-compiled call (`sim_bus.line_physics.DriveLine`, as a virtual EtherCAT line's do), the others
-through `Cia402Device.cycle()` itself, and each TPDO is packed from the batch's row of values.
-A received RPDO that repeats what the drive acts on (its controlword, with new targets) goes
-into the batch's output arrays, not through the device; anything that reads or changes the
-device before the SYNC gets it applied first (`_CanLine.flush`). A drive's Python cycle, its
-RPDO and its three TPDOs cost about 10.5 us a SYNC on the embedded link, one more drive on a
-batched bus about 7 (seven drives: 61 us a SYNC against 118). The device's own path stays the
-one behaviour; the batch is checked against it (tests/test_canopen_bus_batch.py).
+carries one SYNC to all its nodes: the bus's drives, one or more, are a batch whose steady
+cycles advance in one compiled call (`sim_bus.line_physics.DriveLine`, as a virtual EtherCAT
+line's do), the others through `Cia402Device.cycle()` itself, and each TPDO is packed from the
+batch's row of values. A received RPDO that repeats what the drive acts on (its controlword,
+with new targets) goes into the batch's output arrays, not through the device; anything that
+reads or changes the device before the SYNC gets it applied first (`_CanLine.flush`). One
+more drive on a batched bus costs about 7 us a SYNC (seven drives: 61 us a SYNC against 118
+through the devices' own cycles); a lone drive's SYNC, RPDO and three TPDOs about 1 us less
+as the batch than through its device. The device's own path stays the one behaviour; the
+batch is checked against it (tests/test_canopen_bus_batch.py, one drive and four).
 
 Every handler runs in the thread that delivers the frame (the network's receive thread, or the
 sender's with the embedded link), so a SYNC is handled completely before the next frame is
@@ -306,13 +307,9 @@ class CanOpenNode:
     # --- SYNC -------------------------------------------------------------------------------
 
     def _take(self, pdo: _Pdo, values: tuple) -> None:
-        """An RPDO's values, to the bus's batch (which may keep them until the SYNC) or,
-        without one, to the device."""
-        line = self._bus.line
-        if line is None:
-            self.device.write_outputs(pdo.keys, values)
-        else:
-            line.take(self._row, self.device, pdo, values)
+        """An RPDO's values, to the bus's batch (which may keep them until the SYNC, or hand
+        them to the device at once)."""
+        self._bus.line.take(self._row, self.device, pdo, values)
 
     def _sync_arrived(self, data: bytearray) -> None:
         """A SYNC this operational node takes (`_BusSync`), before the cycle: the master is
@@ -464,22 +461,15 @@ class CanOpenNode:
         self.network.unsubscribe(self.sdo.rx_cobid, self.sdo.on_request)
 
 
-# drives on a bus from which their cycles run as a batch: with one, the batch's call (its
-# arguments, its bookkeeping) cost about 1 us a SYNC more than the device's own cycle; with
-# two about the same (19.5 us against 20.4 us a SYNC, RPDOs and TPDOs included, embedded
-# link), with four 34 against 43, with seven 61 against 118
-BATCH_FROM = 2
-
-
 class _BusSync:
     """The SYNC of one network for every virtual drive on it, in one pass: each node's
-    checks, the steady drives' cycles in one batch call (from BATCH_FROM drives on the bus),
-    the others' `Cia402Device.cycle()`, then each node's time and TPDOs in node order."""
+    checks, the steady drives' cycles in one batch call, the others'
+    `Cia402Device.cycle()`, then each node's time and TPDOs in node order."""
 
     def __init__(self, network: canopen.Network):
         self.network = network
         self.nodes: list[CanOpenNode] = []
-        self.line: _CanLine | None = None
+        self.line: _CanLine | None = None  # from the first drive's `join` on
         network.subscribe(cia301.SYNC_COB_ID, self._on_sync)
 
     @staticmethod
@@ -509,8 +499,7 @@ class _BusSync:
         """A batch of the nodes' drives now (each drive's state moves into its rows)."""
         if self.line is not None and self.line.pending:
             self.line.flush()
-        self.line = (_CanLine([node.device for node in self.nodes])
-                     if len(self.nodes) >= BATCH_FROM else None)
+        self.line = _CanLine([node.device for node in self.nodes])
         for j, node in enumerate(self.nodes):
             node._row = j
 
@@ -524,11 +513,6 @@ class _BusSync:
         for node in nodes:
             node._sync_arrived(data)
         line = self.line
-        if line is None:
-            for node in nodes:
-                node.device.cycle(counter)
-                node._answer(None)
-            return
         rows = (line.rows if len(nodes) == len(self.nodes)
                 else np.array([node._row for node in nodes]))
         done = line.cycle(rows, line.output_rows[0], line.output_objects, line.target_rows,

@@ -23,10 +23,20 @@ from sim_bus.plant import SensorNoise
 
 
 class LinkedNetwork(canopen.Network):
+    """One end of the link. It counts the frames it receives and keeps the last one's stamp
+    itself (`frames`, `last_stamp`: what `driver.canopen_health.BusWatch` judges the bus's
+    load by, `counts_frames`): on a network that does not, the watch wraps `notify`, one
+    more Python call (a closure's) for each frame, five a cycle of a lone drive (SYNC,
+    RPDO, three TPDOs). A peer is anything with canopen's `notify` (a log's tap too)."""
+
+    counts_frames = True
+
     def __init__(self):
         super().__init__(None)
-        self.peers: list[canopen.Network] = []
+        self.peers: list = []  # each with `notify`
         self._periodic: list[_PeriodicFrame] = []
+        self.frames = 0  # received
+        self.last_stamp = 0.0  # of the last frame received
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         # canopen's own services send lists; every receiver here reads bytes
@@ -36,7 +46,9 @@ class LinkedNetwork(canopen.Network):
 
     def notify(self, can_id: int, data: bytes, timestamp: float) -> None:
         """canopen's dispatch to the subscribers, without its node scanner (nobody scans a
-        link that has exactly one node behind it)."""
+        link that has exactly one node behind it), the frame counted."""
+        self.frames += 1
+        self.last_stamp = timestamp
         for callback in self.subscribers.get(can_id, ()):
             callback(can_id, data, timestamp)
 

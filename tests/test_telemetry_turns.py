@@ -1,0 +1,100 @@
+"""A loop on drive time gives the telemetry thread turns (`TelemetryPublisher.take_turn`) in
+place of running beside it: every message is still published, in order, none dropped; a loop
+on the wall clock never waits on it."""
+
+import json
+import threading
+import time
+
+import zenoh
+
+from controller import messages
+from controller.loop import ControlLoop, LoopOptions
+from controller.mpc import Mpc
+from controller.telemetry import TURN_MESSAGES, TURN_PERIOD, TelemetryPublisher
+from driver.clock import DriveClock, WallClock
+from driver.drive_group import single_joint
+from model.parameters import load_model
+from protocol import telemetry
+from tests.conftest import virtual_pair
+
+MODEL = load_model()
+PREFIX = "test/turns"
+CYCLES = 600
+
+
+def _session() -> zenoh.Session:
+    config = zenoh.Config()
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("listen/endpoints", json.dumps([]))
+    return zenoh.open(config)
+
+
+def test_a_lockstep_loop_publishes_every_message_in_turns():
+    session = _session()
+    try:
+        publisher = TelemetryPublisher(session, PREFIX)
+        times: list[float] = []
+        lock = threading.Lock()
+
+        def on_state(sample: zenoh.Sample) -> None:
+            state = telemetry.message_class("State").FromString(sample.payload.to_bytes())
+            with lock:
+                times.append(state.t)
+
+        subscriber = session.declare_subscriber(telemetry.key_expr(PREFIX, "state"), on_state)
+        with virtual_pair() as (_, drive):
+            drive.start()
+            loop = ControlLoop(single_joint(drive), Mpc(MODEL),
+                               LoopOptions(clock=DriveClock(), duration=CYCLES * 1e-3),
+                               [publisher.publish], lambda: publisher.dropped,
+                               take_turn=publisher.take_turn)
+            report = loop.run()
+        publisher.close()
+        subscriber.undeclare()
+    finally:
+        session.close()
+    assert report.exit_code == 0 and report.cycles == CYCLES, report.reason
+    # three messages a cycle (State, Command, SolverStats, a Plan every tenth): the thread's
+    # own passes stop at the loop's first look (one may come before, 1 ms of messages), then
+    # a turn from TURN_MESSAGES queued, each publishing at most one cycle's more
+    assert publisher.turns >= (3 * CYCLES - 100) // (TURN_MESSAGES + 4) - 1 >= 4
+    assert publisher.dropped == 0
+    assert len(times) == CYCLES
+    assert times == sorted(times) and abs(times[-1] - CYCLES * 1e-3) < 1e-9
+
+
+def test_a_real_time_loop_never_waits_on_the_publisher():
+    called = []
+    with virtual_pair(lockstep=False) as (_, drive):
+        drive.start()
+        loop = ControlLoop(single_joint(drive), Mpc(MODEL),
+                           LoopOptions(clock=WallClock(), duration=0.02), [lambda m: None],
+                           take_turn=lambda: called.append(1))
+        report = loop.run()
+    assert report.exit_code == 0 and report.cycles == 20, report.reason
+    assert called == []
+
+
+def test_a_slow_loop_still_gets_a_turn_every_turn_period():
+    """A robot's one message a cycle may take long to fill a turn: TURN_PERIOD after the
+    last turn, what is queued goes out in a turn of its own."""
+    session = _session()
+    try:
+        publisher = TelemetryPublisher(session, PREFIX)
+        publisher.take_turn()  # the first look: the thread publishes in turns from now on
+        deadline = time.monotonic() + 5.0
+        while not publisher.in_turns and time.monotonic() < deadline:
+            time.sleep(1e-3)
+        fault = messages.fault(0.0, "controller", "a test", "none")
+        queued = []
+        for _ in range(2):
+            publisher.publish(fault)
+            time.sleep(TURN_PERIOD)
+            publisher.take_turn()
+            queued.append(len(publisher._queue))
+        in_turns = publisher.in_turns
+        publisher.close()
+    finally:
+        session.close()
+    assert in_turns and queued == [0, 0] and publisher.turns == 2
