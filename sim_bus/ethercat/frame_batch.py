@@ -23,6 +23,7 @@ made again before the next.
 
 import math
 from collections.abc import Sequence
+from operator import attrgetter
 
 import numba
 import numpy as np
@@ -98,6 +99,7 @@ ELSEWHERE = 5  # not steady in OP on SYNC0: its firmware does the bookkeeping to
 _OP = int(ec.AlState.OP)
 _NONE = np.zeros(0, dtype=np.int64)  # an output the layout does not carry
 _MILLI = objects.MILLI
+_OUTBOX = attrgetter("_outbox")  # a firmware's mailbox messages waiting for the master
 
 
 @numba.njit(cache=True)
@@ -283,6 +285,11 @@ class _Plan:
         # the slaves that take the reference clock's time at once, and where it lies
         self.clock_rows = np.zeros(0, dtype=np.int64)
         self.clock_span = (0, 0)
+        # every slave batched with nothing else of the frame to pass: once a frame of this
+        # plan went through the per-slave loop (`primed`: every watchdog status bit set),
+        # the next ones leave the per-slave part to `FrameBatch.settle`
+        self.plain = all(rest == [] for rest in others)
+        self.primed = False
 
 
 class FrameBatch:
@@ -317,6 +324,12 @@ class FrameBatch:
         self._memories = List([np.frombuffer(esc.memory, np.uint8) for esc in self.escs])
         self._starts = np.zeros((count, 2), dtype=np.int64)
         self.batched = 0  # slave cycles the batch ran (the rest ran through their ESCs)
+        # what plain frames (`_Plan.plain`) left unwritten in the ESCs and firmwares: the
+        # last one's time and plan (their watchdog deadlines, their `now`) and each
+        # firmware's cycles since; `settle` writes them
+        self._fed_at: float | None = None
+        self._fed_plan: _Plan | None = None
+        self._uncounted = np.zeros(count, dtype=np.int64)
         self._warm()
 
     def _warm(self) -> None:
@@ -433,6 +446,7 @@ class FrameBatch:
             [others if k in batched else None for k in range(len(self.escs))],
             [k in batched and bool(self.escs[k]._plan[0][0][4]) for k in range(len(self.escs))])
         self._plan_clock(plan, frame, spans)
+        plan.plain = plan.plain and not plan.clock_rows.size
         return plan
 
     def _plan_clock(self, plan: _Plan, frame: bytearray, spans: list) -> None:
@@ -455,10 +469,33 @@ class FrameBatch:
         plan.clock_rows = np.array(rows, dtype=np.int64)
         plan.clock_span = data, data + length  # its data and its working counter
 
+    def settle(self) -> None:
+        """Write into the ESCs and firmwares what plain frames left in the batch's arrays:
+        each slave's time of the last frame and the process data watchdog deadline it set,
+        and the cycles each firmware ran. Called before anything looks at them (a frame
+        slave by slave, SYNC0, the watchdogs' check, the report): a steady frame then costs
+        no Python per slave, and every slave ends as the per-slave path leaves it."""
+        plan, at = self._fed_plan, self._fed_at
+        if at is not None:
+            self._fed_at = self._fed_plan = None
+            escs = self.escs
+            for k, when in zip(plan.rows.tolist(), (at + self.clocks.hop[plan.rows]).tolist(),
+                               strict=True):
+                esc = escs[k]
+                esc.now = when
+                if plan.watchdogs[k] and esc._watchdog_period:
+                    esc._watchdog_deadline = when + esc._watchdog_period
+        uncounted = self._uncounted
+        if uncounted.any():
+            for k in np.flatnonzero(uncounted).tolist():
+                self.firmwares[k].cycles += int(uncounted[k])
+            uncounted[:] = 0
+
     def passed_without(self, frame: bytearray, spans: list) -> None:
         """The frame went slave by slave: unless it only read registers, it may have
         changed the slaves (state, sync managers, FMMUs) and run their drives' cycles
         outside the line, so both are looked at again before the next batch."""
+        self.settle()
         for command, header, _, length in spans:
             if command == ec.Command.NOP:
                 continue
@@ -470,11 +507,13 @@ class FrameBatch:
     def slaves_changed(self, cycled: bool) -> None:
         """Something outside a frame changed the slaves (a watchdog expired, SYNC0 fired);
         `cycled`: their drives ran cycles too."""
+        self.settle()
         self.stale = self._replan = True
         self._drives_unknown = self._drives_unknown or cycled
 
     def cycled_elsewhere(self, rows: Sequence[int]) -> None:
         """The drives `rows` ran cycles outside the batch (alone)."""
+        self.settle()
         self.line.cycled_elsewhere(rows)
 
     # --- one frame ---------------------------------------------------------------------------
@@ -516,6 +555,18 @@ class FrameBatch:
             if share:
                 ec.WKC.pack_into(frame, offset, (ec.WKC.unpack_from(frame, offset)[0] + share)
                                  & 0xFFFF)
+        if plan.primed and done.all() and not on_sync0.any():
+            # plain and steady: the ESCs and firmwares written when next looked at
+            if self._fed_plan is not plan:
+                self.settle()
+            self._fed_at, self._fed_plan = now, plan
+            self._uncounted[plan.rows] += 1
+            if any(map(_OUTBOX, self.firmwares)):  # a message to post: as the loop below
+                for esc, firmware in zip(self.escs, self.firmwares, strict=True):
+                    if firmware._outbox:
+                        firmware.frame_passed(esc)
+            return True
+        self.settle()
         # the rest of the frame slave by slave, in line order (a batched slave's cycle
         # leaves its watchdog retriggered and its cycle counted, or on SYNC0 its outputs
         # noted for the window); a batched slave whose drive had more to its cycle passes
@@ -558,6 +609,7 @@ class FrameBatch:
             clocks.compare(rows, frame[data:data + 8], now + clocks.hop[rows])
             ec.WKC.pack_into(frame, counter, (ec.WKC.unpack_from(frame, counter)[0]
                                               + rows.size) & 0xFFFF)
+        plan.primed = plan.plain and done.all() and not on_sync0.any()
         return True
 
     def _outputs_in_op(self, rows: np.ndarray, now: float) -> set[int]:
@@ -662,6 +714,7 @@ class FrameBatch:
         over a veth, and lost its sync. As many small numpy operations the pass cost 250 us
         for 32 slaves, more than the frame.)"""
         line = self.line
+        self.settle()
         if self.stale:
             self._find_steady()
         if self._drives_unknown:
