@@ -48,6 +48,7 @@ from sim_bus.line_physics import DriveLine, advance_line
 
 _LOGICAL = frozenset((ec.Command.LRD, ec.Command.LWR, ec.Command.LRW))
 _READS = frozenset((ec.Command.APRD, ec.Command.FPRD, ec.Command.BRD))
+_MAILBOX_WRITES = frozenset((ec.Command.APWR, ec.Command.FPWR, ec.Command.BWR))
 _WRITES_OUTPUTS = frozenset((ec.Command.LWR, ec.Command.LRW))
 _READS_INPUTS = frozenset((ec.Command.LRD, ec.Command.LRW))
 # registers a steady cycle changes (the process data watchdog's status): a frame reading them
@@ -552,10 +553,31 @@ class FrameBatch:
         for command, header, _, length in spans:
             if command == ec.Command.NOP:
                 continue
-            end = (frame[header + 4] | frame[header + 5] << 8) + length
-            if command not in _READS or end > ec.PROCESS_RAM_START:
-                self.stale = self._replan = self._drives_unknown = True
-                return
+            ado = frame[header + 4] | frame[header + 5] << 8
+            end = ado + length
+            if command in _READS and end <= ec.PROCESS_RAM_START:
+                continue
+            if command in _READS and self._in_mailboxes(ado, end, writing=False):
+                continue  # the master takes a message: no slave or drive changes
+            if command in _MAILBOX_WRITES and self._in_mailboxes(ado, end, writing=True):
+                # a message to the slave (an SDO): its drive says itself when an object it
+                # changed matters to the batch (`Cia402Device._changed`); the firmware's
+                # state is looked at again, its sync managers and FMMUs are as they were
+                self.stale = True
+                continue
+            self.stale = self._replan = self._drives_unknown = True
+            return
+
+    def _in_mailboxes(self, address: int, end: int, writing: bool) -> bool:
+        """Whether [address, end) lies in every slave's mailbox-out buffer (`writing`) or
+        mailbox-in buffer: a master's CoE traffic beside the cyclic frames (a Python look
+        per slave, in frames that pass slave by slave anyway)."""
+        for esc, firmware in zip(self.escs, self.firmwares, strict=True):
+            start, size, _, _ = esc.sync_manager(
+                firmware.mailbox_out if writing else firmware.mailbox_in)
+            if not (size and start <= address and end <= start + size):
+                return False
+        return True
 
     def slaves_changed(self, cycled: bool) -> None:
         """Something outside a frame changed the slaves (a watchdog expired, SYNC0 fired);
