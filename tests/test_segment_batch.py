@@ -99,6 +99,19 @@ def _sdo(master: FrameMaster, k: int) -> bytes | None:
     return master.read(slave, in_box.start, in_box.default_size)
 
 
+def _polls(master: FrameMaster, k: int) -> list[bytearray]:
+    """Cycle k's frames of register reads beside the cycle, as SOEM sends them: the line's
+    AL status (one BRD), a slave's mailbox-in status (one FPRD)."""
+    frames = []
+    if k % 10 == 3:
+        frames.append(master.send([(Cmd.BRD, 0, ec.REG_AL_STATUS << 16, bytes(2))]))
+    if k % 3 == 1:
+        status = ec.REG_SM0 + ec.SM_SIZE + ec.SM_OFFSET_STATUS
+        frames.append(master.send([(Cmd.FPRD, 0, FIRST_STATION + k % SLAVES | status << 16,
+                                    bytes(2))]))
+    return frames
+
+
 def _devices(master: FrameMaster) -> list:
     return [(d.state, d.cycle_count, d.applied_current, d.plant.position, d.master_loss,
              sorted(d.values.items())) for d in master.segment.drives.devices]
@@ -117,6 +130,8 @@ def test_the_batch_passes_frames_exactly_as_the_slaves_one_by_one():
                 master.segment.check_watchdogs(master.now)
         frames = [m.send(_frame(m, k)) for m in (batched, single)]
         assert frames[0] == frames[1], f"cycle {k}"
+        polls = [_polls(m, k) for m in (batched, single)]
+        assert polls[0] == polls[1], f"cycle {k}"
         replies = [_sdo(m, k) for m in (batched, single)]
         assert replies[0] == replies[1], f"cycle {k}"
         if replies[0] is not None:

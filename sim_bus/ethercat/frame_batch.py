@@ -523,6 +523,35 @@ class FrameBatch:
         plan.clock_rows = np.array(rows, dtype=np.int64)
         plan.clock_span = data, data + length  # its data and its working counter
 
+    def registers(self, frame: bytearray, spans: list) -> bool:
+        """A frame of broadcast register reads only (BRD below the distributed clock's
+        registers: SOEM's state check reads the AL status of the whole line so every few
+        cycles) passed at once: each present slave ORs its registers into the data, counts
+        itself in the working counter and the address, and posts a waiting mailbox message,
+        as its ESC does (`Esc.process`); False, the frame untouched, for any other frame.
+        (Slave by slave such a frame cost some 200 us for talos' 32 slaves.)"""
+        for command, header, _, length in spans:
+            if command != ec.Command.BRD or (frame[header + 4] | frame[header + 5] << 8) \
+                    + length > dc.REG_RECEIVE_TIME_PORT0:
+                return False
+        present = [(esc, firmware) for esc, firmware in zip(self.escs, self.firmwares,
+                                                            strict=True) if esc.present]
+        memories = [esc.memory for esc, _ in present]
+        for _, header, data, length in spans:
+            address = frame[header + 4] | frame[header + 5] << 8
+            value = int.from_bytes(frame[data:data + length], "little")
+            for memory in memories:
+                value |= int.from_bytes(memory[address:address + length], "little")
+            frame[data:data + length] = value.to_bytes(length, "little")
+            adp = frame[header + 2] | frame[header + 3] << 8
+            ec.WKC.pack_into(frame, header + 2, (adp + len(present)) & 0xFFFF)
+            ec.WKC.pack_into(frame, data + length, (ec.WKC.unpack_from(frame, data + length)[0]
+                                                    + len(present)) & 0xFFFF)
+        for esc, firmware in present:
+            if firmware.mail_waiting():
+                firmware.frame_passed(esc)
+        return True
+
     def settle(self) -> None:
         """Write into the ESCs and firmwares what plain frames left in the batch's arrays:
         each slave's time of the last frame and the process data watchdog deadline it set,

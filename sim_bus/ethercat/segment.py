@@ -229,13 +229,17 @@ def pass_frame(escs: Sequence[Esc], frame: bytearray, length: int, now: float,
             memory[ec.REG_RX_ERROR_COUNTER] = min(0xFF, memory[ec.REG_RX_ERROR_COUNTER] + 1)
         return False
     view = memoryview(frame)
-    if batch is None or not batch.process(frame, view, spans, now):
+    if batch is None or not (batch.registers(frame, spans)
+                             or batch.process(frame, view, spans, now)):
         if batch is not None:
             batch.passed_without(frame, spans)
         routes = _routes(escs, frame, spans)
         for k, esc in enumerate(escs):
-            esc.now = now + esc.dc.hop  # the frame reaches slave k k hops after the first
-            esc.process(frame, view, spans if routes is None else routes[k])
+            route = spans if routes is None else routes[k]
+            # a slave no datagram reaches only posts a waiting mailbox message
+            if route or esc.firmware.mail_waiting():
+                esc.now = now + esc.dc.hop  # the frame reaches slave k k hops after the first
+                esc.process(frame, view, route)
     frame[ec.SOURCE_MAC_OFFSET] |= ec.SOURCE_MAC_PROCESSED_BIT
     return True
 
