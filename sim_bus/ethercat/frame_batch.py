@@ -342,6 +342,9 @@ class _Plan:
         # the next ones leave the per-slave part to `FrameBatch.settle`
         self.plain = all(rest == [] for rest in others)
         self.primed = False
+        self.wkc_sums = wkc.sum(axis=0).tolist()  # the working counters, every slave done
+        self.on_sync0 = np.zeros(len(rows), dtype=bool)  # each on SYNC0 (`FrameBatch._plan`)
+        self.free_run = True
         self.out_at = out_index[:, 0].copy() if len(rows) else rows  # where each one's lie
         self.in_at = in_index[:, 0].copy() if len(rows) else rows
 
@@ -501,6 +504,9 @@ class FrameBatch:
             [k in batched and bool(self.escs[k]._plan[0][0][4]) for k in range(len(self.escs))])
         self._plan_clock(plan, frame, spans)
         plan.plain = plan.plain and not plan.clock_rows.size
+        # which of them are on SYNC0: as the plan, kept while the steady slaves are
+        plan.on_sync0 = self._dc[plan.rows]
+        plan.free_run = not plan.on_sync0.any()
         return plan
 
     def _plan_clock(self, plan: _Plan, frame: bytearray, spans: list) -> None:
@@ -647,19 +653,22 @@ class FrameBatch:
             if plan is None:
                 return False
         buffer = np.frombuffer(frame, np.uint8)
-        on_sync0 = self._dc[plan.rows]
-        done = np.ones(len(plan.rows), dtype=bool)
-        if not on_sync0.all():
-            free = ~on_sync0
-            done[free] = self._cycle_now(buffer, plan, None if on_sync0.any() else free)
-        if on_sync0.any():
+        on_sync0 = plan.on_sync0
+        if plan.free_run:
+            done = self._cycle_now(buffer, plan, None)
+        else:
+            done = np.ones(len(plan.rows), dtype=bool)
+            if not on_sync0.all():
+                free = ~on_sync0
+                done[free] = self._cycle_now(buffer, plan, free)
             self._exchange(buffer, plan, on_sync0)
-        shares = plan.wkc[done].sum(axis=0).tolist()
+        all_done = bool(done.all())
+        shares = plan.wkc_sums if all_done else plan.wkc[done].sum(axis=0).tolist()
         for offset, share in zip(plan.wkc_offsets, shares, strict=True):
             if share:
                 ec.WKC.pack_into(frame, offset, (ec.WKC.unpack_from(frame, offset)[0] + share)
                                  & 0xFFFF)
-        if plan.primed and done.all() and not on_sync0.any():
+        if plan.primed and all_done:
             # plain and steady: the ESCs and firmwares written when next looked at
             if self._fed_plan is not plan:
                 self.settle()
@@ -676,14 +685,15 @@ class FrameBatch:
         # noted for the window); a batched slave whose drive had more to its cycle passes
         # the whole frame through its ESC (its data untouched)
         others = plan.others
-        if not done.all():
+        if not all_done:
             others = list(others)
             for k in plan.rows[~done].tolist():
                 others[k] = None
         firmwares, dc_steady = self.firmwares, self._dc
         # the outputs' bookkeeping of the slaves in OP on SYNC0 at once, each at its own time;
         # slaves entering OP, and any whose SYNC0 stopped, each through its firmware
-        alone = self._outputs_in_op(plan.rows[on_sync0 & done], now) if on_sync0.any() else ()
+        alone = (self._outputs_in_op(plan.rows[on_sync0 & done], now) if not plan.free_run
+                 else ())
         for k, (esc, at) in enumerate(zip(self.escs, (now + self.clocks.hop).tolist(),
                                           strict=True)):
             esc.now = at
@@ -713,7 +723,7 @@ class FrameBatch:
             clocks.compare(rows, frame[data:data + 8], now + clocks.hop[rows])
             ec.WKC.pack_into(frame, counter, (ec.WKC.unpack_from(frame, counter)[0]
                                               + rows.size) & 0xFFFF)
-        plan.primed = plan.plain and done.all() and not on_sync0.any()
+        plan.primed = plan.plain and all_done and plan.free_run
         return True
 
     def _outputs_in_op(self, rows: np.ndarray, now: float) -> set[int]:
