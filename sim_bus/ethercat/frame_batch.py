@@ -407,6 +407,14 @@ class FrameBatch:
             return
         self.line.load_kernel()
         self._pass(-math.inf, np.zeros(count, dtype=bool))  # no SYNC0 is due before all time
+        # a frame's free-run cycle of no slave (the first frame in OP waited seconds for its
+        # compile: the master had given the line up after 100 ms)
+        out_fields, in_fields, _, _ = self._fields
+        scratch = self._scratch
+        frame_pass(np.zeros(0, dtype=np.uint8), none, none, none, self._memories, self._starts,
+                   out_fields, in_fields, -1, -1, scratch["controlwords"], _NONE, _NONE,
+                   self._no_inputs, self._line_arrays, dynamics.SUBSTEPS, scratch["done"],
+                   self.line._unwritten)
         empty = np.zeros((count, 1), dtype=np.uint8)
         into_buffers(none, self._memories, self._starts, empty, empty)
         from_buffers(none, self._memories, self._starts, 0, 1)
