@@ -353,7 +353,7 @@ class EthercatLine(Segment):
             try:
                 return super().collect()
             except JointFailure as failure:
-                if isinstance(failure.cause, DriveFault):
+                if isinstance(failure.cause, (DriveFault, EncoderGlitch)):
                     self._check_line(failure.joint)
                 raise self.failed(failure.joint, failure.cause) from failure.cause
         if self._alarmed or self._line.failure is not None:
@@ -388,6 +388,9 @@ class EthercatLine(Segment):
                                           f"reading saturated ({int(raw['f4'][j])} mN.m)")
         if glitch >= 0:
             drive = self._drives[glitch]
+            # a slave that lost its sync jumps too: its AL status, read now, is the cause to
+            # name, not the jump (the periodic state check may be cycles away)
+            self._check_line(self.joints[glitch][0])
             try:
                 drive.guard.check_step(float(self._previous[glitch]),
                                        float(table[glitch, SAMPLE_POSITION]), drive.name, cycles)

@@ -136,6 +136,37 @@ def test_a_slave_out_of_op_with_a_quiet_drive_is_found_by_the_state_check(robot)
     assert completed == STATE_CHECK_FRAMES - 5 - 1
 
 
+def test_a_slave_out_of_op_whose_position_jumps_is_named_by_its_al_status(robot):
+    """The knee's slave loses its sync and, in the same cycle, its position sample jumps
+    (an encoder glitch the guard catches): the cycle names the slave and its AL status code,
+    read as the guard fires, not a glitch, long before the periodic state check; a jump of
+    a slave still in OP stays a glitch."""
+    for drive in robot.group.drives:
+        drive.configure()  # process data running, drives left disabled
+    robot.group.segments[0].started()
+    completed, failure = robot.run(3)
+    assert failure is None
+    robot.segment.firmwares[1].leave_op_on_error(ec.AL_SYNCHRONIZATION_ERROR)
+    robot.devices[1].inject(Fault.ENCODER_GLITCH)
+    completed, failure = robot.run(STATE_CHECK_FRAMES)
+    assert completed == 0 and failure is not None and failure.joint == "knee_joint"
+    assert isinstance(failure.cause, LineLost), failure
+    assert ("slave 1 (knee_joint) in SAFE_OP + ERROR, AL status code synchronization error "
+            "(0x001A)") in str(failure)
+    assert "jumped" not in str(failure)
+
+
+def test_a_position_jump_of_a_slave_in_op_is_an_encoder_glitch(robot):
+    for drive in robot.group.drives:
+        drive.configure()
+    robot.group.segments[0].started()
+    assert robot.run(3) == (3, None)
+    robot.devices[2].inject(Fault.ENCODER_GLITCH)
+    completed, failure = robot.run(STATE_CHECK_FRAMES)
+    assert completed == 0 and failure is not None and failure.joint == "ankle_joint"
+    assert "jumped" in str(failure) and "AL status" not in str(failure)
+
+
 def _robot_file(tmp_path, names=NAMES) -> str:
     text = '[robot]\nname = "leg"\nperiod_us = 1000\n'
     for position, name in enumerate(names):

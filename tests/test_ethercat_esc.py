@@ -52,6 +52,9 @@ class RecordingFirmware:
     def frame_passed(self, esc):
         pass
 
+    def mail_waiting(self):
+        return False
+
 
 ESI = load_esi(esi_path())
 SII = build_sii(ESI)

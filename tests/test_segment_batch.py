@@ -3,13 +3,15 @@ one by one do: the same frames go through two lines of the same drives, one with
 and one without, and every answer, every drive and every ESC's memory must be the same, through
 an enable sequence, sensor faults, an overcurrent trip, a slave leaving OP on its own and
 brought back, a quick stop, mixed frames (AL status reads, a DC time write, a watchdog status
-read) and a process data watchdog expiry with the drives left to run alone."""
+read), CoE traffic beside the cycle (SDO uploads, a download that changes a drive's current
+limit) and a process data watchdog expiry with the drives left to run alone."""
 
 import struct
 
 import numpy as np
 
 from protocol import ethercat as ec
+from protocol import objects
 from sim_bus.ethercat.segment import Segment, pass_frame
 from sim_bus.faults import Fault
 from tests.segment_frames import ENABLE, FIRST_STATION, FrameMaster, talos_devices
@@ -73,6 +75,43 @@ def _frame(master: FrameMaster, k: int) -> list:
     return datagrams
 
 
+def _sdo(master: FrameMaster, k: int) -> bytes | None:
+    """Cycle k's CoE traffic, in frames of its own as a master's mailbox runs beside the
+    cycle: an upload of a slave's position now and then, one download of slave 2's current
+    limit (its drive's terms change); the reply read from the mailbox-in buffer."""
+    if k == 700:
+        sdo = ec.SDO_HEADER.pack(0x23 | 2 << 2, objects.MAX_CURRENT, 0) + bytes((200, 0, 0, 0))
+        slave = 2
+    elif k % 11 == 4:
+        sdo = ec.SDO_HEADER.pack(0x40, objects.POSITION_ACTUAL, 0) + bytes(4)
+        slave = k % SLAVES
+    else:
+        return None
+    esi = master.segment.esi
+    out_box, in_box = esi.sync_manager("MBoxOut"), esi.sync_manager("MBoxIn")
+    body = ec.COE_HEADER.pack(ec.COE_SDO_REQUEST << ec.COE_SERVICE_SHIFT) + sdo
+    # the mailbox counter: 1 to 7, a new one each message (a repeated one is a repeat)
+    master.mailbox_counter = getattr(master, "mailbox_counter", 0) % 7 + 1
+    message = ec.MAILBOX_HEADER.pack(len(body), 0, 0,
+                                     ec.MAILBOX_TYPE_COE | master.mailbox_counter << 4)
+    assert master.write(slave, out_box.start, (message + body).ljust(out_box.default_size,
+                                                                     b"\0")) == 1
+    return master.read(slave, in_box.start, in_box.default_size)
+
+
+def _polls(master: FrameMaster, k: int) -> list[bytearray]:
+    """Cycle k's frames of register reads beside the cycle, as SOEM sends them: the line's
+    AL status (one BRD), a slave's mailbox-in status (one FPRD)."""
+    frames = []
+    if k % 10 == 3:
+        frames.append(master.send([(Cmd.BRD, 0, ec.REG_AL_STATUS << 16, bytes(2))]))
+    if k % 3 == 1:
+        status = ec.REG_SM0 + ec.SM_SIZE + ec.SM_OFFSET_STATUS
+        frames.append(master.send([(Cmd.FPRD, 0, FIRST_STATION + k % SLAVES | status << 16,
+                                    bytes(2))]))
+    return frames
+
+
 def _devices(master: FrameMaster) -> list:
     return [(d.state, d.cycle_count, d.applied_current, d.plant.position, d.master_loss,
              sorted(d.values.items())) for d in master.segment.drives.devices]
@@ -82,6 +121,7 @@ def test_the_batch_passes_frames_exactly_as_the_slaves_one_by_one():
     batched, single = _line(True), _line(False)
     assert batched.segment.batch is not None
     seen = set()
+    sdo_replies = 0
     for k in range(CYCLES):
         for master in (batched, single):
             master.now += 1e-3
@@ -90,13 +130,22 @@ def test_the_batch_passes_frames_exactly_as_the_slaves_one_by_one():
                 master.segment.check_watchdogs(master.now)
         frames = [m.send(_frame(m, k)) for m in (batched, single)]
         assert frames[0] == frames[1], f"cycle {k}"
+        polls = [_polls(m, k) for m in (batched, single)]
+        assert polls[0] == polls[1], f"cycle {k}"
+        replies = [_sdo(m, k) for m in (batched, single)]
+        assert replies[0] == replies[1], f"cycle {k}"
+        if replies[0] is not None:
+            sdo_replies += 1
         for master in (batched, single):
             master.segment.check_watchdogs(master.now)
         if k in (1000, 1530):  # slave 4 left OP (1000) / all did (1530): back to OP
             for master in (batched, single):
                 master.request(ec.AlState.SAFE_OP)
                 master.request(ec.AlState.OP)
-        if k % 100 == 0 or k in (601, 801, 901, 1501):
+        if k % 100 == 0 or k in (601, 703, 801, 901, 1234, 1501):
+            # what steady frames left in the batch's arrays, written as anything looking
+            # at the slaves has it written
+            batched.segment.batch.settle()
             assert _devices(batched) == _devices(single), f"cycle {k}"
             for a, b in zip(batched.segment.escs, single.segment.escs, strict=True):
                 assert a.memory == b.memory, f"cycle {k}"
@@ -104,9 +153,11 @@ def test_the_batch_passes_frames_exactly_as_the_slaves_one_by_one():
         seen.add(tuple(s & 0x1F for s in struct.unpack(
             f"<{SLAVES}H", b"".join(batched.read(j, ec.REG_AL_STATUS, 2)
                                     for j in range(SLAVES)))) if k % 50 == 0 else ())
+    assert [r["cycles"] for r in batched.segment.report()] == [
+        r["cycles"] for r in single.segment.report()]
     assert _devices(batched) == _devices(single)
-    assert [f.cycles for f in batched.segment.firmwares] == [
-        f.cycles for f in single.segment.firmwares]
+    assert sdo_replies > 150
+    assert batched.segment.drives.devices[2].read(objects.MAX_CURRENT, 0) == 200
     # what happened happened: a slave out of OP with an error, the watchdog's drop, and the
     # batch carried most cycles
     assert any(ec.AlState.SAFE_OP | ec.AL_ERROR in states for states in seen), seen

@@ -54,6 +54,11 @@ class Firmware(Protocol):
     def frame_passed(self, esc: "Esc") -> None:
         """A frame went through (the firmware's chance to post a queued mailbox message)."""
 
+    def mail_waiting(self) -> bool:
+        """Whether a message waits to be posted at the next frame: a frame no datagram of
+        which reaches this slave (a configured-address read of another) passes it by
+        otherwise."""
+
     def sync0(self, esc: "Esc") -> None:
         """The distributed clock's SYNC0 fired (cyclic operation with SYNC0 active)."""
 

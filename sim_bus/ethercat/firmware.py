@@ -510,6 +510,9 @@ class SlaveFirmware:
             esc.clear_mailbox(self.mailbox_in)
             esc.post_mailbox(self.mailbox_in, self._last_sent)
 
+    def mail_waiting(self) -> bool:
+        return bool(self._outbox)
+
     def frame_passed(self, esc: Esc) -> None:
         """Post the next queued message once the mailbox-in buffer is free."""
         if self._outbox and esc.mailbox_in_empty(self.mailbox_in):
