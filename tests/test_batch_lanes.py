@@ -12,7 +12,7 @@ from controller import ilqr_reference, lane_math, lanes
 from controller import workspace as ws
 from controller.benchmark import measure_joints, measure_threads
 from controller.ilqr import LINE_SEARCH_STEPS
-from controller.mpc import BatchMpc, JointProblem, Mpc
+from controller.mpc import BatchMpc, JointProblem, Mpc, _lane_plan
 from controller.problem import OcpSettings, pack_cost
 from controller.reference import Setpoint, Sinusoid, reference_at
 from model import dynamics
@@ -213,6 +213,29 @@ def test_the_plan_of_a_lane_joint_is_its_solution_in_order():
         for field in ("position", "velocity", "current", "reference_position"):
             np.testing.assert_allclose(getattr(vectorised, field), getattr(scalar, field),
                                        rtol=1e-7, atol=1e-9)
+
+
+def test_the_compiled_plan_gather_is_numpys():
+    """`_lane_plan` (the plan's one compiled gather) equals numpy's fancy indexing of the
+    lanes' buffers, for every lane and ring position (the numpy expression is the reference)."""
+    twins = Twins(9)
+    for k in range(30):
+        twins.tick(k)
+    batch = twins.lanes
+    trajectories, gains, *_ = batch._lanes
+    width = lanes.width(len(batch))
+    for j in (0, 8):
+        chunk, lane = divmod(j, width)
+        for which in (0, 1):
+            for order in batch._ring_orders[[0, 7, batch.horizon]]:
+                out = np.empty((4, len(order)))
+                _lane_plan(trajectories, gains, which, chunk, lane, order, out)
+                solution = trajectories[which, chunk, :, :, lane][order]
+                np.testing.assert_array_equal(out[0], solution[:, lanes.Q])
+                np.testing.assert_array_equal(out[1], solution[:, lanes.QD])
+                np.testing.assert_array_equal(out[2], solution[:, lanes.U])
+                np.testing.assert_array_equal(out[3],
+                                              gains[chunk, :, lanes.REFERENCE_Q, lane][order])
 
 
 def test_a_skipped_lane_joint_keeps_its_row():
