@@ -26,8 +26,9 @@ from model.identify import Experiment, identify
 from model.parameters import ActuatorParameters, Payload, load_model
 from recorder.reader import load_recording
 
-# runs the commands as processes; the module's recordings are made once, by its first test,
-# in 100-214 s (quiet host to load 7): past the suite's 300 s per-test default beside load
+# runs the commands as processes; the module's recordings are made once, by its first test
+# (19 s on a quiet host, 36 s with an interpreter per command; 100-214 s at load 7 with the
+# slower lock-step of earlier sessions): beside load, past the suite's 300 s default
 pytestmark = [pytest.mark.subprocess, pytest.mark.timeout(900)]
 
 HIDDEN = {
@@ -63,19 +64,29 @@ def recording_jobs(folder: Path, truth: str | None) -> tuple[dict[str, Path], li
 
 @pytest.fixture(scope="module")
 def scenarios(tmp_path_factory) -> dict[str, dict[str, Path]]:
-    """Every scenario's recordings, two at a time (two cores), then each baseline."""
-    out, jobs = {}, []
-    for name, truth in HIDDEN.items():
-        out[name], more = recording_jobs(tmp_path_factory.mktemp(name), truth)
-        jobs += more
+    """Every scenario's recordings and baseline, the scenarios shared by two processes (two
+    cores), each running its share's commands one after the other (`tests.command_batch`:
+    24 interpreters started for them took about a third of this setup)."""
+    out, shares = {}, [[], []]
+    for k, (name, truth) in enumerate(HIDDEN.items()):
+        out[name], recordings = recording_jobs(tmp_path_factory.mktemp(name), truth)
+        files = out[name]
+        shares[k % 2] += [["commands.recorder", *job] for job in recordings] + [
+            ["commands.identify", str(files["noload"]), str(files["load"]), "-o",
+             str(files["baseline"])]]
+
+    def batch(share: list[list[str]]) -> list[dict]:
+        folder = tmp_path_factory.mktemp("batch")
+        (folder / "jobs.json").write_text(json.dumps(share))
+        proc = run("tests.command_batch", str(folder / "jobs.json"), str(folder / "out.json"))
+        assert proc.returncode == 0, proc.stderr
+        return json.loads((folder / "out.json").read_text())
+
     with ThreadPoolExecutor(2) as pool:
-        for proc in pool.map(lambda job: run("commands.recorder", *job), jobs):
-            assert proc.returncode == 0, proc.stderr
-        identified = pool.map(lambda files: run(
-            "commands.identify", str(files["noload"]), str(files["load"]), "-o",
-            str(files["baseline"])), out.values())
-        for proc in identified:
-            assert proc.returncode == 0, proc.stderr
+        for share, results in zip(shares, pool.map(batch, shares), strict=True):
+            assert len(results) == len(share), results[-1]["stderr"]
+            for job, result in zip(share, results, strict=True):
+                assert result["code"] == 0, f"{job}: {result['stderr']}"
     return out
 
 
