@@ -424,7 +424,8 @@ def _robot_setup(args: argparse.Namespace) -> "_Setup | int":
         [problem.payload for problem in problems], period,
         lambda: open_robot(robot, sim=args.sim, clock=clock_for(args.lockstep),
                            seed=args.seed, period=period, faults=faults),
-        lambda connection: (f"{len(connection.group)} joints of {robot.name} on "
+        lambda connection: (f"{len(connection.group)} "
+                            f"joint{'s' if len(connection.group) != 1 else ''} of {robot.name} on "
                             f"{', '.join(robot.buses())}{' (--sim)' if args.sim else ''} "
                             f"enabled; telemetry under {args.prefix}/"),
         parameters=_robot_parameters(robot, problems))

@@ -36,7 +36,7 @@ import tomli_w
 
 from driver.clock import bare_loop
 from protocol.bus_spec import is_ethercat, parse_bus_spec
-from robot.description import load_robot
+from robot.description import load_robot, robot_path
 from sim_bus.ethercat.netns import NamespacePair
 
 START_TIMEOUT = 180.0  # s for sim-bus to build and serve every drive on a busy host
@@ -46,12 +46,12 @@ def stage(text: str) -> None:
     print(f"bus-bench: {text}", file=sys.stderr, flush=True)
 
 
-def run(robot_path: str, duration: float, starts: int, sync: str | None = None, *,
+def run(robot_file: str, duration: float, starts: int, sync: str | None = None, *,
         sim: bool = False, busy_loops: int = 0) -> dict:
     """Everything `bus-bench --robot` prints (one JSON object); `sync` ("free_run" or "dc"):
     every EtherCAT line of the robot on it instead of the robot file's own choice; `sim`: the
     drives embedded in the master's process; `busy_loops`: CPU-bound processes beside it."""
-    robot = load_robot(robot_path)
+    robot = load_robot(robot_file)
     with contextlib.ExitStack() as stack:
         if busy_loops:
             stage(f"{busy_loops} CPU-bound loop{'s' * (busy_loops > 1)} beside everything")
@@ -64,10 +64,13 @@ def run(robot_path: str, duration: float, starts: int, sync: str | None = None, 
         runs = []
         cpus = _cpus()
         folder = stack.enter_context(tempfile.TemporaryDirectory(prefix="bus-bench-"))
-        path = _with_buses_here(Path(robot_path), Path(folder), sync)
+        # a shipped robot's name (`talos_arm`) as actuatord takes it
+        path = _with_buses_here(robot_path(robot_file), Path(folder), sync)
         pair = stack.enter_context(NamespacePair(lines)) if lines else None
         for start in range(1, starts + 1):
-            stage(f"start {start}/{starts}: {len(robot.joints)} joints of {robot.name}, "
+            joints = len(robot.joints)
+            stage(f"start {start}/{starts}: {joints} joint{'s' if joints != 1 else ''} of "
+                  f"{robot.name}, "
                   f"{duration:g} s in real time{', drives embedded' if sim else ''}")
             runs.append(_one_start(pair, path, duration, Path(folder) / f"run{start}.json",
                                    robot.period_us, sim, cpus))
