@@ -25,15 +25,12 @@ same group reads them as it reads its own. The socket is the one python-can's bu
 joined, loopback on), used through its file descriptor.
 """
 
-import itertools
 import logging
-import math
 import os
 import select
 import socket
 import threading
 import time
-from collections import deque
 
 import can
 import canopen
@@ -49,13 +46,11 @@ from protocol.can_datagram import (
     receiver_options,
     sender_options,
 )
+from sim_bus.rhythm import AHEAD, Rhythm
 
 log = logging.getLogger(__name__)
 
 POLL_TIMEOUT = 0.05  # s: how long closing waits for the receive thread at most
-AHEAD = 150e-6  # s before the next cycle's expected SYNC from which the thread looks, awake
-CYCLE_GAP = 300e-6  # s without a SYNC before one that starts a cycle (a bus's SYNCs: < 100 us)
-RHYTHM = 5  # cycles whose median interval is the expected period
 SELECT_FDS = 1024  # FD_SETSIZE: select's descriptors end below it
 
 
@@ -163,31 +158,6 @@ def _drop_from(receiver: socket.socket, address: str, port: int) -> None:
         receiver.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER, fprog)
     except OSError as exc:  # echoes are then dropped after decoding (no subscriber)
         log.info("own frames dropped in user space (socket filter refused: %s)", exc)
-
-
-class Rhythm:
-    """When the master's next cycle is due, from the times the last cycles' first SYNCs came
-    (s on one clock): the median interval between the last RHYTHM + 1 of them after the last.
-    A SYNC within CYCLE_GAP of the one before is of the same cycle (another bus's)."""
-
-    def __init__(self) -> None:
-        self._starts: deque[float] = deque(maxlen=RHYTHM + 1)
-        self._last_sync = -math.inf
-        self.due = math.inf  # when the next cycle's first SYNC is expected
-
-    def sync(self, now: float) -> None:
-        """A SYNC came at `now`."""
-        if now - self._last_sync > CYCLE_GAP:
-            starts = self._starts
-            starts.append(now)
-            if len(starts) > RHYTHM:
-                intervals = sorted(b - a for a, b in itertools.pairwise(starts))
-                self.due = now + intervals[RHYTHM // 2]
-        self._last_sync = now
-
-    def missed(self) -> None:
-        """The cycle did not come when due: nothing is expected until the next SYNC."""
-        self.due = math.inf
 
 
 class MulticastReceiver(threading.Thread):

@@ -19,7 +19,8 @@ from protocol import cia301, objects
 from protocol.bus_spec import parse_bus_spec
 from sim_bus.canopen_node import CanOpenNode
 from sim_bus.device import Cia402Device
-from sim_bus.multicast import RHYTHM, MulticastNetwork, MulticastReceiver, Rhythm
+from sim_bus.multicast import MulticastNetwork, MulticastReceiver
+from sim_bus.rhythm import RHYTHM, Rhythm
 from tests.conftest import udp_bus_spec
 
 
