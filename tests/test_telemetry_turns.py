@@ -1,4 +1,4 @@
-"""A loop on drive time gives the telemetry thread turns (`TelemetryPublisher.take_turn`) in
+"""A loop on drive time publishes in turns (`TelemetryPublisher.take_turn`, in its own thread) in
 place of running beside it: every message is still published, in order, none dropped; a loop
 on the wall clock never waits on it."""
 
