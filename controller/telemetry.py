@@ -50,8 +50,8 @@ TURN_LAPSE = 0.1  # s
 
 class TelemetryPublisher:
     """Publishes the loop's telemetry messages (a subscriber of the loop); serialisation happens
-    in the publisher thread (in the loop's own turns on drive time). When the queue is full, messages are dropped and counted, never
-    waited for."""
+    in the publisher thread (in the loop's own turns on drive time). When the queue is full,
+    messages are dropped and counted, never waited for."""
 
     def __init__(self, session: zenoh.Session, prefix: str = schema.DEFAULT_PREFIX,
                  topics: Iterable[str] = tuple(schema.topics(1)),
