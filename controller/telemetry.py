@@ -1,6 +1,7 @@
-"""Zenoh side of actuatord: publishers fed from a queue by their own thread (the control loop
-never waits on the network, nor serialises), and the queryables for parameters and the
-reference and weights of every joint."""
+"""Zenoh side of actuatord: publishers fed from a queue by their own thread (a control loop in
+real time never waits on the network, nor serialises; one on drive time publishes in turns,
+see TURN_MESSAGES), and the queryables for parameters and the reference and weights of every
+joint."""
 
 import collections
 import json
@@ -30,13 +31,17 @@ DRAIN_PERIOD = 1e-3
 # each of Zenoh's puts releases the interpreter's lock: the loop took it, and the thread
 # waited for the loop's next release (each compiled call releases it) to publish the next
 # message, two thread switches and a wait a message, three or four messages a cycle (one
-# joint: 70-90 us a cycle against 45-50 with nothing published). Such a loop gives the
-# thread turns instead (`take_turn`): from TURN_MESSAGES queued, or TURN_PERIOD after the
-# last turn (a robot's one message a cycle, its cycles slower), it waits, off the lock, while
-# the thread publishes them all, at most TURN_TIMEOUT (a put that blocks, a fault's under
-# congestion, holds drive time up no longer). From the loop's first look the thread's own
-# passes stop (else they kept the queue short of a turn, and ran beside the loop); they
-# resume TURN_LAPSE after its last look.
+# joint: 70-90 us a cycle against 45-50 with nothing published). Such a loop takes turns
+# instead (`take_turn`): from TURN_MESSAGES queued, or TURN_PERIOD after the last turn (a
+# robot's one message a cycle, its cycles slower), what is queued is published in the loop's
+# own thread, whose time is drive time's anyway. Handing each turn to the thread while the
+# loop waited cost one joint 8-10 us a cycle more (53-61 us against 42-50 a cycle, 12 000
+# cycles, alternating runs): the hand-overs and the messages' cache lines crossing cores. A
+# put that may block (a fault's, which waits out congestion) is still the thread's: a turn
+# that meets one hands it and the rest of the queue over and waits at most TURN_TIMEOUT, so
+# drive time is held up no longer. From the loop's first look the thread's own passes stop
+# (else they kept the queue short of a turn, and ran beside the loop); they resume
+# TURN_LAPSE after its last look.
 TURN_MESSAGES = 256
 TURN_PERIOD = 0.02  # s
 TURN_TIMEOUT = 0.1  # s
@@ -45,8 +50,8 @@ TURN_LAPSE = 0.1  # s
 
 class TelemetryPublisher:
     """Publishes the loop's telemetry messages (a subscriber of the loop); serialisation happens
-    in the publisher thread. When the queue is full, messages are dropped and counted, never
-    waited for."""
+    in the publisher thread (in the loop's own turns on drive time). When the queue is full,
+    messages are dropped and counted, never waited for."""
 
     def __init__(self, session: zenoh.Session, prefix: str = schema.DEFAULT_PREFIX,
                  topics: Iterable[str] = tuple(schema.topics(1)),
@@ -67,6 +72,9 @@ class TelemetryPublisher:
         self._go.acquire()
         self._done.acquire()
         self._turn_pending = False  # a turn given whose end the loop has not seen yet
+        # one drainer at a time (the loop's turn, the thread's pass): the messages keep
+        # their order
+        self._draining = threading.Lock()
         self._looks = 0  # `take_turn`'s calls: while they grow, the thread waits for turns
         self.in_turns = False  # the thread publishes in turns only (for a look from outside)
         self.turns = 0  # given by a loop on drive time
@@ -151,8 +159,9 @@ class TelemetryPublisher:
 
     def take_turn(self) -> None:
         """From a loop on drive time (lock-step), once a cycle: with TURN_MESSAGES or more
-        queued, the publisher thread publishes them while the loop waits (see TURN_MESSAGES
-        for why). Never from a loop on the wall clock: it would wait on the network."""
+        queued, they are published now, in this thread; from a put that may block on, by the
+        publisher thread while the loop waits (see TURN_MESSAGES for why). Never from a loop
+        on the wall clock: it would wait on the network."""
         self._looks += 1
         queued = len(self._queue)
         if queued < TURN_MESSAGES and not (
@@ -162,9 +171,11 @@ class TelemetryPublisher:
             if not self._done.acquire(blocking=False):
                 return
             self._turn_pending = False
-        self._turn_pending = True
         self._turn_at = time.monotonic()
         self.turns += 1
+        if self._drain(until_blocking=True):
+            return
+        self._turn_pending = True
         self._go.release()
         if self._done.acquire(timeout=TURN_TIMEOUT):
             self._turn_pending = False
@@ -191,18 +202,25 @@ class TelemetryPublisher:
                 done.release()
         self._drain()
 
-    def _drain(self) -> None:
-        # every message is this loop's Python while holding the interpreter's lock, which a
-        # lock-step loop then waits for: one look-up of its publisher's put by its class
+    def _drain(self, until_blocking: bool = False) -> bool:
+        """Publish what is queued, in order; `until_blocking`: stop before a message whose put
+        may block (left first in the queue). Whether the queue was emptied."""
+        # every message is this loop's Python while holding the interpreter's lock: one
+        # look-up of its publisher's put by its class
         queue, puts, ros2 = self._queue, self._puts, self._ros2
-        while queue:
-            message = queue.popleft()
-            try:
-                puts[type(message)](message.SerializeToString())
-                if ros2 is not None:
-                    ros2.publish(message)
-            except Exception as exc:  # one bad message must not stop the telemetry
-                log.error("publishing %s failed: %r", type(message).__name__, exc)
+        with self._draining:
+            while queue:
+                message = queue.popleft()
+                if until_blocking and type(message) is _FAULT:
+                    queue.appendleft(message)
+                    return False
+                try:
+                    puts[type(message)](message.SerializeToString())
+                    if ros2 is not None:
+                        ros2.publish(message)
+                except Exception as exc:  # one bad message must not stop the telemetry
+                    log.error("publishing %s failed: %r", type(message).__name__, exc)
+        return True
 
     def close(self) -> None:
         """Flush what is queued, then undeclare everything."""

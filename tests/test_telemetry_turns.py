@@ -1,4 +1,4 @@
-"""A loop on drive time gives the telemetry thread turns (`TelemetryPublisher.take_turn`) in
+"""A loop on drive time publishes in turns (`TelemetryPublisher.take_turn`, in its own thread) in
 place of running beside it: every message is still published, in order, none dropped; a loop
 on the wall clock never waits on it."""
 
@@ -98,3 +98,37 @@ def test_a_slow_loop_still_gets_a_turn_every_turn_period():
     finally:
         session.close()
     assert in_turns and queued == [0, 0] and publisher.turns == 2
+
+
+def test_a_turn_publishes_in_the_loops_thread_up_to_a_fault_which_the_thread_publishes():
+    """A turn's puts are the loop's own, but for a put that may block (a fault's, which
+    waits out congestion): that one and what follows it go to the publisher thread, which
+    the loop waits for (at most TURN_TIMEOUT), in order."""
+    session = _session()
+    try:
+        publisher = TelemetryPublisher(session, PREFIX)
+        publisher.take_turn()  # the first look: the thread publishes in turns from now on
+        deadline = time.monotonic() + 5.0
+        while not publisher.in_turns and time.monotonic() < deadline:
+            time.sleep(1e-3)
+        puts: list[tuple[str, int]] = []
+        for cls, put in list(publisher._puts.items()):
+            def recorded(payload, cls=cls, put=put):
+                puts.append((cls.__name__, threading.get_ident()))
+                put(payload)
+            publisher._puts[cls] = recorded
+        for k in range(TURN_MESSAGES):
+            if k == TURN_MESSAGES // 2:
+                publisher.publish(messages.fault(0.0, "controller", "a test", "none"))
+            publisher.publish(messages.State(t=k * 1e-3))
+        publisher.take_turn()
+        left = len(publisher._queue)
+        publisher.close()
+    finally:
+        session.close()
+    loop = threading.get_ident()
+    at = TURN_MESSAGES // 2
+    assert left == 0 and len(puts) == TURN_MESSAGES + 1
+    assert puts[at][0] == "Fault"
+    assert all(thread == loop for _, thread in puts[:at])
+    assert all(thread != loop for _, thread in puts[at:])
