@@ -74,7 +74,7 @@ class LinkedSlave:
         """A register read, as pysoem's `_fprd` (FPRD) gives it."""
         out = bytearray(size)
         self._esc.now = self._clock.now() + self._esc.dc.hop
-        if not self._esc._read(address, size, memoryview(out), 0):
+        if not self._esc.present or not self._esc._read(address, size, memoryview(out), 0):
             raise pysoem.WkcError(f"FPRD 0x{address:04X} refused")
         return bytes(out)
 
@@ -84,9 +84,11 @@ class LinkedSlave:
         self._clock.dc_sync(self._esc, act, sync0_cycle_time, sync0_shift_time)
 
     def _read_state(self) -> None:
+        """As SOEM's ecx_readstate leaves it: a slave that is gone reads as state 0."""
         memory = self._esc.memory
-        self.state = _U16.unpack_from(memory, ec.REG_AL_STATUS)[0]
-        self.al_status = _U16.unpack_from(memory, ec.REG_AL_STATUS_CODE)[0]
+        present = self._esc.present
+        self.state = _U16.unpack_from(memory, ec.REG_AL_STATUS)[0] if present else 0
+        self.al_status = _U16.unpack_from(memory, ec.REG_AL_STATUS_CODE)[0] if present else 0
 
     def write_state(self) -> None:
         """Request `state` (with the error acknowledge, as SOEM's state requests carry it)."""
