@@ -309,6 +309,41 @@ def test_frames_that_bunch_keep_the_sync_and_three_empty_windows_lose_it():
                for f in segment.firmwares)
 
 
+def test_windows_the_slaves_own_late_answer_left_empty_are_not_counted():
+    """The process running the slaves stalls 3.5 ms on a frame (its answer leaves that late;
+    the master, waiting for it, sends nothing meanwhile): the windows up to a cycle after the
+    answer are its own doing and not counted, so the line keeps its sync; the same gap in
+    the master's frames with the answer on time loses it (0x001A)."""
+    for late in (True, False):
+        segment = Segment([Cia402Device(MODEL) for _ in range(2)])
+        master = FrameMaster(segment)
+        master.start(operational=False)
+        master.start_dc()  # SYNC0 0.5 ms into every ms of the master's time, from 100 ms on
+        count = master.count
+
+        def frame(at: float, controlword: int, segment=segment, master=master,
+                  count=count) -> None:
+            segment.run_sync0(at)
+            outputs = np.zeros(count, master.layouts[0].dtype)
+            outputs["f0"] = controlword
+            data = outputs.tobytes() + bytes(count * master.in_size)
+            sent = bytearray(ec.encode_frame([(Cmd.LRW, 0, 0, data)]))
+            assert segment.process(sent, len(sent), at)
+
+        for k in range(120):
+            frame(k * 1e-3, enable_sequence(max(0, k - 105), count)[0])
+        frame(0.1201, 0x0F)  # answered 3.5 ms late, or on time; the next frame at 124.1 ms
+        if late:
+            segment.answered(0.1201, 0.1236)
+        for k in range(124, 130):
+            frame(k * 1e-3 + 1e-4, 0x0F)
+        segment.run_sync0(0.1299)
+        states = [esc.al_status for esc in segment.escs]
+        assert states == ([ec.AlState.OP] * count if late
+                          else [ec.AlState.SAFE_OP | ec.AL_ERROR] * count)
+        assert [f.missed_sync0 for f in segment.firmwares] == [3] * count
+
+
 def test_sync0_that_stops_is_a_fatal_sync_error():
     """The master switches SYNC0 off under a slave in OP: 0x002C at its next outputs."""
     segment, drives, group = dc_group(2)
