@@ -10,11 +10,12 @@ Working counter: the frame comes back with every slave's contribution (+2 for th
 took, +1 for the inputs it gave); anything less means a slave is gone or left OP. The master
 stops the line at once (sticky failure), reads every slave's AL status first and names the
 slaves that are not in OP, with their state and AL status code in words (SOEM's simple_test
-does the same with ecx_readstate). A slave counts as not answering only when reads of its own
-AL status went unanswered too (`_read_states`): SOEM's group read leaves every slave whose
-answer came after its 6 ms at state 0, and a slave host busy stopping 32 drives after a sync
-error answers later than that (talos_32 in DC: "did not answer (gone from the line?)" for 32
-slaves sitting in SAFE-OP, the working counter 32 of 96).
+does the same with ecx_readstate). A slave counts as not answering only when the line's group
+read of AL states, tried several times apart, and then a read of its own went unanswered
+(`_read_states`): SOEM's group read leaves every slave whose answer came after its 6 ms at
+state 0, and a slave host busy stopping 32 drives after a sync error answers later than that
+(talos_32 in DC: 32 slaves sitting in SAFE-OP reported as "did not answer (gone from the
+line?)", the working counter 32 of 96).
 
 A slave that leaves OP on its own (a sync error, a local restart) keeps answering the cyclic
 frame: an ESC counts the process data it moves whatever the application's state, so the
@@ -61,10 +62,11 @@ PAST_SYNC0 = 50e-6  # s: DC, a frame's SYNC0 surely run by the slaves this long 
 # at 1 kHz, at the cost of one broadcast read in ten cycles (counted in cycles, so lock-step
 # finds it in the same cycle every run)
 STATE_CHECK_FRAMES = 10
-# a slave the line's group read of AL states left without an answer is read on its own this
-# many times, each waiting this long, before it counts as not answering (SOEM's group read
-# waits 6 ms; a slave host stopping its drives may take longer)
+# a failed line's AL states: the group read tried this many times, this long apart (real
+# time), before each slave it left without an answer is read on its own (SOEM's group read
+# waits 6 ms; a slave host stopping 32 drives fell 60 ms behind, its late answers dropped)
 STATE_READ_TRIES = 3
+STATE_READ_PAUSE = 0.05  # s
 STATE_READ_TIMEOUT_US = 20_000
 REG_AL_STATUS_SPAN = 6  # AL status (0x0130), reserved, AL status code (0x0134): one read
 
@@ -345,21 +347,32 @@ class EthercatMaster:
         name = self.names.get(position)
         return f"slave {position}" + (f" ({name})" if name else "")
 
-    def _read_states(self, positions) -> dict[int, tuple[int, int] | None]:
-        """(AL status, AL status code) of each slave of `positions`, read now: the line's
-        group read (SOEM's ecx_readstate), then each slave it left at state 0 read on its
-        own, up to STATE_READ_TRIES times; None for a slave that answered none of them."""
-        try:
-            self.master.read_state()
-        except pysoem.WkcError:
-            pass  # each slave is read on its own below
-        states: dict[int, tuple[int, int] | None] = {}
-        for position in positions:
-            slave = self.slaves[position]
-            if slave.state & ec.AL_STATE_MASK:
-                states[position] = (slave.state, slave.al_status)
-            else:
-                states[position] = _read_state_of(slave)
+    def _read_states(self, positions, thorough: bool = True
+                     ) -> dict[int, tuple[int, int] | None]:
+        """(AL status, AL status code) of each slave of `positions`, read now by the line's
+        group read (SOEM's ecx_readstate, which leaves a slave whose answer did not come at
+        state 0); None for a slave that did not answer. `thorough` (the line has failed:
+        what it says must be right): the group read tried STATE_READ_TRIES times,
+        STATE_READ_PAUSE apart in real time, then each slave still without an answer read
+        on its own; a slave counts as not answering only then."""
+        states: dict[int, tuple[int, int] | None] = dict.fromkeys(positions)
+        for attempt in range(STATE_READ_TRIES if thorough else 1):
+            if attempt and self.clock.runs_alone:
+                time.sleep(STATE_READ_PAUSE)
+            try:
+                self.master.read_state()
+            except pysoem.WkcError:
+                continue
+            for position in states:
+                slave = self.slaves[position]
+                if states[position] is None and slave.state & ec.AL_STATE_MASK:
+                    states[position] = (slave.state, slave.al_status)
+            if None not in states.values():
+                return states
+        if thorough:
+            for position, status in states.items():
+                if status is None:
+                    states[position] = _read_state_of(self.slaves[position])
         return states
 
     def _describe(self, position: int, status: tuple[int, int] | None) -> str:
@@ -367,7 +380,8 @@ class EthercatMaster:
         it answered none of the reads."""
         if status is None:
             return (f"{self.label(position)} did not answer (no answer to "
-                    f"{1 + STATE_READ_TRIES} reads of its AL status: gone from the line?)")
+                    f"{STATE_READ_TRIES} reads of the line's AL states nor to one of its own: "
+                    "gone from the line?)")
         state, code = status
         text = f"{self.label(position)} in {ec.al_state_name(state)}"
         if state & ec.AL_ERROR or code:
@@ -406,10 +420,13 @@ class EthercatMaster:
                 self._check_states()
 
     def _check_states(self) -> None:
+        """One group read, in the cycle: a slave that answered it out of OP fails the line;
+        one that did not answer is left to the next frame's working counter (a read that
+        came back late is no reason to stop a running line)."""
         states = self._read_states([position for position in range(len(self.slaves))
-                                    if position not in self._released])
+                                    if position not in self._released], thorough=False)
         out = [position for position, status in states.items()
-               if status is None or status[0] & ec.AL_STATE_MASK != pysoem.OP_STATE]
+               if status is not None and status[0] & ec.AL_STATE_MASK != pysoem.OP_STATE]
         if out:
             self.failure = LineLost(
                 f"EtherCAT {self.interface}: left OP by cycle {self.frames}: "
@@ -603,17 +620,14 @@ def _above_the_cycle() -> None:
 
 
 def _read_state_of(slave) -> tuple[int, int] | None:
-    """One slave's (AL status, AL status code) by reads of its own registers (FPRD), up to
-    STATE_READ_TRIES of them; None when none was answered."""
-    for _ in range(STATE_READ_TRIES):
-        try:
-            data = slave._fprd(ec.REG_AL_STATUS, REG_AL_STATUS_SPAN, STATE_READ_TIMEOUT_US)
-        except pysoem.WkcError:
-            continue
-        status = int.from_bytes(data[0:2], "little")
-        if status & ec.AL_STATE_MASK:
-            return status, int.from_bytes(data[4:6], "little")
-    return None
+    """One slave's (AL status, AL status code) by a read of its own registers (FPRD); None
+    when it was not answered."""
+    try:
+        data = slave._fprd(ec.REG_AL_STATUS, REG_AL_STATUS_SPAN, STATE_READ_TIMEOUT_US)
+    except pysoem.WkcError:
+        return None
+    status = int.from_bytes(data[0:2], "little")
+    return (status, int.from_bytes(data[4:6], "little")) if status & ec.AL_STATE_MASK else None
 
 
 def _why_not_open(interface: str, exc: Exception) -> str:

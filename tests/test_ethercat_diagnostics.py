@@ -215,9 +215,9 @@ def test_a_short_working_counter_names_slaves_in_safe_op_by_their_al_status():
 
 
 def test_a_slave_that_answers_no_read_of_its_own_is_named_as_not_answering(robot):
-    """The ankle's slave goes silent and the group read comes back late: the ankle answers
-    none of the reads of its own AL status and is named as not answering; the others, in OP,
-    are not named."""
+    """The ankle's slave goes silent (the frame's working counter short of its share) and
+    the group read comes back late: the ankle answers none of the reads of the line's AL
+    states nor one of its own and is named as not answering; the others, in OP, are not."""
     robot.group.start()
     assert robot.run(3) == (3, None)
     _group_read_answered_late(robot.group.segments[0]._line.master)
@@ -225,8 +225,9 @@ def test_a_slave_that_answers_no_read_of_its_own_is_named_as_not_answering(robot
     completed, failure = robot.run(STATE_CHECK_FRAMES)
     assert failure is not None and failure.joint == "ankle_joint"
     text = str(failure)
-    assert f"slave 2 (ankle_joint) did not answer (no answer to {1 + STATE_READ_TRIES} reads "\
-           "of its AL status" in text
+    assert "working counter 6, expected 9" in text
+    assert f"slave 2 (ankle_joint) did not answer (no answer to {STATE_READ_TRIES} reads of "\
+           "the line's AL states nor to one of its own" in text
     assert "slave 0" not in text and "slave 1" not in text
 
 
