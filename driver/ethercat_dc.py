@@ -5,8 +5,7 @@ Start-up, with the slaves in SAFE-OP: `config_dc` measures the propagation delay
 every slave's offset and delay (pysoem's `config_dc`, i.e. SOEM's ecx_configdc; the linked
 line does the same register writes), the delays are read back (0x0928) to be reported, and
 SYNC0 is activated on every slave with the line's period and SYNC0_SHIFT of it
-(`dc_sync`: the first SYNC0 100 ms later, SOEM's SyncDelay). OP is requested only once the
-line is in sync (`locked`, and every slave's 0x092C within SYNC_WINDOW_NS).
+(`dc_sync`: the first SYNC0 100 ms later, SOEM's SyncDelay).
 
 Every cycle: the frame carries the reference clock's system time (SOEM adds an FRMW on 0x0910
 to the process data frame, which also feeds every other slave's time control loop: the drift
@@ -41,20 +40,8 @@ KEEPER_LEAD = 0.3
 RELOCK_SHARE = 0.1
 RELOCK_FRAMES = 8
 SETTLE_TIME = 2.0  # s: offsets count for the figures from then on
-# before OP is requested (`EthercatMaster._dc_wait_for_sync`), as a real master waits for the
-# slaves' sync (IgH's master and TwinCAT check the system time differences first; SSC's
-# slaves hold the OP request until their sync has been valid for 200 ms): the master's frames
-# on the reference clock's phase (within LOCK_SHARE of the period) for LOCK_FRAMES frames in
-# a row past the first SYNC0, and every slave's system time difference (0x092C) within
-# SYNC_WINDOW_NS
-LOCK_SHARE = 0.1
-LOCK_FRAMES = 50
-SYNC_WINDOW_NS = 1000
 REG_SYSTEM_TIME_DELAY = 0x0928
-REG_SYSTEM_TIME_DIFFERENCE = 0x092C  # bit 31: the local copy is behind; bits 30-0: ns
-REG_START_TIME = 0x0990  # reads back as the next SYNC0 (system time, ns)
 _U32 = struct.Struct("<I")
-_U64 = struct.Struct("<Q")
 
 
 class DcLine:
@@ -77,9 +64,6 @@ class DcLine:
         self.waits_us = RingStats()  # the cycle's wait for the line's lock
         self.round_trips_us = RingStats()  # the cycle's frame, sent to answered
         self.looks = 0  # the keeper's looks
-        self.first_sync0: int | None = None  # the reference clock's time of the first SYNC0
-        self.on_phase_frames = 0  # frames in a row on the phase with SYNC0 running
-        self.sync_frames = 0  # frames the master waited for the sync before OP
 
     def configure(self, master, slaves) -> None:
         """Delays and offsets measured and written, SYNC0 activated on every slave."""
@@ -97,20 +81,12 @@ class DcLine:
                           for slave in slaves]
         for slave in slaves:
             slave.dc_sync(True, self.period_ns, self.shift_ns)
-        self.first_sync0 = _U64.unpack(slaves[0]._fprd(REG_START_TIME, 8))[0]
-
-    @property
-    def locked(self) -> bool:
-        """The master's frames have been on the reference phase for LOCK_FRAMES frames in a
-        row with SYNC0 running (after the first SYNC0): its windows filled that long."""
-        return self.on_phase_frames >= LOCK_FRAMES
 
     def describe(self) -> str:
         """One line for the start-up report."""
         return (f"{self.name}: distributed clocks, SYNC0 every {self.period_ns / 1e3:g} us "
                 f"shifted {self.shift_ns / 1e3:g} us, reference clock slave 0, propagation "
-                f"delays (ns) " + " ".join(str(d) for d in self.delays_ns)
-                + f"; OP requested once in sync, after {self.sync_frames} frames")
+                f"delays (ns) " + " ".join(str(d) for d in self.delays_ns))
 
     def observe(self, dc_time: int, sent_at: float) -> None:
         """The reference clock's time as the cycle's frame read it (`sent_at`: the host's
@@ -125,9 +101,6 @@ class DcLine:
             offset -= period
         self.last_offset_ns = offset
         self.cycles += 1
-        running = self.first_sync0 is not None and dc_time > self.first_sync0
-        self.on_phase_frames = (self.on_phase_frames + 1
-                                if running and abs(offset) < LOCK_SHARE * period else 0)
         if self.cycles == 1:  # the first frame: straight to the phase, then follow it
             self._trim = -offset * 1e-9
             return

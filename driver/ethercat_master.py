@@ -39,7 +39,7 @@ from typing import Any
 import pysoem
 
 from driver.clock import DriveClock, WallClock
-from driver.ethercat_dc import REG_SYSTEM_TIME_DIFFERENCE, SYNC_WINDOW_NS, DcLine
+from driver.ethercat_dc import DcLine
 from driver.interface import DriveError, DriveLost, ProfileError
 from protocol import ethercat as ec
 from protocol.esi import EsiDevice
@@ -55,7 +55,6 @@ SCAN_RETRY = 0.1  # s between two scans of a line that did not answer right
 SYNC_MODES = ("free_run", "dc")
 DEFAULT_DC_PERIOD = 1e-3  # s: SYNC0 period when no transport said (start sets it)
 DC_OP_TIMEOUT = 1.0  # s for the slaves to take OP at a SYNC0 (the first comes 100 ms after set-up)
-DC_SYNC_TIMEOUT = 3.0  # s for the line to get in sync before OP is requested (from the set-up)
 DC_OP_CHECK_FRAMES = 8  # DC: frames between two reads of the slaves' states on the way to OP
 DC_SETTLE_FRAMES = 2  # DC: frames before the first cycle (see `settle`)
 PAST_SYNC0 = 50e-6  # s: DC, a frame's SYNC0 surely run by the slaves this long after it
@@ -246,7 +245,6 @@ class EthercatMaster:
         if self.sync == "dc":
             self.dc = DcLine(self.interface, self.period or DEFAULT_DC_PERIOD)
             self.dc.configure(master, self.slaves)
-            self._dc_wait_for_sync()
             log.info("%s", self.dc.describe())
         master.state = pysoem.OP_STATE
         master.write_state()
@@ -262,49 +260,6 @@ class EthercatMaster:
                 self._start_keeper()
                 return
         self._require_state(pysoem.OP_STATE, "OP")
-
-    def _dc_wait_for_sync(self) -> None:
-        """DC, in SAFE-OP before OP is requested: a frame every period, on the reference
-        clock's phase as in the cycle, until the master's frames have stayed on that phase
-        past the first SYNC0 (`DcLine.locked`) and every slave's system time difference
-        (0x092C, one slave read a frame) is within SYNC_WINDOW_NS: a real master waits for
-        the slaves' sync the same way (IgH's, TwinCAT), and SSC's slaves wait 200 ms of
-        valid sync before they take OP. (Requested at once, OP came at the first SYNC0 with
-        the frames still paced by their first offsets.) LineFailure after DC_SYNC_TIMEOUT
-        naming what did not settle."""
-        master, clock, dc = self.master, self.clock, self.dc
-        period = dc.period_ns * 1e-9
-        wake = clock.now()
-        deadline = wake + DC_SYNC_TIMEOUT
-        differences: list[int | None] = [None] * len(self.slaves)
-        k = 0
-        while True:
-            self._sent_at = time.monotonic()
-            master.send_processdata()
-            master.receive_processdata(self.response_timeout_us)
-            dc.observe(master.dc_time, self._sent_at)
-            dc.sync_frames += 1
-            try:
-                raw = self.slaves[k]._fprd(REG_SYSTEM_TIME_DIFFERENCE, 4,
-                                           self.response_timeout_us)
-                differences[k] = int.from_bytes(raw, "little") & 0x7FFFFFFF
-            except pysoem.WkcError:
-                differences[k] = None
-            k = (k + 1) % len(self.slaves)
-            if dc.locked and all(d is not None and d <= SYNC_WINDOW_NS for d in differences):
-                return
-            if clock.now() > deadline:
-                apart = [p for p, d in enumerate(differences)
-                         if d is None or d > SYNC_WINDOW_NS]
-                raise LineFailure(
-                    f"EtherCAT {self.interface}: distributed clocks not in sync after "
-                    f"{DC_SYNC_TIMEOUT:g} s, OP not requested: the master's offset from the "
-                    f"reference clock {dc.last_offset_ns / 1e3:.1f} us"
-                    + "".join(f"; {self.label(p)} system time difference "
-                              + ("unread" if differences[p] is None
-                                 else f"{differences[p]} ns") for p in apart), tuple(apart))
-            wake += period + dc.take_trim()
-            clock.sleep_until(wake)
 
     def _dc_to_operational(self) -> None:
         """DC: a frame every period until every slave took OP at a SYNC0 with outputs in its
