@@ -8,9 +8,14 @@ each joint its slave, and the first `exchange` of a cycle sends the one frame of
 
 Working counter: the frame comes back with every slave's contribution (+2 for the outputs it
 took, +1 for the inputs it gave); anything less means a slave is gone or left OP. The master
-stops the line at once (sticky failure) and names the slaves that are not in OP, with their
-state and AL status code, as read right after the failed frame (SOEM's simple_test does the
-same with ecx_readstate), and those that did not answer that read at all.
+stops the line at once (sticky failure), reads every slave's AL status first and names the
+slaves that are not in OP, with their state and AL status code in words (SOEM's simple_test
+does the same with ecx_readstate). A slave counts as not answering only when the line's group
+read of AL states, tried several times apart, and then a read of its own went unanswered
+(`_read_states`): SOEM's group read leaves every slave whose answer came after its 6 ms at
+state 0, and a slave host busy stopping 32 drives after a sync error answers later than that
+(talos_32 in DC: 32 slaves sitting in SAFE-OP reported as "did not answer (gone from the
+line?)", the working counter 32 of 96).
 
 A slave that leaves OP on its own (a sync error, a local restart) keeps answering the cyclic
 frame: an ESC counts the process data it moves whatever the application's state, so the
@@ -57,6 +62,13 @@ PAST_SYNC0 = 50e-6  # s: DC, a frame's SYNC0 surely run by the slaves this long 
 # at 1 kHz, at the cost of one broadcast read in ten cycles (counted in cycles, so lock-step
 # finds it in the same cycle every run)
 STATE_CHECK_FRAMES = 10
+# a failed line's AL states: the group read tried this many times, this long apart (real
+# time), before each slave it left without an answer is read on its own (SOEM's group read
+# waits 6 ms; a slave host stopping 32 drives fell 60 ms behind, its late answers dropped)
+STATE_READ_TRIES = 3
+STATE_READ_PAUSE = 0.05  # s
+STATE_READ_TIMEOUT_US = 20_000
+REG_AL_STATUS_SPAN = 6  # AL status (0x0130), reserved, AL status code (0x0134): one read
 
 
 class LineFailure(DriveError):
@@ -323,27 +335,57 @@ class EthercatMaster:
         master = self.master
         if master.state_check(state, STATE_TIMEOUT_US) == state:
             return
-        master.read_state()
-        stuck = [position for position, slave in enumerate(self.slaves)
-                 if slave.state & ec.AL_STATE_MASK != state]
+        states = self._read_states(range(len(self.slaves)))
+        stuck = [position for position, status in states.items()
+                 if status is None or status[0] & ec.AL_STATE_MASK != state]
         raise LineFailure(f"EtherCAT {self.interface}: {name} refused: "
-                          + "; ".join(self._describe(position) for position in stuck),
-                          tuple(stuck))
+                          + "; ".join(self._describe(position, states[position])
+                                      for position in stuck), tuple(stuck))
 
     def label(self, position: int) -> str:
         """'slave 3 (arm_left_4_joint)', or 'slave 3' where no joint name is known."""
         name = self.names.get(position)
         return f"slave {position}" + (f" ({name})" if name else "")
 
-    def _describe(self, position: int) -> str:
-        """The slave's state and AL status code in words, as last read; a slave whose state
-        read back as 0 did not answer the read (SOEM leaves a missing slave's record zero)."""
-        slave = self.slaves[position]
-        if not slave.state & ec.AL_STATE_MASK:
-            return f"{self.label(position)} did not answer (gone from the line?)"
-        text = f"{self.label(position)} in {ec.al_state_name(slave.state)}"
-        if slave.state & ec.AL_ERROR or slave.al_status:
-            text += f", AL status code {ec.al_status_name(slave.al_status)}"
+    def _read_states(self, positions, thorough: bool = True
+                     ) -> dict[int, tuple[int, int] | None]:
+        """(AL status, AL status code) of each slave of `positions`, read now by the line's
+        group read (SOEM's ecx_readstate, which leaves a slave whose answer did not come at
+        state 0); None for a slave that did not answer. `thorough` (the line has failed:
+        what it says must be right): the group read tried STATE_READ_TRIES times,
+        STATE_READ_PAUSE apart in real time, then each slave still without an answer read
+        on its own; a slave counts as not answering only then."""
+        states: dict[int, tuple[int, int] | None] = dict.fromkeys(positions)
+        for attempt in range(STATE_READ_TRIES if thorough else 1):
+            if attempt and self.clock.runs_alone:
+                time.sleep(STATE_READ_PAUSE)
+            try:
+                self.master.read_state()
+            except pysoem.WkcError:
+                continue
+            for position in states:
+                slave = self.slaves[position]
+                if states[position] is None and slave.state & ec.AL_STATE_MASK:
+                    states[position] = (slave.state, slave.al_status)
+            if None not in states.values():
+                return states
+        if thorough:
+            for position, status in states.items():
+                if status is None:
+                    states[position] = _read_state_of(self.slaves[position])
+        return states
+
+    def _describe(self, position: int, status: tuple[int, int] | None) -> str:
+        """The slave's state and AL status code in words, as `_read_states` read them; None:
+        it answered none of the reads."""
+        if status is None:
+            return (f"{self.label(position)} did not answer (no answer to "
+                    f"{STATE_READ_TRIES} reads of the line's AL states nor to one of its own: "
+                    "gone from the line?)")
+        state, code = status
+        text = f"{self.label(position)} in {ec.al_state_name(state)}"
+        if state & ec.AL_ERROR or code:
+            text += f", AL status code {ec.al_status_name(code)}"
         return text
 
     # --- the cycle ---------------------------------------------------------------------------
@@ -378,17 +420,18 @@ class EthercatMaster:
                 self._check_states()
 
     def _check_states(self) -> None:
-        try:
-            self.master.read_state()
-        except pysoem.WkcError:
-            return  # the next frame's working counter tells
-        out = [position for position, slave in enumerate(self.slaves)
-               if position not in self._released
-               and slave.state & ec.AL_STATE_MASK != pysoem.OP_STATE]
+        """One group read, in the cycle: a slave that answered it out of OP fails the line;
+        one that did not answer is left to the next frame's working counter (a read that
+        came back late is no reason to stop a running line)."""
+        states = self._read_states([position for position in range(len(self.slaves))
+                                    if position not in self._released], thorough=False)
+        out = [position for position, status in states.items()
+               if status is not None and status[0] & ec.AL_STATE_MASK != pysoem.OP_STATE]
         if out:
             self.failure = LineLost(
                 f"EtherCAT {self.interface}: left OP by cycle {self.frames}: "
-                + "; ".join(self._describe(position) for position in out), tuple(out))
+                + "; ".join(self._describe(position, states[position]) for position in out),
+                tuple(out))
             log.error("%s", self.failure)
             raise self.failure
 
@@ -511,13 +554,10 @@ class EthercatMaster:
                 "its slaves are off", tuple(in_cycle))
         text = (f"EtherCAT {self.interface}: working counter {wkc}, expected "
                 f"{self._expected_wkc} (cycle {self.frames})")
-        try:
-            self.master.read_state()
-        except pysoem.WkcError:
-            return LineLost(text)
-        lost = [p for p in in_cycle
-                if self.slaves[p].state & ec.AL_STATE_MASK != pysoem.OP_STATE]
-        return LineLost(text + (": " + "; ".join(self._describe(p) for p in lost)
+        states = self._read_states(in_cycle)
+        lost = [p for p, status in states.items()
+                if status is None or status[0] & ec.AL_STATE_MASK != pysoem.OP_STATE]
+        return LineLost(text + (": " + "; ".join(self._describe(p, states[p]) for p in lost)
                                    if lost else ""), tuple(lost))
 
     def release(self, position: int) -> None:
@@ -577,6 +617,17 @@ def _above_the_cycle() -> None:
                 os.sched_setscheduler(0, policy, os.sched_param(priority))
     except (OSError, AttributeError):
         pass
+
+
+def _read_state_of(slave) -> tuple[int, int] | None:
+    """One slave's (AL status, AL status code) by a read of its own registers (FPRD); None
+    when it was not answered."""
+    try:
+        data = slave._fprd(ec.REG_AL_STATUS, REG_AL_STATUS_SPAN, STATE_READ_TIMEOUT_US)
+    except pysoem.WkcError:
+        return None
+    status = int.from_bytes(data[0:2], "little")
+    return (status, int.from_bytes(data[4:6], "little")) if status & ec.AL_STATE_MASK else None
 
 
 def _why_not_open(interface: str, exc: Exception) -> str:

@@ -7,7 +7,7 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from canopen.objectdictionary import ObjectDictionary, ODVariable
+from canopen.objectdictionary import ObjectDictionary, ODRecord, ODVariable
 
 from protocol import ethercat as ec
 from protocol.input_files import ESI_MAX, read_input_text
@@ -33,6 +33,15 @@ MAX_PDO_ENTRIES = 254
 MAILBOX_MIN = 16  # bytes: a mailbox header (6), a CoE header (2) and an expedited SDO (8)
 RXPDO_INDICES = range(0x1600, 0x1800)
 TXPDO_INDICES = range(0x1A00, 0x1C00)
+# ETG.1020 "Error Settings" (0x10F1), an EtherCAT communication object no EDS carries: sub 1
+# the local error reaction (read-only here: the slave's one reaction, SAFE-OP with the error
+# indicator and its drive stopping as 0x6007 says), sub 2 the sync error counter limit (UINT16
+# since SSC 5.11, as ETG.1020 has it; SSC's default MAX_SM_EVENT_MISSED = 4; 0 switches the
+# check off, SSC 5.13), written by the master in PRE-OP like any start-up parameter
+ERROR_SETTINGS = 0x10F1
+LOCAL_ERROR_REACTION = 1
+SYNC_ERROR_COUNTER_LIMIT = 2
+SYNC_ERROR_COUNTER_LIMIT_DEFAULT = 4
 
 
 class EsiError(ValueError):
@@ -137,7 +146,24 @@ def ethercat_dictionary(dictionary: ObjectDictionary, device: EsiDevice) -> Obje
     for obj in seen.values():
         for var in obj.values() if not isinstance(obj, ODVariable) else (obj,):
             var.pdo_mappable = var.pdo_mappable and (var.index, var.subindex) in allowed
+    if ERROR_SETTINGS not in seen:
+        seen.add_object(error_settings())
     return seen
+
+
+def error_settings() -> ODRecord:
+    """The ETG.1020 Error Settings record (0x10F1) as an EtherCAT slave's dictionary has it,
+    at its defaults."""
+    record = ODRecord("Error Settings", ERROR_SETTINGS)
+    for subindex, name, data_type, access, default in (
+            (0, "Highest sub-index supported", 0x0005, "ro", 2),
+            (LOCAL_ERROR_REACTION, "Local Error Reaction", 0x0007, "ro", 0),
+            (SYNC_ERROR_COUNTER_LIMIT, "Sync Error Counter Limit", 0x0006, "rw",
+             SYNC_ERROR_COUNTER_LIMIT_DEFAULT)):
+        var = ODVariable(name, ERROR_SETTINGS, subindex)
+        var.data_type, var.access_type, var.default = data_type, access, default
+        record.add_member(var)
+    return record
 
 
 def check_against_dictionary(device: EsiDevice, dictionary: ObjectDictionary) -> None:

@@ -9,7 +9,7 @@ import struct
 import pytest
 
 from model.parameters import load_model
-from protocol import cia301, eds_path, esi_path, objects, sii
+from protocol import cia301, eds_path, esi, esi_path, objects, sii
 from protocol import ethercat as ec
 from protocol.dictionary import load_dictionary, variable
 from protocol.esi import EsiError, ethercat_dictionary, load_esi, parse_esi
@@ -293,10 +293,11 @@ def test_the_object_list_comes_in_fragments_that_count_down(browser):
     dictionary = load_dictionary(eds_path())
     # the EDS's objects and the EtherCAT communication objects, not CANopen's PDO COB-IDs
     assert {0x1000, 0x1018, 0x1600, 0x1A00, 0x6041, 0x6071} <= set(indices)
-    assert {ec.SM_COMMUNICATION_TYPE, ec.RXPDO_ASSIGN, ec.TXPDO_ASSIGN} <= set(indices)
+    assert {ec.SM_COMMUNICATION_TYPE, ec.RXPDO_ASSIGN, ec.TXPDO_ASSIGN,
+            esi.ERROR_SETTINGS} <= set(indices)
     assert not {0x1400, 0x1800} & set(indices)
     assert len(indices) == len([i for i in dictionary if not 0x1400 <= i < 0x1600
-                                and not 0x1800 <= i < 0x1A00]) + 3
+                                and not 0x1800 <= i < 0x1A00]) + 4
     assert whole[0][2] == data
     [(_, _, lengths)] = info(browser, ec.SDO_INFO_GET_OD_LIST_REQUEST,
                              struct.pack("<H", ec.OD_LIST_LENGTHS))

@@ -5,6 +5,7 @@ named with its AL status code while every drive ends safe."""
 
 import struct
 import time
+from contextlib import nullcontext
 
 import numpy as np
 import pysoem
@@ -17,11 +18,13 @@ from driver.ethercat_drive import JointOnLine, open_ethercat_drives
 from driver.ethercat_transport import open_ethercat_transports
 from driver.interface import DriveError, DriveLost
 from model.parameters import load_model
+from protocol import cia301, esi, objects
 from protocol import ethercat as ec
-from protocol import objects
+from protocol.dictionary import StartupParameter
 from sim_bus.device import Cia402Device
 from sim_bus.ethercat import dc
 from sim_bus.ethercat.linked import LinkedMaster
+from sim_bus.ethercat.mailbox import SdoAbort
 from sim_bus.ethercat.netns import SlaveProcess
 from sim_bus.ethercat.segment import Segment, pass_frame
 from tests.segment_frames import FrameMaster, enable_sequence
@@ -124,13 +127,17 @@ def test_dc_registers_answer_the_soem_configdc_sequence_frame_by_frame():
     assert struct.unpack("<Q", next_sync0)[0] == start + 11 * PERIOD_NS
 
 
-def joint(position: int) -> JointOnLine:
-    return JointOnLine(position, MODEL.limits.velocity_max, MODEL.parameters.drive_gain)
+def joint(position: int, startup: tuple = ()) -> JointOnLine:
+    return JointOnLine(position, MODEL.limits.velocity_max, MODEL.parameters.drive_gain,
+                       startup=startup)
 
 
-def dc_group(count: int, lockstep: bool = True):
+def dc_group(count: int, lockstep: bool = True, startup: dict | None = None):
+    """`count` drives on a linked line in DC mode; `startup`: start-up parameters by slave."""
     segment = line(count)
-    drives = open_ethercat_drives("linked", [joint(k) for k in range(count)],
+    startup = startup or {}
+    drives = open_ethercat_drives("linked", [joint(k, startup.get(k, ()))
+                                             for k in range(count)],
                                   clock=clock_for(lockstep), sync="dc",
                                   open_master=lambda: LinkedMaster(segment, clock_for(lockstep)))
     names = [f"joint{k}" for k in range(count)]
@@ -198,6 +205,68 @@ def test_a_slave_that_misses_its_sync0_window_is_named_and_every_drive_ends_safe
     assert all(f.device.brake_engaged for f in segment.firmwares)
 
 
+@pytest.mark.parametrize("limit, ridden", [(None, 2), (9, 3), (12, 4), (0, None)])
+def test_the_sync_error_counter_limit_written_in_pre_op_sets_the_windows_ridden_through(
+        limit, ridden):
+    """0x10F1:02 (ETG.1020 Error Settings) written as a start-up parameter in PRE-OP: every
+    window of slave 1 empty from one cycle on (its SYNC0 moved onto its frames), it counts
+    them as SSC does (the first free, then 3 each, lost once the counter reaches the limit):
+    SSC's default 4 rides through 2 empty windows, 9 (Yaskawa Sigma-7, Kollmorgen AKD2G) 3,
+    12 4, and 0 switches the check off. Slave 0, at the default, is left alone."""
+    startup = {} if limit is None else {
+        1: (StartupParameter(esi.ERROR_SETTINGS, esi.SYNC_ERROR_COUNTER_LIMIT, limit),)}
+    segment, drives, group = dc_group(2, startup=startup)
+    try:
+        group.start()
+        read_back = drives[1].transport.read(esi.ERROR_SETTINGS, esi.SYNC_ERROR_COUNTER_LIMIT)
+        for _ in range(5):
+            group.sync()
+        slave = segment.escs[1]
+        (offset,) = struct.unpack_from("<Q", slave.memory, dc.REG_SYSTEM_TIME_OFFSET)
+        struct.pack_into("<Q", slave.memory, dc.REG_SYSTEM_TIME_OFFSET,
+                         (offset + SHIFT_NS - 10_000) % 2**64)
+        completed = 0
+        with pytest.raises(DriveError, match="slave 1 in SAFE_OP") if ridden else nullcontext():
+            for _ in range(20):
+                group.sync()
+                completed += 1
+    finally:
+        group.close()
+    assert read_back == (esi.SYNC_ERROR_COUNTER_LIMIT_DEFAULT if limit is None else limit)
+    firmware = segment.firmwares[1]
+    if ridden is None:
+        assert completed == 20 and firmware.missed_sync0 >= 19
+        assert firmware.device.master_loss is None
+    else:
+        assert firmware.missed_sync0 == ridden + 1  # lost at the window after those ridden
+        assert firmware.device.master_loss.startswith("EtherCAT DC: outputs missed")
+    assert segment.firmwares[0].missed_sync0 == 0
+
+
+def test_the_sync_error_counter_limit_is_pre_op_only_and_browsable():
+    """0x10F1 on the slave itself: sub 2 written in PRE-OP, refused in SAFE-OP (wrong state)
+    and on sub 1 (read-only); the SDO Information service describes the record."""
+    segment = line(1)
+    objects_ = segment.firmwares[0].objects
+    limit = esi.SYNC_ERROR_COUNTER_LIMIT
+    objects_.pdo_config_allowed = True  # as in PRE-OP
+    objects_.download(esi.ERROR_SETTINGS, limit, struct.pack("<H", 9))
+    assert objects_.upload(esi.ERROR_SETTINGS, limit) == struct.pack("<H", 9)
+    assert objects_.upload(esi.ERROR_SETTINGS, 0) == b"\x02"
+    with pytest.raises(SdoAbort) as refused:
+        objects_.download(esi.ERROR_SETTINGS, esi.LOCAL_ERROR_REACTION, bytes(4))
+    assert refused.value.code == cia301.SDO_ABORT_WRITE_READ_ONLY
+    objects_.pdo_config_allowed = False  # SAFE-OP
+    with pytest.raises(SdoAbort) as refused:
+        objects_.download(esi.ERROR_SETTINGS, limit, struct.pack("<H", 4))
+    assert refused.value.code == cia301.SDO_ABORT_WRONG_STATE
+    assert objects_.sync_error_limit == 9
+    assert esi.ERROR_SETTINGS in objects_.object_list(ec.OD_LIST_ALL)
+    assert objects_.object_description(esi.ERROR_SETTINGS)[1:] == (
+        2, ec.OBJECT_CODE_RECORD, "Error Settings")
+    assert objects_.entry_description(esi.ERROR_SETTINGS, limit)[:2] == (0x0006, 16)
+
+
 def test_frames_that_bunch_keep_the_sync_and_three_empty_windows_lose_it():
     """As the ETG slave stack counts missed windows: a master whose frames go out two in one
     SYNC0 window and none in the next (late wake-ups under load) keeps every slave in OP, its
@@ -238,6 +307,41 @@ def test_frames_that_bunch_keep_the_sync_and_three_empty_windows_lose_it():
         ec.AlState.SAFE_OP | ec.AL_ERROR] * count
     assert all(f.device.master_loss.startswith("EtherCAT DC: outputs missed")
                for f in segment.firmwares)
+
+
+def test_windows_the_slaves_own_late_answer_left_empty_are_not_counted():
+    """The process running the slaves stalls 3.5 ms on a frame (its answer leaves that late;
+    the master, waiting for it, sends nothing meanwhile): the windows up to a cycle after the
+    answer are its own doing and not counted, so the line keeps its sync; the same gap in
+    the master's frames with the answer on time loses it (0x001A)."""
+    for late in (True, False):
+        segment = Segment([Cia402Device(MODEL) for _ in range(2)])
+        master = FrameMaster(segment)
+        master.start(operational=False)
+        master.start_dc()  # SYNC0 0.5 ms into every ms of the master's time, from 100 ms on
+        count = master.count
+
+        def frame(at: float, controlword: int, segment=segment, master=master,
+                  count=count) -> None:
+            segment.run_sync0(at)
+            outputs = np.zeros(count, master.layouts[0].dtype)
+            outputs["f0"] = controlword
+            data = outputs.tobytes() + bytes(count * master.in_size)
+            sent = bytearray(ec.encode_frame([(Cmd.LRW, 0, 0, data)]))
+            assert segment.process(sent, len(sent), at)
+
+        for k in range(120):
+            frame(k * 1e-3, enable_sequence(max(0, k - 105), count)[0])
+        frame(0.1201, 0x0F)  # answered 3.5 ms late, or on time; the next frame at 124.1 ms
+        if late:
+            segment.answered(0.1201, 0.1236)
+        for k in range(124, 130):
+            frame(k * 1e-3 + 1e-4, 0x0F)
+        segment.run_sync0(0.1299)
+        states = [esc.al_status for esc in segment.escs]
+        assert states == ([ec.AlState.OP] * count if late
+                          else [ec.AlState.SAFE_OP | ec.AL_ERROR] * count)
+        assert [f.missed_sync0 for f in segment.firmwares] == [3] * count
 
 
 def test_sync0_that_stops_is_a_fatal_sync_error():

@@ -1,9 +1,10 @@
 """What the EtherCAT master says when a slave misbehaves, start-up parameters, and the drives'
 dictionary over EtherCAT: a refused state change and a slave that leaves OP mid-run are named
 with the joint and the AL status code in words, the robot quick-stopped; a frame short of its
-working counter names the slaves that did not answer; the robot file's start-up parameters are
-checked, written in PRE-OP, read back, and refused in one line; SOEM browses the dictionary by
-SDO Information.
+working counter names the slaves not in OP by their AL status (read on their own when the
+line's group read comes back late), and those that answer no read as not answering; the robot
+file's start-up parameters are checked, written in PRE-OP, read back, and refused in one line;
+SOEM browses the dictionary by SDO Information.
 
 In lock-step the line is linked in this process (`sim_bus.ethercat.linked`); over a veth
 (root) the slaves run in their own process and SOEM (pysoem) is the master."""
@@ -21,7 +22,7 @@ import pytest
 from driver.clock import DriveClock, clock_for
 from driver.drive_group import DriveGroup, EthercatLine, JointFailure
 from driver.ethercat_drive import JointOnLine, open_ethercat_drives
-from driver.ethercat_master import STATE_CHECK_FRAMES, LineLost
+from driver.ethercat_master import STATE_CHECK_FRAMES, STATE_READ_TRIES, LineLost
 from driver.interface import DriveError
 from model.parameters import Payload, load_model
 from protocol import eds_path, esi_path, objects
@@ -32,6 +33,7 @@ from protocol.esi import ethercat_dictionary, load_esi
 from robot.description import RobotFileError, load_robot
 from robot.wiring import open_robot
 from sim_bus.embedded import make_device
+from sim_bus.ethercat import dc
 from sim_bus.ethercat.linked import LinkedMaster
 from sim_bus.ethercat.netns import SlaveProcess
 from sim_bus.ethercat.segment import Segment
@@ -46,7 +48,7 @@ NAMES = ("hip_joint", "knee_joint", "ankle_joint")
 class LinkedRobot:
     """Three joints on one linked EtherCAT line in lock-step, as `--sim` builds them."""
 
-    def __init__(self, names=NAMES):
+    def __init__(self, names=NAMES, sync: str = "free_run"):
         self.devices = [make_device(MODEL, Payload(), SensorNoise(seed=k), commissioned=True)
                         for k in range(len(names))]
         self.segment = Segment(self.devices)
@@ -54,8 +56,9 @@ class LinkedRobot:
                               current_max=MODEL.limits.current_max, name=name)
                   for k, name in enumerate(names)]
         drives = open_ethercat_drives("sim", joints, clock=clock_for(True), response_timeout=1.0,
-                                      open_master=lambda: LinkedMaster(self.segment,
-                                                                       clock_for(False)))
+                                      sync=sync,
+                                      open_master=lambda: LinkedMaster(
+                                          self.segment, clock_for(sync == "dc")))
         for drive in drives:
             drive.transport.boot(5.0)
         self.group = DriveGroup(list(names), [EthercatLine("ethercat:sim",
@@ -165,6 +168,67 @@ def test_a_position_jump_of_a_slave_in_op_is_an_encoder_glitch(robot):
     completed, failure = robot.run(STATE_CHECK_FRAMES)
     assert completed == 0 and failure is not None and failure.joint == "ankle_joint"
     assert "jumped" in str(failure) and "AL status" not in str(failure)
+
+
+def _group_read_answered_late(master) -> None:
+    """The line's group read of AL states as SOEM's ecx_readstate leaves it when the answer to
+    its frame comes after its 6 ms (a slave host busy stopping its drives): every slave at
+    state 0, as if none had answered."""
+    def read_state() -> int:
+        for slave in master.slaves:
+            slave.state = slave.al_status = 0
+        return 0
+
+    master.read_state = read_state
+
+
+def test_a_short_working_counter_names_slaves_in_safe_op_by_their_al_status():
+    """DC: the knee's slave misses its SYNC0 windows (its clock jumped onto its frames) and
+    loses its sync (SAFE-OP + ERROR, 0x001A, its outputs refused: the frame's working counter
+    short), and the line's group read of AL states comes back late: the master reads the
+    slaves on their own and names the knee in SAFE-OP with its AL status code in words, not
+    as a slave that did not answer. (The line's own cycle, so that the drive's emergency
+    does not have the master read the states before the frame does.)"""
+    robot = LinkedRobot(sync="dc")
+    try:
+        robot.group.start()
+        assert robot.run(20) == (20, None)
+        line = robot.group.segments[0]._line
+        _group_read_answered_late(line.master)
+        memory = robot.segment.escs[1].memory
+        (offset,) = struct.unpack_from("<Q", memory, dc.REG_SYSTEM_TIME_OFFSET)
+        period_ns = 1_000_000
+        struct.pack_into("<Q", memory, dc.REG_SYSTEM_TIME_OFFSET,
+                         (offset + period_ns // 2 - 10_000) % 2**64)
+        with pytest.raises(LineLost) as failure:
+            for _ in range(STATE_CHECK_FRAMES - 1):
+                line.cycle()
+    finally:
+        robot.close()
+    assert failure.value.positions == (1,)
+    text = str(failure.value)
+    assert "working counter 7, expected 9" in text
+    assert ("slave 1 (knee_joint) in SAFE_OP + ERROR, AL status code synchronization error "
+            "(0x001A)") in text
+    assert "did not answer" not in text
+    assert "slave 0" not in text and "slave 2" not in text
+
+
+def test_a_slave_that_answers_no_read_of_its_own_is_named_as_not_answering(robot):
+    """The ankle's slave goes silent (the frame's working counter short of its share) and
+    the group read comes back late: the ankle answers none of the reads of the line's AL
+    states nor one of its own and is named as not answering; the others, in OP, are not."""
+    robot.group.start()
+    assert robot.run(3) == (3, None)
+    _group_read_answered_late(robot.group.segments[0]._line.master)
+    robot.devices[2].inject(Fault.SILENT)
+    completed, failure = robot.run(STATE_CHECK_FRAMES)
+    assert failure is not None and failure.joint == "ankle_joint"
+    text = str(failure)
+    assert "working counter 6, expected 9" in text
+    assert f"slave 2 (ankle_joint) did not answer (no answer to {STATE_READ_TRIES} reads of "\
+           "the line's AL states nor to one of its own" in text
+    assert "slave 0" not in text and "slave 1" not in text
 
 
 def _robot_file(tmp_path, names=NAMES) -> str:

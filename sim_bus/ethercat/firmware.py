@@ -16,13 +16,17 @@ it requests OP, the device cycle runs on SYNC0 instead: the outputs that complet
 window since the last SYNC0 are latched, the physics advances, the inputs are sampled for the
 next frame to read. Missed windows are counted as the ETG slave stack code (SSC, on which most
 drives' firmware is built) counts them (SM event missed counter 0x1C32:0B against the sync
-error counter limit 0x10F1:02): every output buffer takes 1 off the counter and restarts a
-count of SYNC0 events; the first SYNC0 after outputs without new ones is free (SSC's
-u16SmSync0Value of 1 for SYNC0 mode: a frame that falls just after one SYNC0 is taken by the
-next), each further one adds SYNC_ERROR_WEIGHT, and at SYNC_ERROR_LIMIT the slave drops to
-SAFE-OP with AL status code 0x001A (synchronization error): a master whose frames go out
-irregularly (two in one window, none in the next, as a SOEM master's do under load) is
-tolerated, one that stops for three windows is not. A SYNC0 that stops coming in OP gives
+error counter limit 0x10F1:02, `CoeObjects.sync_error_limit`, taken at the OP request): every
+output buffer takes 1 off the counter and restarts a count of SYNC0 events; the first SYNC0
+after outputs without new ones is free (SSC's u16SmSync0Value of 1 for SYNC0 mode: a frame
+that falls just after one SYNC0 is taken by the next), each further one adds
+SYNC_ERROR_WEIGHT (while the counter is not above the limit, as SSC's Sync0_Isr), and once
+the counter reaches the limit the slave drops to SAFE-OP with AL status code 0x001A
+(synchronization error; SSC's DC_CheckWatchdog: the sync sequence is valid while the counter
+is below the limit, always with a limit of 0): a master whose frames go out irregularly (two
+in one window, none in the next, as a SOEM master's do under load) is tolerated; with SSC's
+default limit of 4 one that stops for three windows is not, with 9 (the default of Yaskawa's
+Sigma-7 and Kollmorgen's AKD2G) four. A SYNC0 that stops coming in OP gives
 0x002C (fatal sync error); either way the drive reacts as to a lost master (abort connection
 option 0x6007: quick stop by default).
 """
@@ -37,7 +41,7 @@ import numpy as np
 
 from protocol import ethercat as ec
 from protocol.dictionary import mappable_object
-from protocol.esi import EsiDevice
+from protocol.esi import SYNC_ERROR_COUNTER_LIMIT_DEFAULT, EsiDevice
 from protocol.pdo import PdoLayout
 from sim_bus.device import Cia402Device, DeviceAccessError
 from sim_bus.ethercat.esc import Esc
@@ -51,7 +55,6 @@ log = logging.getLogger(__name__)
 # SSC's figures: the counter's step per counted miss, its limit (MAX_SM_EVENT_MISSED, the
 # default of 0x10F1:02) and the SYNC0 events after outputs that need none (u16SmSync0Value)
 SYNC_ERROR_WEIGHT = 3
-SYNC_ERROR_LIMIT = 4  # the sync is lost when the counter reaches it: 3 empty windows in a row
 FREE_SYNC0 = 1
 OUTPUT_MARGIN = 20e-6  # s: outputs must be complete this long before SYNC0 (copy time)
 SYNC0_LOSS_CYCLES = 3  # cycle times without SYNC0 in OP: the sync is lost
@@ -71,6 +74,23 @@ class LineSync:
         self.since = np.zeros(count, dtype=np.int64)  # SYNC0 events since the last outputs
         self.last_sync0 = np.full(count, math.nan)  # host time of the last SYNC0 (NaN: none)
         self.missed = np.zeros(count, dtype=np.int64)  # SYNC0 events in OP without outputs
+        # the sync error counter limit (0x10F1:02) each took at its OP request; 0: no check
+        self.limit = np.full(count, SYNC_ERROR_COUNTER_LIMIT_DEFAULT, dtype=np.int64)
+        # host time up to which an empty window is the slave host's own doing, not counted
+        # (`excuse`)
+        self.excused_until = -math.inf
+
+    def excuse(self, arrival: float, answered: float, cycle: float) -> None:
+        """The answer to the frame that arrived at `arrival` left at `answered`, more than a
+        SYNC0 cycle (`cycle`, s) later: the process running these slaves stalled, and the
+        master, waiting for that answer, could send nothing meanwhile (hardware forwards a
+        frame in microseconds). The windows whose SYNC0 comes before the master's next
+        frame could (`answered` plus a cycle) are not counted against its sync: the virtual
+        slave's host must not pass its own stall off as the master's. (Stalls of 2-6 ms of
+        this process lost talos_32's sync over a veth: the master, blocked on the answer,
+        left three windows empty.)"""
+        if answered - arrival > cycle > 0:
+            self.excused_until = max(self.excused_until, answered + cycle)
 
     def join(self, firmwares: Sequence["SlaveFirmware"]) -> None:
         for row, firmware in enumerate(firmwares):
@@ -97,11 +117,18 @@ class LineSync:
         fresh = self.fresh[rows]
         self.fresh[rows] = False
         self.missed[rows[~fresh]] += 1
-        counted = ~fresh & (self.since[rows] > FREE_SYNC0)
-        self.errors[rows[counted]] += SYNC_ERROR_WEIGHT
-        lost = counted & (self.errors[rows] >= SYNC_ERROR_LIMIT)
+        limit = self.limit[rows]
+        counted = ~fresh & (self.since[rows] > FREE_SYNC0) & (times > self.excused_until)
+        self.errors[rows[counted & (self.errors[rows] <= limit)]] += SYNC_ERROR_WEIGHT
+        lost = counted & sync_lost(self.errors[rows], limit)
         self.since[rows] += 1
         return fresh & ~lost, rows[lost]
+
+
+def sync_lost(errors, limit):
+    """SSC's DC_CheckWatchdog: the sync sequence is invalid once the SM event missed counter
+    reaches the sync error counter limit, never with a limit of 0 (the check off)."""
+    return (limit != 0) & (errors >= limit)
 
 
 def _sync_field(name: str, kind: type) -> property:
@@ -122,6 +149,7 @@ class SlaveFirmware:
     _sync_errors = _sync_field("errors", int)
     _since_outputs = _sync_field("since", int)
     missed_sync0 = _sync_field("missed", int)
+    _sync_limit = _sync_field("limit", int)
 
     @property
     def _last_sync0(self) -> float | None:
@@ -134,7 +162,7 @@ class SlaveFirmware:
 
     def join(self, line: LineSync, row: int) -> None:
         """Keep this firmware's SYNC0 bookkeeping in row `row` of `line` from now on."""
-        for name in ("fresh", "errors", "since", "last_sync0", "missed"):
+        for name in ("fresh", "errors", "since", "last_sync0", "missed", "limit"):
             getattr(line, name)[row] = getattr(self._sync, name)[self._row]
         self._sync, self._row = line, row
 
@@ -259,6 +287,7 @@ class SlaveFirmware:
         self._fresh = False
         self._sync_errors = self._since_outputs = 0
         self._last_sync0 = None
+        self._sync_limit = self.objects.sync_error_limit
         return 0
 
     def _enter_init(self) -> None:
@@ -451,9 +480,10 @@ class SlaveFirmware:
             state = ec.AlState.OP
         elif state == ec.AlState.OP and not fresh:
             self.missed_sync0 += 1
-            if self._since_outputs > FREE_SYNC0:
-                self._sync_errors += SYNC_ERROR_WEIGHT
-                if self._sync_errors >= SYNC_ERROR_LIMIT:
+            if self._since_outputs > FREE_SYNC0 and esc.now > self._sync.excused_until:
+                if self._sync_errors <= self._sync_limit:
+                    self._sync_errors += SYNC_ERROR_WEIGHT
+                if sync_lost(self._sync_errors, self._sync_limit):
                     self._sync_lost(esc, ec.AL_SYNC_ERROR, "outputs missed their SYNC0 window "
                                     f"{self.missed_sync0} times")
                     state = ec.AlState.SAFE_OP

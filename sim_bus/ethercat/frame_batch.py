@@ -47,7 +47,6 @@ from sim_bus.ethercat import dc
 from sim_bus.ethercat.esc import Esc
 from sim_bus.ethercat.firmware import (
     FREE_SYNC0,
-    SYNC_ERROR_LIMIT,
     SYNC_ERROR_WEIGHT,
     LineSync,
     SlaveFirmware,
@@ -125,9 +124,10 @@ def _field(memory: np.ndarray, at: int, size: int, signed: bool) -> int:
 @numba.njit(cache=True)
 def sync0_pass(now, present, steady_dc, memories, starts, local_at_zero, drift, correction,
                slew, anchor, next_sync0, armed, next_host, sync0_count, fresh, errors, since,
-               last_sync0, missed, out_fields, in_fields, torque_field, current_field,
-               controlwords, torque_out, current_out, encoded, line_arrays, substeps,
-               cycle_rows, done, unwritten, due_rows, due_times, kinds) -> int:
+               last_sync0, missed, limits, excused_until, out_fields, in_fields,
+               torque_field, current_field, controlwords, torque_out, current_out, encoded,
+               line_arrays, substeps, cycle_rows, done, unwritten, due_rows, due_times,
+               kinds) -> int:
     """A SYNC0 pass of the whole line in one call: what `LineClocks.take_due`,
     `LineSync.sync0_in_op`, the decode of the SM2 buffers (or the outputs the drives hold),
     `DriveLine.cycle` and the encode of the inputs into SM3 do for every slave steady in OP
@@ -180,9 +180,11 @@ def sync0_pass(now, present, steady_dc, memories, starts, local_at_zero, drift, 
         since[k] += 1
         if not got:
             missed[k] += 1
-            if since_before > FREE_SYNC0:
-                errors[k] += SYNC_ERROR_WEIGHT
-                if errors[k] >= SYNC_ERROR_LIMIT:
+            if since_before > FREE_SYNC0 and at > excused_until:
+                # `LineSync.sync0_in_op`: SSC's count against 0x10F1:02 (0: no check)
+                if errors[k] <= limits[k]:
+                    errors[k] += SYNC_ERROR_WEIGHT
+                if limits[k] != 0 and errors[k] >= limits[k]:
                     kinds[k] = LOST
                     continue
         # the outputs the cycle takes: the window's (SM2) or those the drive holds
@@ -822,8 +824,9 @@ class FrameBatch:
                           clocks.local_at_zero, clocks.drift, clocks.correction, clocks.slew,
                           clocks.anchor, clocks.next_sync0, clocks.armed, clocks.next_host,
                           clocks.sync0_count, sync.fresh, sync.errors, sync.since,
-                          sync.last_sync0, sync.missed, out_fields, in_fields, torque_field,
-                          current_field, scratch["controlwords"],
+                          sync.last_sync0, sync.missed, sync.limit, sync.excused_until,
+                          out_fields, in_fields, torque_field, current_field,
+                          scratch["controlwords"],
                           scratch["torque"] if torque_field >= 0 else _NONE,
                           scratch["current"] if current_field >= 0 else _NONE,
                           self._encoder.bytes if self._encoder is not None

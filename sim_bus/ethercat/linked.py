@@ -23,6 +23,7 @@ the ESC's and firmware's own path, so the line behaves exactly as slave by slave
 import struct
 import time
 from collections.abc import Callable
+from operator import attrgetter
 
 import numpy as np
 import pysoem
@@ -39,6 +40,7 @@ from sim_bus.ethercat.mailbox import SdoAbort
 from sim_bus.ethercat.segment import Segment
 
 _U16 = struct.Struct("<H")
+_PRESENT = attrgetter("present")
 FIRST_STATION_ADDRESS = 0x1001  # SOEM's: position 0 gets 0x1001
 WORKING_COUNTER_PER_SLAVE = 3  # an output write counts 2, an input read 1 (LRW)
 
@@ -74,7 +76,7 @@ class LinkedSlave:
         """A register read, as pysoem's `_fprd` (FPRD) gives it."""
         out = bytearray(size)
         self._esc.now = self._clock.now() + self._esc.dc.hop
-        if not self._esc._read(address, size, memoryview(out), 0):
+        if not self._esc.present or not self._esc._read(address, size, memoryview(out), 0):
             raise pysoem.WkcError(f"FPRD 0x{address:04X} refused")
         return bytes(out)
 
@@ -84,9 +86,11 @@ class LinkedSlave:
         self._clock.dc_sync(self._esc, act, sync0_cycle_time, sync0_shift_time)
 
     def _read_state(self) -> None:
+        """As SOEM's ecx_readstate leaves it: a slave that is gone reads as state 0."""
         memory = self._esc.memory
-        self.state = _U16.unpack_from(memory, ec.REG_AL_STATUS)[0]
-        self.al_status = _U16.unpack_from(memory, ec.REG_AL_STATUS_CODE)[0]
+        present = self._esc.present
+        self.state = _U16.unpack_from(memory, ec.REG_AL_STATUS)[0] if present else 0
+        self.al_status = _U16.unpack_from(memory, ec.REG_AL_STATUS_CODE)[0] if present else 0
 
     def write_state(self) -> None:
         """Request `state` (with the error acknowledge, as SOEM's state requests carry it)."""
@@ -158,6 +162,8 @@ class LinkedSlave:
     def _exchange(self) -> int:
         """Write the outputs (a completed SM2 buffer runs the drive's cycle), read the inputs;
         this slave's share of the working counter."""
+        if not self._esc.present:
+            return 0  # powered off: the frame passes it untouched
         count = 0
         if self._outputs is not None and self._outputs[1]:
             if self._write(self._outputs[0], self.output):
@@ -312,6 +318,7 @@ class LinkedImage:
         self._starts = np.zeros((len(slaves), 2), dtype=np.int64)
         self._watchdogs: list[int] = []
         self._firmwares = [slave._firmware for slave in slaves]
+        self._escs = [slave._esc for slave in slaves]
 
     @classmethod
     def of(cls, slaves: list[LinkedSlave], segment: Segment,
@@ -358,6 +365,9 @@ class LinkedImage:
                                if self._watchdog[k] and slave._esc._watchdog_period]
             self._seen = self._changes[0]
         steady = self._steady
+        if not all(map(_PRESENT, self._escs)):  # a slave powered off: not in the batch
+            steady = steady & np.fromiter(map(_PRESENT, self._escs), dtype=bool,
+                                          count=len(slaves))
         data = b"".join([slave.output for slave in slaves])
         if len(data) != self._out_size * len(slaves):  # not the mapped image: slave by slave
             return sum(slave._exchange() for slave in slaves)

@@ -7,6 +7,9 @@ EtherCAT communication objects the ESI defines, with EtherCAT's rules on top.
 - 0x1600.. / 0x1A00.. PDO mapping: held by the device (it validates the entries), changeable in
   PRE-OP only, sub-index 0 first set to 0, only objects the ESI's PDOs carry, an RxPDO only
   objects the master may write, a TxPDO only readable ones.
+- 0x10F1 Error Settings (ETG.1020): sub 2, the sync error counter limit the DC cycle counts
+  missed SYNC0 windows against (`sim_bus.ethercat.firmware`), held here, writable in PRE-OP
+  only (the firmware takes it at the OP request); sub 1, the local error reaction, read-only.
 - CANopen PDO communication parameters (COB-IDs, transmission types) do not exist on EtherCAT.
 
 The same objects answer the SDO Information service (`object_list`, `object_description`,
@@ -19,6 +22,7 @@ import struct
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 
 from protocol import cia301
+from protocol import esi as esi_objects
 from protocol import ethercat as ec
 from protocol.dictionary import variable
 from protocol.esi import EsiDevice
@@ -32,6 +36,7 @@ _MASTER_WRITES = frozenset(("rw", "wo", "rww"))
 _MASTER_READS = frozenset(("rw", "ro", "const", "rwr"))
 _CANOPEN_PDO_COMMUNICATION = (range(0x1400, 0x1600), range(0x1800, 0x1A00))
 _UNSIGNED8, _UNSIGNED16 = 0x0005, 0x0006  # CiA 301 data types
+_ERROR_SETTINGS = esi_objects.error_settings()  # 0x10F1's names, types and access
 # CiA 301 complex data types of the standard records, for their object descriptions
 _RECORD_TYPES = ((range(ec.RXPDO_MAPPING_FIRST, ec.TXPDO_MAPPING_LAST + 1), 0x0021),
                  (range(0x1018, 0x1019), 0x0023))
@@ -55,6 +60,7 @@ class CoeObjects:
         # per assignment object: its sub-indices 1..n and sub-index 0 (how many count)
         self._entries: dict[int, list[int]] = {}
         self._counts: dict[int, int] = {}
+        self.sync_error_limit = esi_objects.SYNC_ERROR_COUNTER_LIMIT_DEFAULT  # 0x10F1:02
         self.fixed = frozenset(p.index for p in esi.rxpdos + esi.txpdos if p.fixed)
         self._rx_objects = frozenset((e.index, e.subindex) for p in esi.rxpdos for e in p.entries)
         self._tx_objects = frozenset((e.index, e.subindex) for p in esi.txpdos for e in p.entries)
@@ -68,7 +74,9 @@ class CoeObjects:
         self.reset()
 
     def reset(self) -> None:
-        """The ESI's defaults: every PDO assigned to its sync manager, mapped as declared."""
+        """The ESI's defaults: every PDO assigned to its sync manager, mapped as declared;
+        the error settings at theirs."""
+        self.sync_error_limit = esi_objects.SYNC_ERROR_COUNTER_LIMIT_DEFAULT
         for assign, pdos in self.assignable.items():
             sm = assign - ec.PDO_ASSIGN_BASE
             declared = self.esi.rxpdos + self.esi.txpdos
@@ -98,6 +106,10 @@ class CoeObjects:
     # --- ObjectAccess ---------------------------------------------------------------------
 
     def upload(self, index: int, subindex: int) -> bytes:
+        if index == esi_objects.ERROR_SETTINGS:
+            return self._error_setting(subindex).encode_raw(
+                self.sync_error_limit if subindex == esi_objects.SYNC_ERROR_COUNTER_LIMIT
+                else self._error_setting(subindex).default)
         if index == ec.SM_COMMUNICATION_TYPE:
             if subindex == 0:
                 return _U8.pack(len(self.sm_types))
@@ -117,6 +129,9 @@ class CoeObjects:
             raise SdoAbort(exc.abort_code) from None
 
     def download(self, index: int, subindex: int, data: bytes) -> None:
+        if index == esi_objects.ERROR_SETTINGS:
+            self._set_error_setting(subindex, data)
+            return
         if index == ec.SM_COMMUNICATION_TYPE:
             raise SdoAbort(cia301.SDO_ABORT_WRITE_READ_ONLY)
         if index in self.assignable:
@@ -134,8 +149,8 @@ class CoeObjects:
 
     def object_list(self, kind: int) -> list[int]:
         dictionary = self.device.dictionary
-        every = sorted({*self._own, *(index for index in dictionary
-                                      if not _canopen_communication(index))})
+        every = sorted({*self._own, esi_objects.ERROR_SETTINGS,
+                        *(index for index in dictionary if not _canopen_communication(index))})
         if kind == ec.OD_LIST_ALL:
             return every
         if kind in (ec.OD_LIST_RXPDO_MAPPABLE, ec.OD_LIST_TXPDO_MAPPABLE):
@@ -144,6 +159,8 @@ class CoeObjects:
         return []  # nothing is stored for backup or settings here
 
     def object_description(self, index: int) -> tuple[int, int, int, str]:
+        if index == esi_objects.ERROR_SETTINGS:
+            return 0, max(_ERROR_SETTINGS.subindices), ec.OBJECT_CODE_RECORD, _ERROR_SETTINGS.name
         if index in self._own:
             name, data_type, count = self._own[index]
             return data_type, count, ec.OBJECT_CODE_ARRAY, name
@@ -158,6 +175,10 @@ class CoeObjects:
         return data_type, highest, ec.OBJECT_CODE_RECORD, obj.name
 
     def entry_description(self, index: int, subindex: int) -> tuple[int, int, int, str]:
+        if index == esi_objects.ERROR_SETTINGS:
+            var = self._error_setting(subindex)
+            access = ec.ENTRY_ACCESS_READ | (_WRITE_PRE_OP if var.access_type == "rw" else 0)
+            return var.data_type, len(var), access, var.name
         if index in self._own:
             name, data_type, count = self._own[index]
             if subindex > count:
@@ -187,6 +208,23 @@ class CoeObjects:
             except DeviceAccessError:
                 bits = 0
         return var.data_type, bits, access, var.name
+
+    def _error_setting(self, subindex: int) -> ODVariable:
+        var = _ERROR_SETTINGS.subindices.get(subindex)
+        if var is None:
+            raise SdoAbort(cia301.SDO_ABORT_NO_SUBINDEX)
+        return var
+
+    def _set_error_setting(self, subindex: int, data: bytes) -> None:
+        """0x10F1:02 in PRE-OP; the other entries are read-only."""
+        var = self._error_setting(subindex)
+        if var.access_type != "rw":
+            raise SdoAbort(cia301.SDO_ABORT_WRITE_READ_ONLY)
+        if not self.pdo_config_allowed:
+            raise SdoAbort(cia301.SDO_ABORT_WRONG_STATE)
+        if len(data) != len(var) // 8:
+            raise SdoAbort(cia301.SDO_ABORT_LENGTH_MISMATCH)
+        self.sync_error_limit = var.decode_raw(data)
 
     def _object(self, index: int) -> ODVariable | ODArray | ODRecord:
         self._check_exists(index)

@@ -45,6 +45,9 @@ POLL = 0.01  # s: how often the loop looks at the stop event and the watchdogs w
 # outputs' margin before SYNC0 (`sim_bus.ethercat.firmware.OUTPUT_MARGIN`), far wider than the
 # spread of synchronized clocks
 SYNC0_GATHER = 5e-6
+# an answer later than this (s) may have kept the master from a SYNC0 window (`answered`):
+# below any SYNC0 cycle a drive runs (125 us is the shortest common one)
+MIN_LATE_ANSWER = 100e-6
 FRAME_BUFFER = 2048  # a maximum Ethernet frame fits
 SO_TIMESTAMPNS = 35  # <asm-generic/socket.h>: receive timestamps (CLOCK_REALTIME, timespec)
 _TIMESPEC = struct.Struct("@qq")
@@ -103,6 +106,16 @@ class Segment:
         else:
             self.dropped += 1
         return answered
+
+    def answered(self, arrival: float, sent: float) -> None:
+        """The answer to the frame that arrived at `arrival` left at `sent`: a late one
+        (this process stalled) excuses the SYNC0 windows the master could not fill while it
+        waited for it (`LineSync.excuse`)."""
+        late = sent - arrival
+        if late < MIN_LATE_ANSWER or not self.clocks.armed.any():
+            return
+        armed = np.flatnonzero(self.clocks.armed)[:1]
+        self.sync.excuse(arrival, sent, float(self.clocks.cycle_times(armed)[0]))
 
     def next_sync0(self, now: float) -> float | None:
         """When to run the next SYNC0 events, host time, or None: the slaves' SYNC0 on one
@@ -349,6 +362,7 @@ def run(sock: socket.socket, segment: Segment, stop: threading.Event) -> None:
             sock.send(view[:length])
             if twice:
                 sock.send(view[:length])
+            segment.answered(now, clock())
         segment.check_watchdogs(now)
 
 
