@@ -101,10 +101,11 @@ def add_real_time_argument(parser: argparse.ArgumentParser) -> None:
 def apply_real_time(args: argparse.Namespace, prog: str) -> None:
     """Real time only: the process (and the threads it starts from now on) at the asked
     SCHED_RR priority, so CPU-bound work beside it does not delay a cycle, and its memory
-    locked (`driver.clock.lock_memory`); each refusal is one warning and the run goes on."""
+    locked (`driver.clock.lock_memory`) and the CPUs kept out of sleep states
+    (`driver.clock.keep_cpus_awake`); each refusal is one warning and the run goes on."""
     if getattr(args, "lockstep", False) or not args.rt_priority:
         return
-    from driver.clock import lock_memory, prefer_real_time
+    from driver.clock import CPU_DMA_LATENCY, keep_cpus_awake, lock_memory, prefer_real_time
 
     refused = prefer_real_time(args.rt_priority)
     if refused is not None:
@@ -116,6 +117,11 @@ def apply_real_time(args: argparse.Namespace, prog: str) -> None:
         logging.getLogger(prog).warning(
             "memory lock refused (%s): a page fault may delay a cycle (raise RLIMIT_MEMLOCK, "
             "or run as root)", refused)
+    refused = keep_cpus_awake()
+    if refused is not None:
+        logging.getLogger(prog).warning(
+            "CPU wake-up latency request refused (%s: %s): an idle CPU may wake a cycle late "
+            "(run as root)", CPU_DMA_LATENCY, refused)
 
 
 # python-can's options (argparse keys as can.cli names them), absent unless given

@@ -38,7 +38,7 @@ from commands.sim_options import (
     parse_fault,
     with_truth_effects,
 )
-from driver.clock import WallClock, collector_off_the_cycle, lock_memory
+from driver.clock import WallClock, collector_off_the_cycle, keep_cpus_awake, lock_memory
 from model.parameters import ActuatorModel, ModelFileError, Payload
 from protocol.bus_spec import BusSpecError, is_ethercat
 from robot.wiring import describe_bus, open_can_network
@@ -203,12 +203,14 @@ def _serve_line(args: argparse.Namespace, interface: str, model: ActuatorModel,
 @contextlib.contextmanager
 def _like_hardware() -> Iterator[None]:
     """Serve as the hardware the drives stand in for answers, whatever the host does: at
-    real-time priority (`answer_like_hardware`), the process's pages locked in memory, and
+    real-time priority (`answer_like_hardware`), the process's pages locked in memory, the
+    CPUs kept out of sleep states (`driver.clock.keep_cpus_awake`), and
     Python's collector kept off what exists by now (`driver.clock`: a full collection walks
     every long-lived object, tens of ms during which no frame is answered, and a master
     declares the drives lost). Each refusal is one warning; the drives still serve."""
     for what, refused in (("real-time priority", answer_like_hardware()),
-                          ("locked memory", lock_memory())):
+                          ("locked memory", lock_memory()),
+                          ("CPU wake-up latency 0", keep_cpus_awake())):
         if refused is not None:
             log.warning("%s refused (%s): answers may come late on a busy host", what, refused)
     with collector_off_the_cycle():
