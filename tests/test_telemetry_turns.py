@@ -76,16 +76,22 @@ def test_a_real_time_loop_never_waits_on_the_publisher():
     assert called == []
 
 
+def _publisher_in_turns(session) -> TelemetryPublisher:
+    """A publisher after a loop's first look: its thread publishes in turns from then on."""
+    publisher = TelemetryPublisher(session, PREFIX)
+    publisher.take_turn()
+    deadline = time.monotonic() + 5.0
+    while not publisher.in_turns and time.monotonic() < deadline:
+        time.sleep(1e-3)
+    return publisher
+
+
 def test_a_slow_loop_still_gets_a_turn_every_turn_period():
     """A robot's one message a cycle may take long to fill a turn: TURN_PERIOD after the
     last turn, what is queued goes out in a turn of its own."""
     session = _session()
     try:
-        publisher = TelemetryPublisher(session, PREFIX)
-        publisher.take_turn()  # the first look: the thread publishes in turns from now on
-        deadline = time.monotonic() + 5.0
-        while not publisher.in_turns and time.monotonic() < deadline:
-            time.sleep(1e-3)
+        publisher = _publisher_in_turns(session)
         fault = messages.fault(0.0, "controller", "a test", "none")
         queued = []
         for _ in range(2):
@@ -106,11 +112,7 @@ def test_a_turn_publishes_in_the_loops_thread_up_to_a_fault_which_the_thread_pub
     the loop waits for (at most TURN_TIMEOUT), in order."""
     session = _session()
     try:
-        publisher = TelemetryPublisher(session, PREFIX)
-        publisher.take_turn()  # the first look: the thread publishes in turns from now on
-        deadline = time.monotonic() + 5.0
-        while not publisher.in_turns and time.monotonic() < deadline:
-            time.sleep(1e-3)
+        publisher = _publisher_in_turns(session)
         puts: list[tuple[str, int]] = []
         for cls, put in list(publisher._puts.items()):
             def recorded(payload, cls=cls, put=put):
