@@ -4,6 +4,7 @@ velocity raised step by step to a maximum (section III-A, Fig. 3a)."""
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -25,22 +26,25 @@ class ExcitingTrajectory:
         if self.steps < 1 or self.pause < 0:
             raise ValueError("need steps >= 1 and pause >= 0")
 
-    def moves(self) -> list[tuple[float, float, float]]:
+    # the moves and the duration are worked out once (the trajectory is frozen): `sample`
+    # runs every cycle, and a linspace per cycle was a fifth of a lock-step recording's loop
+    @cached_property
+    def moves(self) -> tuple[tuple[float, float, float], ...]:
         """(start, end, cruise velocity) of each move: down then up at each velocity."""
         out = []
         for v in np.linspace(self.velocity_min, self.velocity_max, self.steps):
             out.append((self.position_high, self.position_low, float(v)))
             out.append((self.position_low, self.position_high, float(v)))
-        return out
+        return tuple(out)
 
-    @property
+    @cached_property
     def duration(self) -> float:
         distance = self.position_high - self.position_low
-        return sum(3.0 * distance / (2.0 * v) + self.pause for _, _, v in self.moves())
+        return sum(3.0 * distance / (2.0 * v) + self.pause for _, _, v in self.moves)
 
     def sample(self, t: float) -> tuple[float, float, float]:
         """(q*, qd*, qdd*) at time t (holds the final position after the end)."""
-        for start, end, v in self.moves():
+        for start, end, v in self.moves:
             distance = abs(end - start)
             phase = distance / (2.0 * v)  # each of the three phases: D = 2 v T
             sign = 1.0 if end > start else -1.0
