@@ -5,7 +5,8 @@ Passing a frame slave by slave costs about 25 us a slave in Python (the ESC's FM
 the firmware's decode, the drive's cycle, the encode), most of a millisecond for the whole
 TALOS; the slave process then cannot keep up with a 1 kHz master. Here, for the logical
 datagrams (LRW/LRD/LWR) of a frame, every slave whose cycle is steady (`SlaveFirmware.
-steady_keys`: in OP, no transition pending, not on SYNC0) and whose FMMUs map exactly its
+steady_keys`: in OP, no transition pending, not on SYNC0; or `safe_op_keys`: in SAFE-OP,
+where the drive cycles on what it holds and the outputs are ignored) and whose FMMUs map exactly its
 output and input sync manager buffers has its outputs gathered out of the frame at once
 (numpy fancy indexing over the frame buffer), its drive cycled in one compiled call
 (`sim_bus.line_physics.DriveLine`), its inputs scattered into the frame at once and its
@@ -106,6 +107,7 @@ LOST = 4  # the bookkeeping found its sync lost: its firmware drops it out of OP
 ELSEWHERE = 5  # not steady in OP on SYNC0: its firmware does the bookkeeping too
 _OP = int(ec.AlState.OP)
 _NONE = np.zeros(0, dtype=np.int64)  # an output the layout does not carry
+_NO_HOLDING = np.zeros(0, dtype=np.bool_)  # SYNC0: every slave in the pass applies its outputs
 _MILLI = objects.MILLI
 _OUTBOX = attrgetter("_outbox")  # a firmware's mailbox messages waiting for the master
 
@@ -214,7 +216,7 @@ def sync0_pass(now, present, steady_dc, memories, starts, local_at_zero, drift, 
         advance_line(cycle_rows[:cycling], controlwords, torque_out, current_out, 0, steady,
                      line_controlword, next_due, cycles, terms, flags, ranges, torque_targets,
                      current_targets, state, packed, packed_braked, draws, cursor, values,
-                     applied, outputs, substeps, done, unwritten)
+                     applied, outputs, substeps, done, unwritten, _NO_HOLDING)
         for n in range(cycling):
             if not done[n]:
                 continue
@@ -232,13 +234,16 @@ def sync0_pass(now, present, steady_dc, memories, starts, local_at_zero, drift, 
 
 
 @numba.njit(cache=True)
-def frame_pass(buffer, rows, out_at, in_at, memories, starts, out_fields, in_fields,
+def frame_pass(buffer, rows, out_at, in_at, holding, memories, starts, out_fields, in_fields,
                torque_field, current_field, controlwords, torque_out, current_out, encoded,
                line_arrays, substeps, done, unwritten) -> int:
     """Free run: the cycle of the batched slaves `rows` on a frame in one call, what the
     decode of their outputs at `out_at` in the frame `buffer`, `DriveLine.cycle` (through
     `advance_line`), the encode of the inputs and the copies into the frame (at `in_at`)
-    and into the SM2/SM3 buffers do, in the same arithmetic as `sync0_pass`. `done` gets,
+    and into the SM2/SM3 buffers do, in the same arithmetic as `sync0_pass`. A slave
+    `holding` (by line row: in SAFE-OP) cycles on the outputs its drive holds, as
+    `sync0_pass` does for a window without outputs: an ESC in SAFE-OP takes the outputs into
+    SM2 and the application ignores them. `done` gets,
     per row, whether its drive ran here (the others are left as they were: their ESC
     passes the frame). Returns how many ran. (As a dozen small numpy operations and two
     compiled calls this cost some 40 us for talos' 32 slaves, most of the frame.)"""
@@ -247,6 +252,13 @@ def frame_pass(buffer, rows, out_at, in_at, memories, starts, out_fields, in_fie
      outputs) = line_arrays
     for n in range(rows.shape[0]):
         k, at = rows[n], out_at[n]
+        if holding[k]:
+            controlwords[k] = line_controlword[k]
+            if torque_field >= 0:
+                torque_out[k] = np.int64(torque_targets[k])
+            if current_field >= 0:
+                current_out[k] = np.int64(np.rint(current_targets[k] * _MILLI))
+            continue
         controlwords[k] = _field(buffer, at + out_fields[0, 0], out_fields[0, 1],
                                  out_fields[0, 2] != 0)
         if torque_field >= 0:
@@ -259,7 +271,7 @@ def frame_pass(buffer, rows, out_at, in_at, memories, starts, out_fields, in_fie
     ran = advance_line(rows, controlwords, torque_out, current_out, 0, steady,
                        line_controlword, next_due, cycles, terms, flags, ranges,
                        torque_targets, current_targets, state, packed, packed_braked, draws,
-                       cursor, values, applied, outputs, substeps, done, unwritten)
+                       cursor, values, applied, outputs, substeps, done, unwritten, holding)
     out_size = 0
     for f in range(out_fields.shape[0]):
         out_size = max(out_size, out_fields[f, 0] + out_fields[f, 1])
@@ -375,6 +387,8 @@ class FrameBatch:
         self._drives_unknown = True
         self._steady = np.zeros(count, dtype=bool)
         self._dc = np.zeros(count, dtype=bool)  # steady on SYNC0 (else on the frame)
+        # steady in SAFE-OP (free run): cycles on the frame, its outputs ignored
+        self._holding = np.zeros(count, dtype=bool)
         self._keys: tuple | None = None
         self._layouts: tuple[PdoLayout, PdoLayout] | None = None
         self._encoder: InputEncoder | None = None
@@ -413,7 +427,8 @@ class FrameBatch:
         # compile: the master had given the line up after 100 ms)
         out_fields, in_fields, _, _ = self._fields
         scratch = self._scratch
-        frame_pass(np.zeros(0, dtype=np.uint8), none, none, none, self._memories, self._starts,
+        frame_pass(np.zeros(0, dtype=np.uint8), none, none, none, self._holding,
+                   self._memories, self._starts,
                    out_fields, in_fields, -1, -1, scratch["controlwords"], _NONE, _NONE,
                    self._no_inputs, self._line_arrays, dynamics.SUBSTEPS, scratch["done"],
                    self.line._unwritten)
@@ -427,7 +442,7 @@ class FrameBatch:
         """Which slaves are steady with one common batchable layout and plain FMMUs; the
         frame plans are kept while that stays as it was and nothing else changed."""
         before = self._steady.copy(), self._dc.copy()
-        self._steady[:] = self._dc[:] = False
+        self._steady[:] = self._dc[:] = self._holding[:] = False
         self._find_steady_into()
         if self._replan or not (np.array_equal(before[0], self._steady)
                               and np.array_equal(before[1], self._dc)):
@@ -435,7 +450,8 @@ class FrameBatch:
         self.stale = self._replan = False
 
     def _find_steady_into(self) -> None:
-        keys = [(firmware.steady_keys() or firmware.sync0_steady_keys()) if esc.present
+        keys = [(firmware.steady_keys() or firmware.safe_op_keys()
+                 or firmware.sync0_steady_keys()) if esc.present
                 else None for esc, firmware in zip(self.escs, self.firmwares, strict=True)]
         common = next((k for k in keys if k is not None and batchable_keys(*k)), None)
         if common is None:
@@ -464,6 +480,7 @@ class FrameBatch:
                     and reads[0][2] == in_start and reads[0][1] - reads[0][0] == in_length):
                 self._steady[k] = True
                 self._dc[k] = firmware.sync0_steady_keys() is not None
+                self._holding[k] = firmware.safe_op_keys() is not None
                 self._starts[k] = out_start, in_start
 
     def _plan(self, frame: bytearray, spans: list) -> "_Plan | None":
@@ -785,7 +802,8 @@ class FrameBatch:
         out_fields, in_fields, torque_field, current_field = self._fields
         scratch = self._scratch
         done = scratch["done"][:len(rows)]
-        ran = frame_pass(buffer, rows, out_at, in_at, self._memories, self._starts,
+        ran = frame_pass(buffer, rows, out_at, in_at, self._holding, self._memories,
+                         self._starts,
                          out_fields, in_fields, torque_field, current_field,
                          scratch["controlwords"],
                          scratch["torque"] if torque_field >= 0 else _NONE,
