@@ -162,12 +162,17 @@ def sync0_pass(now, present, steady_dc, memories, starts, local_at_zero, drift, 
         at = next_host[k]
         if not present[k] or not at <= now:
             continue
-        cycle = np.uint64(0)
+        cycle = np.uint32(0)
         for b in range(4):
-            cycle |= np.uint64(memory[dc.REG_SYNC0_CYCLE_TIME + b]) << np.uint64(8 * b)
-        next_sync0[k] += cycle
-        next_host[k] = at + cycle * 1e-9 / (1.0 + drift[k] + slew[k])
-        sync0_count[k] += 1
+            cycle |= np.uint32(memory[dc.REG_SYNC0_CYCLE_TIME + b]) << np.uint32(8 * b)
+        # the pulses since the last look latched into one event, at the last of them
+        # (`LineClocks.take_due`)
+        step = cycle * 1e-9 / (1.0 + drift[k] + slew[k])
+        late = np.int64(np.floor((now - at) / step)) if step > 0 else np.int64(0)
+        at = at + late * step
+        next_sync0[k] += np.uint64(cycle) * np.uint64(late + 1)
+        next_host[k] = at + step
+        sync0_count[k] += late + 1
         memory[dc.REG_SYNC0_STATUS] = 1
         due_rows[due], due_times[due] = k, at
         due += 1
