@@ -23,6 +23,7 @@ from protocol import ethercat as ec
 from protocol.dictionary import StartupParameter
 from sim_bus.device import Cia402Device
 from sim_bus.ethercat import dc
+from sim_bus.ethercat.esc import Esc
 from sim_bus.ethercat.linked import LinkedMaster
 from sim_bus.ethercat.mailbox import SdoAbort
 from sim_bus.ethercat.netns import SlaveProcess
@@ -177,6 +178,44 @@ def test_a_linked_line_runs_on_sync0_in_lock_step():
         assert line.dc.last_offset_ns == 0  # lock-step: the frames are on the drive's time
     finally:
         group.close()
+
+
+def test_a_dc_line_goes_down_as_a_whole_at_the_stop(monkeypatch):
+    """The stop of a line on SYNC0: each joint's drive is disabled and released in turn, but
+    its slave stays in OP (on the disabled drive's outputs) while the others still want their
+    windows; the last release takes the whole line to SAFE-OP in one frame, then to INIT. No
+    slave leaves OP on its own or with a sync error (released one by one, talos_32's last
+    slaves dropped out with 0x001A during the stop)."""
+    segment, drives, group = dc_group(3)
+    changes = []  # (frames the master sent, slave, AL status) at each change
+    original = Esc.set_al_status
+
+    def recorded(esc, status, code=0):
+        if esc.al_status != status:
+            changes.append((line.frames, segment.escs.index(esc), status, code))
+        original(esc, status, code)
+
+    try:
+        group.start()
+        line = drives[0].transport.line
+        for _ in range(50):
+            group.sync()
+            group.command_currents([0.3, 0.0, -0.3])
+        monkeypatch.setattr(Esc, "set_al_status", recorded)
+        for drive in drives[:2]:
+            drive.close()
+            assert [esc.al_status for esc in segment.escs] == [ec.AlState.OP] * 3
+        assert [d.state.name for d in segment.drives.devices][:2] == ["SWITCH_ON_DISABLED"] * 2
+        group.close()
+    finally:
+        group.close()
+    assert [esc.al_status for esc in segment.escs] == [ec.AlState.INIT] * 3
+    assert [code for *_, code in changes] == [0] * len(changes)
+    # every slave out of OP at the same frame, to SAFE-OP first
+    assert [status for _, _, status, _ in changes[:3]] == [ec.AlState.SAFE_OP] * 3
+    assert len({frames for frames, *_ in changes[:3]}) == 1
+    assert all(d.master_loss is None or "DC" not in d.master_loss
+               for d in segment.drives.devices)
 
 
 def test_a_slave_that_misses_its_sync0_window_is_named_and_every_drive_ends_safe():
