@@ -134,7 +134,8 @@ def sync0_pass(now, present, steady_dc, memories, starts, local_at_zero, drift, 
     `LineSync.sync0_in_op`, the decode of the SM2 buffers (or the outputs the drives hold),
     `DriveLine.cycle` and the encode of the inputs into SM3 do for every slave steady in OP
     on SYNC0, in the same arithmetic, so the same results. Each present slave's SYNC0 due by
-    `now` is taken (its host time first worked out where a register write cleared it, for
+    `now` is taken, its pulses since the last look as one event at the last of them
+    (`sim_bus.ethercat.dc`; its host time first worked out where a register write cleared it, for
     every armed clock as `LineClocks.upcoming` does); the due rows and their times go into
     `due_rows`/`due_times`, what became of each into `kinds` (RAN ... ELSEWHERE). Returns
     how many were due. `out_fields` (offset, size, signed) and `in_fields` (offset, size,
@@ -858,7 +859,7 @@ class FrameBatch:
                           scratch["due_rows"], scratch["due_times"], scratch["kinds"])
 
     def sync0(self, now: float, present: np.ndarray) -> np.ndarray:
-        """One round of the line's SYNC0 events due by `now` (the slaves `present`), each at
+        """The line's SYNC0 events due by `now` (the slaves `present`), one a slave, each at
         its own time (`LineClocks.take_due`): the rows whose SYNC0 fired. Every slave steady
         in OP on SYNC0 in one compiled call (`sync0_pass`: its window's bookkeeping, its
         drive's cycle on the SM2 buffer when outputs came in the window and on what it holds
