@@ -25,6 +25,7 @@ from sim_bus.device import Cia402Device
 from sim_bus.ethercat import dc
 from sim_bus.ethercat.esc import Esc
 from sim_bus.ethercat.linked import LinkedMaster
+from sim_bus.ethercat.linked_dc import LinkedClock
 from sim_bus.ethercat.mailbox import SdoAbort
 from sim_bus.ethercat.netns import SlaveProcess
 from sim_bus.ethercat.segment import Segment, pass_frame
@@ -451,6 +452,23 @@ def test_sync0_pulses_while_the_line_was_late_are_one_event():
     assert [f.cycles for f in batched.firmwares] == [f.cycles for f in single.firmwares]
     assert [d.plant.position for d in batched.drives.devices] == [
         d.plant.position for d in single.drives.devices]
+
+
+def test_the_linked_line_takes_late_sync0_pulses_as_one_event():
+    """The linked line in real time, late by ten and a half cycles: every pulse taken (and
+    counted), each slave's application run once, at the last pulse, as on a segment."""
+    segment = line(2)
+    master = FrameMaster(segment)
+    master.start(operational=False)
+    master.start_dc()
+    clock = LinkedClock(segment.escs, clock_for(False))
+    first = segment.escs[0].dc.next_sync0_host_time(master.now)
+    cycles = [f.cycles for f in segment.firmwares]
+    clock.run_sync0(first + 0.0105)
+    assert [esc.dc.sync0_count for esc in segment.escs] == [11] * 2
+    assert [f.cycles - c for f, c in zip(segment.firmwares, cycles, strict=True)] == [1] * 2
+    # the last pulse, on each slave's own clock (they drift some ppm apart)
+    assert [esc.now for esc in segment.escs] == pytest.approx([first + 0.010] * 2, abs=5e-6)
 
 
 def test_sync0_that_stops_is_a_fatal_sync_error():
