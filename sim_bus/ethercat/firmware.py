@@ -496,8 +496,8 @@ class SlaveFirmware:
                 if self._sync_errors <= self._sync_limit:
                     self._sync_errors += SYNC_ERROR_WEIGHT
                 if sync_lost(self._sync_errors, self._sync_limit):
-                    self._sync_lost(esc, ec.AL_SYNC_ERROR, "outputs missed their SYNC0 window "
-                                    f"{self.missed_sync0} times")
+                    self._sync_lost(esc, ec.AL_SYNC_ERROR, missed_windows(
+                        self.missed_sync0, self._since_outputs + 1))
                     state = ec.AlState.SAFE_OP
         self._since_outputs += 1
         return state == ec.AlState.OP and fresh
@@ -609,6 +609,13 @@ class SlaveFirmware:
         """Fault injection: how long the segment holds the current frame (0 normally)."""
         delay, self.delay_next_frame = self.delay_next_frame, 0.0
         return delay
+
+
+def missed_windows(missed: int, since: int) -> str:
+    """Why a slave lost its sync: its windows without outputs in OP, and how many in a row
+    lately (a master silent for that many periods, or a few now and then)."""
+    return (f"outputs missed their SYNC0 window {missed} times, the last {since} in a row "
+            "(SYNC0 events since outputs)")
 
 
 def _u16(esc: Esc, address: int) -> int:

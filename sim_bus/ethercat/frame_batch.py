@@ -51,6 +51,7 @@ from sim_bus.ethercat.firmware import (
     SYNC_ERROR_WEIGHT,
     LineSync,
     SlaveFirmware,
+    missed_windows,
 )
 from sim_bus.line_physics import DriveLine, advance_line
 
@@ -897,8 +898,8 @@ class FrameBatch:
             return rows
         single = []
         for k in rows[kinds == LOST].tolist():
-            firmwares[k]._sync_lost(escs[k], ec.AL_SYNC_ERROR, "outputs missed their "
-                                    f"SYNC0 window {firmwares[k].missed_sync0} times")
+            firmwares[k]._sync_lost(escs[k], ec.AL_SYNC_ERROR, missed_windows(
+                firmwares[k].missed_sync0, int(self.sync.since[k])))
             single.append((k, False))
         single.extend((k, True) for k in rows[kinds == FRESH_LEFT].tolist())
         single.extend((k, False) for k in rows[kinds == HELD_LEFT].tolist())
