@@ -612,10 +612,11 @@ class SlaveFirmware:
 
 
 def missed_windows(missed: int, since: int) -> str:
-    """Why a slave lost its sync: its windows without outputs in OP, and how many in a row
-    lately (a master silent for that many periods, or a few now and then)."""
-    return (f"outputs missed their SYNC0 window {missed} times, the last {since} in a row "
-            "(SYNC0 events since outputs)")
+    """Why a slave lost its sync: its windows without outputs in OP, and how many of them
+    in a row lately (`since`: SYNC0 events since outputs came, the first of which took
+    them): a master silent for that many periods, or a few misses now and then."""
+    return (f"outputs missed their SYNC0 window {missed} times, the last {since - 1} "
+            "in a row")
 
 
 def _u16(esc: Esc, address: int) -> int:
