@@ -130,6 +130,9 @@ class EthercatMaster:
         self.operational = False
         self.mapped = False  # the process image exists (config_map done)
         self._released: set[int] = set()  # positions taken out of the cycle on purpose
+        # DC: positions released while the line is in OP, kept in it until it goes down as a
+        # whole (`release`, `close_line`)
+        self._leaving: set[int] = set()
         self._expected_wkc = 0
         self._last_frame = 0.0  # time.monotonic() of the last process data frame
         # position -> (ready for OP, stage its outputs)
@@ -175,6 +178,7 @@ class EthercatMaster:
         self._require_state(pysoem.PREOP_STATE, "PRE_OP")
         self.failure = None
         self._released.clear()
+        self._leaving.clear()
         self.frames = 0
 
     def _scan_once(self) -> DriveError | None:
@@ -562,10 +566,19 @@ class EthercatMaster:
 
     def release(self, position: int) -> None:
         """Take one slave out of the cycle (to PRE-OP) without failing the others: the
-        expected working counter drops by its share."""
-        if position in self._released or not 0 <= position < len(self.slaves):
+        expected working counter drops by its share. DC, in OP: the slave stays in OP on the
+        outputs its transport left (its drive disabled) until the line goes down as a whole
+        (`close_line`): a slave that leaves OP is a state change the slaves' host runs for
+        it, and the others still on SYNC0 need a frame in every window meanwhile; released
+        one by one at the end of a run, the last few of talos_32's slaves dropped out with
+        0x001A (working counter 25 of 33) before their turn."""
+        if (position in self._released or position in self._leaving
+                or not 0 <= position < len(self.slaves)):
             return
         with self.lock:
+            if self.dc is not None and self.operational and self.failure is None:
+                self._leaving.add(position)
+                return
             self._release(position)
 
     def _release(self, position: int) -> None:
@@ -578,7 +591,11 @@ class EthercatMaster:
         slave.write_state()
 
     def close_line(self) -> None:
-        """Every slave back to INIT and the interface closed. Best effort."""
+        """Every slave back to INIT and the interface closed. Best effort. DC, in OP: the
+        whole line to SAFE-OP first, in one frame while the keeper still fills the SYNC0
+        windows (`_step_down`), so no slave counts a window the stop left empty."""
+        if self.master is not None and self.dc is not None and self.operational:
+            self._step_down()
         if self._keeper_stop is not None:
             self._keeper_stop.set()
             self._keeper_stop = None
@@ -586,6 +603,22 @@ class EthercatMaster:
             return
         with self.lock:
             self._close_master()
+
+    def _step_down(self) -> None:
+        """DC: every slave of the line from OP to SAFE-OP at once (one broadcast write of AL
+        control, as SOEM's ecx_writestate(0)): in SAFE-OP a drive ignores its
+        outputs and no longer counts SYNC0 windows, so stopping the frames after is no sync
+        error. Best effort: a line that failed or does not answer goes to INIT as it is."""
+        with self.lock:
+            if self.failure is not None:
+                return
+            try:
+                self.master.state = pysoem.SAFEOP_STATE
+                self.master.write_state()
+                self.operational = False  # the keeper sends no more
+                self._leaving.clear()
+            except (pysoem.WkcError, pysoem.NetworkInterfaceNotOpenError):
+                pass
 
     def _close_master(self) -> None:
         try:

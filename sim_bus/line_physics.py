@@ -57,6 +57,13 @@ N_VALUES = len(LINE_KEYS)
 _MILLI = objects.MILLI
 
 
+# `advance_line`'s steady levels of a drive: its cycle is the physics alone while it applies
+# no controlword (held outputs), or also with its controlword repeated (the state it is in is
+# the one that controlword led to)
+STEADY_HELD, STEADY = 1, 2
+_NO_ROWS = np.zeros(0, dtype=np.bool_)
+
+
 @numba.njit(cache=True, error_model="numpy")
 def advance_line(rows: np.ndarray, controlwords: np.ndarray, torque_out: np.ndarray,
                  current_out: np.ndarray, counter: int, steady: np.ndarray,
@@ -66,7 +73,7 @@ def advance_line(rows: np.ndarray, controlwords: np.ndarray, torque_out: np.ndar
                  state: np.ndarray, packed: np.ndarray, packed_braked: np.ndarray,
                  draws: np.ndarray, cursor: np.ndarray, values: np.ndarray,
                  applied: np.ndarray, outputs: np.ndarray, substeps: int, done: np.ndarray,
-                 unwritten: np.ndarray) -> int:
+                 unwritten: np.ndarray, holding: np.ndarray) -> int:
     """One cycle of each drive in `rows`, as `Cia402Device.cycle()` runs it when nothing but
     the physics happens: the outputs taken (`controlwords`, and the targets where
     `torque_out` / `current_out` have a row per drive), the command latched in its mode and
@@ -76,13 +83,17 @@ def advance_line(rows: np.ndarray, controlwords: np.ndarray, torque_out: np.ndar
     (False in `done`, a flag per row of `rows`): its device runs that cycle itself. `values`
     gets the readings, `applied` the current, `outputs` (controlword, torque target, current
     target) what the drive took, `unwritten` True for each drive that ran. Returns how many
-    ran. (Results in the caller's arrays, not a new one: boxing an array per call cost more
-    than the cycle of a drive.)"""
+    ran. `steady` per drive: STEADY_HELD (its cycle is the physics alone as long as no
+    controlword is applied), STEADY (also with its controlword repeated), else 0; a drive
+    `holding` (per drive; empty: none) is given the outputs it holds and applies none (an
+    EtherCAT slave in SAFE-OP), so STEADY_HELD is enough for it. (Results in the caller's
+    arrays, not a new one: boxing an array per call cost more than the cycle of a drive.)"""
     ran = 0
     for n in range(rows.shape[0]):
         done[n] = False
         j = rows[n]
-        if (not steady[j] or controlwords[j] != controlword[j]
+        wanted = STEADY_HELD if holding.shape[0] and holding[j] else STEADY
+        if (steady[j] < wanted or controlwords[j] != controlword[j]
                 or next_due[j] <= cycles[j] + 1 or cursor[j] > NOISE_BATCH - 2):
             continue
         torque = torque_out[j] if torque_out.shape[0] else torque_targets[j]
@@ -165,7 +176,8 @@ class DriveLine:
         self.current_targets = np.zeros(count)  # A
         self.outputs = np.zeros((count, 3), dtype=np.int64)  # controlword, targets as taken
         # what decides, per drive, whether its next cycle is the batch's
-        self._steady = np.zeros(count, dtype=np.bool_)  # terms steady, controlword repeated
+        # terms steady (STEADY_HELD), and the controlword repeated (STEADY): `advance_line`
+        self._steady = np.zeros(count, dtype=np.int8)
         self._controlword = np.zeros(count, dtype=np.int64)
         self._next_due = np.zeros(count, dtype=np.int64)
         self._cycles = np.zeros(count, dtype=np.int64)
@@ -207,7 +219,7 @@ class DriveLine:
         device = self.devices[j]
         terms = device.line_terms()
         plant = device.plant
-        self._steady[j] = terms.steady and terms.commanded
+        self._steady[j] = (STEADY if terms.commanded else STEADY_HELD) if terms.steady else 0
         self._controlword[j] = terms.controlword
         self._next_due[j] = terms.next_due
         self._cycles[j] = terms.cycle_count
@@ -269,7 +281,7 @@ class DriveLine:
                            self.torque_targets, self.current_targets, self.state, self.packed,
                            self.packed_braked, self.draws, self.cursor, self.values,
                            self.applied, self.outputs, dynamics.SUBSTEPS, done,
-                           self._unwritten)
+                           self._unwritten, _NO_ROWS)
         if ran == len(devices):
             return done
         if others_idle:

@@ -23,7 +23,9 @@ from protocol import ethercat as ec
 from protocol.dictionary import StartupParameter
 from sim_bus.device import Cia402Device
 from sim_bus.ethercat import dc
+from sim_bus.ethercat.esc import Esc
 from sim_bus.ethercat.linked import LinkedMaster
+from sim_bus.ethercat.linked_dc import LinkedClock
 from sim_bus.ethercat.mailbox import SdoAbort
 from sim_bus.ethercat.netns import SlaveProcess
 from sim_bus.ethercat.segment import Segment, pass_frame
@@ -38,6 +40,13 @@ SYNC_DELAY_NS = 100_000_000  # SOEM's SyncDelay
 
 def line(count: int) -> Segment:
     return Segment([Cia402Device(MODEL) for _ in range(count)])
+
+
+def wake_through(segment: Segment, until: float) -> None:
+    """The SYNC0 events due by `until`, each at its own time, as the line's loop runs them
+    when it is not late: it wakes for every one (`Segment.next_sync0`)."""
+    while (at := segment.next_sync0(until)) is not None and at <= until:
+        segment.run_sync0(at)
 
 
 def exchange(segment, *datagrams, now):
@@ -119,7 +128,9 @@ def test_dc_registers_answer_the_soem_configdc_sequence_frame_by_frame():
     assert max(firsts) - min(firsts) < 50e-9  # the same instant on every slave
     assert 0.1 < firsts[0] - t < 0.1 + 0.002
     assert segment.run_sync0(firsts[0] - 1e-6) == 0
-    assert segment.run_sync0(firsts[0] + 0.0105) == 3 * 11
+    # eleven pulses while nobody looked: one event each slave, every pulse counted
+    assert segment.run_sync0(firsts[0] + 0.0105) == 3
+    assert [esc.dc.sync0_count for esc in segment.escs] == [11] * 3
     [(status, _), (next_sync0, _)] = exchange(
         segment, (Cmd.FPRD, station(1, dc.REG_SYNC0_STATUS), bytes(1)),
         (Cmd.FPRD, station(1, dc.REG_START_TIME), bytes(8)), now=firsts[0] + 0.0106)
@@ -168,6 +179,44 @@ def test_a_linked_line_runs_on_sync0_in_lock_step():
         assert line.dc.last_offset_ns == 0  # lock-step: the frames are on the drive's time
     finally:
         group.close()
+
+
+def test_a_dc_line_goes_down_as_a_whole_at_the_stop(monkeypatch):
+    """The stop of a line on SYNC0: each joint's drive is disabled and released in turn, but
+    its slave stays in OP (on the disabled drive's outputs) while the others still want their
+    windows; the last release takes the whole line to SAFE-OP in one frame, then to INIT. No
+    slave leaves OP on its own or with a sync error (released one by one, talos_32's last
+    slaves dropped out with 0x001A during the stop)."""
+    segment, drives, group = dc_group(3)
+    changes = []  # (frames the master sent, slave, AL status) at each change
+    original = Esc.set_al_status
+
+    def recorded(esc, status, code=0):
+        if esc.al_status != status:
+            changes.append((line.frames, segment.escs.index(esc), status, code))
+        original(esc, status, code)
+
+    try:
+        group.start()
+        line = drives[0].transport.line
+        for _ in range(50):
+            group.sync()
+            group.command_currents([0.3, 0.0, -0.3])
+        monkeypatch.setattr(Esc, "set_al_status", recorded)
+        for drive in drives[:2]:
+            drive.close()
+            assert [esc.al_status for esc in segment.escs] == [ec.AlState.OP] * 3
+        assert [d.state.name for d in segment.drives.devices][:2] == ["SWITCH_ON_DISABLED"] * 2
+        group.close()
+    finally:
+        group.close()
+    assert [esc.al_status for esc in segment.escs] == [ec.AlState.INIT] * 3
+    assert [code for *_, code in changes] == [0] * len(changes)
+    # every slave out of OP at the same frame, to SAFE-OP first
+    assert [status for _, _, status, _ in changes[:3]] == [ec.AlState.SAFE_OP] * 3
+    assert len({frames for frames, *_ in changes[:3]}) == 1
+    assert all(d.master_loss is None or "DC" not in d.master_loss
+               for d in segment.drives.devices)
 
 
 def test_a_slave_that_misses_its_sync0_window_is_named_and_every_drive_ends_safe():
@@ -279,7 +328,7 @@ def test_frames_that_bunch_keep_the_sync_and_three_empty_windows_lose_it():
     count = master.count
 
     def frame(at: float, controlword: int) -> None:
-        segment.run_sync0(at)  # as the line's loop does: the SYNC0 events before the frame
+        wake_through(segment, at)  # as the line's loop does: the SYNC0 events before the frame
         outputs = np.zeros(count, master.layouts[0].dtype)
         outputs["f0"] = controlword
         data = outputs.tobytes() + bytes(count * master.in_size)
@@ -288,21 +337,21 @@ def test_frames_that_bunch_keep_the_sync_and_three_empty_windows_lose_it():
 
     for k in range(120):  # OP at the first SYNC0 (about 101.5 ms), then enabled
         frame(k * 1e-3, enable_sequence(max(0, k - 105), count)[0])
-    segment.run_sync0(0.1199)
+    wake_through(segment, 0.1199)
     assert [esc.al_status for esc in segment.escs] == [ec.AlState.OP] * count
     cycles = [firmware.cycles for firmware in segment.firmwares]
     for k in range(120, 320):  # at 0.1 and 0.4 ms of every other period, none between
         if k % 2 == 0:
             frame(k * 1e-3 + 1e-4, 0x0F)
             frame(k * 1e-3 + 4e-4, 0x0F)
-    segment.run_sync0(0.3199)
+    wake_through(segment, 0.3199)
     assert [esc.al_status for esc in segment.escs] == [ec.AlState.OP] * count
     assert [firmware.missed_sync0 for firmware in segment.firmwares] == [100] * count
     assert [f.cycles - c for f, c in zip(segment.firmwares, cycles, strict=True)] == [200] * 2
     assert all(f.device.state.name == "OPERATION_ENABLED" for f in segment.firmwares)
-    segment.run_sync0(0.3209)  # the windows of SYNC0 at 319.5 and 320.5 ms empty: not yet
+    wake_through(segment, 0.3209)  # the windows of SYNC0 at 319.5 and 320.5 ms empty: not yet
     assert [esc.al_status for esc in segment.escs] == [ec.AlState.OP] * count
-    segment.run_sync0(0.3219)  # the third
+    wake_through(segment, 0.3219)  # the third
     assert [esc.al_status for esc in segment.escs] == [
         ec.AlState.SAFE_OP | ec.AL_ERROR] * count
     assert all(f.device.master_loss.startswith("EtherCAT DC: outputs missed")
@@ -323,7 +372,7 @@ def test_windows_the_slaves_own_late_answer_left_empty_are_not_counted():
 
         def frame(at: float, controlword: int, segment=segment, master=master,
                   count=count) -> None:
-            segment.run_sync0(at)
+            wake_through(segment, at)
             outputs = np.zeros(count, master.layouts[0].dtype)
             outputs["f0"] = controlword
             data = outputs.tobytes() + bytes(count * master.in_size)
@@ -337,11 +386,89 @@ def test_windows_the_slaves_own_late_answer_left_empty_are_not_counted():
             segment.answered(0.1201, 0.1236)
         for k in range(124, 130):
             frame(k * 1e-3 + 1e-4, 0x0F)
-        segment.run_sync0(0.1299)
+        wake_through(segment, 0.1299)
         states = [esc.al_status for esc in segment.escs]
         assert states == ([ec.AlState.OP] * count if late
                           else [ec.AlState.SAFE_OP | ec.AL_ERROR] * count)
         assert [f.missed_sync0 for f in segment.firmwares] == [3] * count
+
+
+def test_sync0_pulses_while_the_line_was_late_are_one_event():
+    """The process running the slaves wakes late (5 ms after outputs came, then 9 ms after
+    the last ones): the SYNC0 pulses meanwhile are one event per slave, as a real ESC's
+    latched interrupt is, with one drive cycle and one count against the sync error limit
+    (the first window after outputs is free, as in SSC), so the line keeps its sync and
+    catches up with real time at once; the batch and the slaves one by one alike."""
+    lines = []
+    for batching in (True, False):
+        segment = Segment([Cia402Device(MODEL) for _ in range(2)])
+        if not batching:
+            segment.batch = None
+        master = FrameMaster(segment)
+        master.start(operational=False)
+        master.start_dc()  # SYNC0 0.5 ms into every ms of the master's time, from 100 ms on
+        lines.append((segment, master))
+
+    def frame(segment: Segment, master: FrameMaster, at: float, controlword: int) -> None:
+        segment.run_sync0(at)
+        outputs = np.zeros(master.count, master.layouts[0].dtype)
+        outputs["f0"] = controlword
+        data = outputs.tobytes() + bytes(master.count * master.in_size)
+        sent = bytearray(ec.encode_frame([(Cmd.LRW, 0, 0, data)]))
+        assert segment.process(sent, len(sent), at)
+
+    for segment, master in lines:
+        for k in range(120):
+            wake_through(segment, k * 1e-3)
+            frame(segment, master, k * 1e-3, enable_sequence(max(0, k - 105), 2)[0])
+        wake_through(segment, 0.1199)
+        assert [esc.al_status for esc in segment.escs] == [ec.AlState.OP] * 2
+        before = ([f.cycles for f in segment.firmwares], [f.missed_sync0 for f in
+                                                            segment.firmwares],
+                  [esc.dc.sync0_count for esc in segment.escs])
+        frame(segment, master, 0.1201, 0x0F)
+        # late: pulses at 120.5 ... 124.5 ms, the frame's outputs for the first
+        assert segment.run_sync0(0.12505) == 2
+        assert [f.cycles - c for f, c in zip(segment.firmwares, before[0], strict=True)] == [1] * 2
+        assert [f.missed_sync0 for f in segment.firmwares] == before[1]
+        assert [esc.dc.sync0_count - c for esc, c in zip(segment.escs, before[2],
+                                                         strict=True)] == [5] * 2
+        assert segment.next_sync0(0.12505) == pytest.approx(0.1255, abs=1e-6)
+        frame(segment, master, 0.1251, 0x0F)
+        wake_through(segment, 0.1256)  # 125.5 ms: its outputs
+        # late again, 9 windows without outputs: one event, the free one after outputs
+        assert segment.run_sync0(0.1349) == 2
+        assert [f.missed_sync0 - m for f, m in zip(segment.firmwares, before[1],
+                                                   strict=True)] == [1] * 2
+        for k in range(135, 140):  # the master's frames again, the line on time
+            wake_through(segment, k * 1e-3 + 1e-4)
+            frame(segment, master, k * 1e-3 + 1e-4, 0x0F)
+        wake_through(segment, 0.1399)
+        assert [esc.al_status for esc in segment.escs] == [ec.AlState.OP] * 2
+        assert all(f.device.state.name == "OPERATION_ENABLED" for f in segment.firmwares)
+    (batched, _), (single, _) = lines
+    for a, b in zip(batched.escs, single.escs, strict=True):
+        assert a.memory == b.memory
+    assert [f.cycles for f in batched.firmwares] == [f.cycles for f in single.firmwares]
+    assert [d.plant.position for d in batched.drives.devices] == [
+        d.plant.position for d in single.drives.devices]
+
+
+def test_the_linked_line_takes_late_sync0_pulses_as_one_event():
+    """The linked line in real time, late by ten and a half cycles: every pulse taken (and
+    counted), each slave's application run once, at the last pulse, as on a segment."""
+    segment = line(2)
+    master = FrameMaster(segment)
+    master.start(operational=False)
+    master.start_dc()
+    clock = LinkedClock(segment.escs, clock_for(False))
+    first = segment.escs[0].dc.next_sync0_host_time(master.now)
+    cycles = [f.cycles for f in segment.firmwares]
+    clock.run_sync0(first + 0.0105)
+    assert [esc.dc.sync0_count for esc in segment.escs] == [11] * 2
+    assert [f.cycles - c for f, c in zip(segment.firmwares, cycles, strict=True)] == [1] * 2
+    # the last pulse, on each slave's own clock (they drift some ppm apart)
+    assert [esc.now for esc in segment.escs] == pytest.approx([first + 0.010] * 2, abs=5e-6)
 
 
 def test_sync0_that_stops_is_a_fatal_sync_error():

@@ -270,3 +270,44 @@ def test_a_frame_of_addressed_datagrams_reaches_only_the_slaves_it_names():
     assert [wkc for _, wkc in results] == [1] * (SLAVES + 1) + [0, SLAVES]
     for a, b in zip(routed.segment.escs, whole.segment.escs, strict=True):
         assert a.memory == b.memory
+
+
+def test_the_batch_passes_safe_op_frames_exactly_as_the_slaves_one_by_one():
+    """SAFE-OP (free run): every output buffer cycles the drive on what it holds, the outputs
+    ignored and the inputs sampled, as an ESC in SAFE-OP does; the batch does it for the
+    whole line at once with the same frames, drives and memories as slave by slave, through
+    outputs that would enable the drives (ignored), OP requested and entered at the next
+    buffer, and back to SAFE-OP; most SAFE-OP cycles ran in the batch."""
+    lines = []
+    for batching in (True, False):
+        segment = Segment(talos_devices(SLAVES))
+        if not batching:
+            segment.batch = None
+        master = FrameMaster(segment)
+        master.start(operational=False)
+        lines.append(master)
+    batched, single = lines
+    safe_op_cycles = 0
+    for k in range(400):
+        if k in (200, 300):  # OP (entered at the next buffer), then back to SAFE-OP
+            for master in lines:
+                master.request(ec.AlState.OP if k == 200 else ec.AlState.SAFE_OP)
+        for master in lines:
+            master.now += 1e-3
+        frames = [m.send(_frame(m, k + 200)) for m in lines]  # enabling from the start
+        assert frames[0] == frames[1], f"cycle {k}"
+        if k < 200:
+            safe_op_cycles = batched.segment.batch.batched
+        if k % 20 == 0 or k in (199, 201, 299, 301):
+            batched.segment.batch.settle()
+            assert _devices(batched) == _devices(single), f"cycle {k}"
+            for a, b in zip(batched.segment.escs, single.segment.escs, strict=True):
+                assert a.memory == b.memory, f"cycle {k}"
+    states = [[d.state.name for d in m.segment.drives.devices] for m in lines]
+    assert states[0] == states[1]
+    # in SAFE-OP the enable never reached the drives; in OP it did
+    assert batched.states() == [ec.AlState.SAFE_OP] * SLAVES
+    assert all(r["cycles"] == 400 for r in batched.segment.report())
+    assert [r["cycles"] for r in batched.segment.report()] == [
+        r["cycles"] for r in single.segment.report()]
+    assert safe_op_cycles > 0.9 * 200 * SLAVES, safe_op_cycles

@@ -7,6 +7,15 @@ Time base: `t`, s, is the host's clock in real time (`time.monotonic`) and the d
 lock-step (the linked line's cycles x period): either way it is what "now" means for the
 line, and every local clock runs at its own rate against it.
 
+SYNC0 events: the cyclic unit pulses every cycle; the slave's application takes the pulse as
+an interrupt. Pulses that come while the application is busy (here: while the process
+running the line is late) collapse into one, as a latched interrupt does on a real ESC: one
+event at the last pulse, one run of the application, one count against the sync error
+limit (SSC's Sync0_Isr runs once), the pulses themselves all counted in `sync0_count`.
+Replayed pulse by pulse, a line that had fallen behind ran a device cycle per missed pulse
+and slave in Python and never caught up with real time. A line that is not late wakes for
+every pulse, so each is its own event.
+
 Registers (ETG.1000.4 / ET1100 datasheet, as far as a master reads or writes them):
   0x0900-0x090F  receive time of ports 0-3 (32 bit, local time), latched by a write to 0x0900
   0x0910         system time (64 bit): read = local time + offset; write = compare value
@@ -361,18 +370,24 @@ class LineClocks:
         return np.where(self.armed, self.next_host, math.inf)
 
     def take_due(self, now: float, present: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The SYNC0 of every present clock due by `now`, taken (`DistributedClock.take_sync0`
-        for each, at once): (rows, each one's host time). The next one is a cycle later at
-        today's rate, the SYNC0 status raised, the count kept."""
+        """The SYNC0 event of every present clock due by `now`, taken
+        (`DistributedClock.take_sync0` for each, at once): (rows, each one's host time). The
+        pulses that came since the slave's application last looked are one event, at the
+        last of them (see the module's note); the next one is a cycle after it at today's rate,
+        the SYNC0 status raised, every pulse counted."""
         times = self.upcoming(now)
         rows = np.flatnonzero(present & (times <= now))
         if not rows.size:
             return rows, times[rows]
-        at = times[rows]
         cycles = read_registers(self.memories, rows, REG_SYNC0_CYCLE_TIME, 4).view("<u4")[:, 0]
-        self.next_sync0[rows] += cycles.astype(np.uint64)
-        self.next_host[rows] = at + cycles * 1e-9 / (1.0 + self.drift[rows] + self.slew[rows])
-        self.sync0_count[rows] += 1
+        step = cycles * 1e-9 / (1.0 + self.drift[rows] + self.slew[rows])
+        first = times[rows]
+        late = np.where(step > 0, np.floor((now - first) / np.where(step > 0, step, 1.0)),
+                        0.0).astype(np.int64)
+        at = first + late * step
+        self.next_sync0[rows] += cycles.astype(np.uint64) * (late + 1).astype(np.uint64)
+        self.next_host[rows] = at + step
+        self.sync0_count[rows] += late + 1
         write_registers(self.memories, rows, REG_SYNC0_STATUS,
                         np.ones((rows.size, 1), dtype=np.uint8))
         return rows, at

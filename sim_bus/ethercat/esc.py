@@ -274,18 +274,11 @@ class Esc:
 
     # --- SYNC0 -------------------------------------------------------------------------------
 
-    def fire_sync0(self, t: float) -> bool:
-        """Run the SYNC0 due at `t` (host time, or drive time in lock-step), if any: the
-        firmware's synchronous cycle. True when one fired."""
-        if not self.take_sync0(t):
-            return False
-        self.firmware.sync0(self)
-        return True
-
     def take_sync0(self, t: float) -> bool:
         """The SYNC0 due at `t`, if any, taken by the cyclic unit (the next one set up, the
         status raised, `now` at it) without running the firmware's cycle: the caller runs it
-        (`fire_sync0`, or a segment's batch for all its slaves at once). True when one was."""
+        (the linked line's `run_sync0`, or a segment's batch for all its slaves at once).
+        True when one was."""
         if not self.present or not self.dc.take_sync0(t):
             return False
         self.now = t

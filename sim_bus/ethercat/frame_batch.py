@@ -5,7 +5,8 @@ Passing a frame slave by slave costs about 25 us a slave in Python (the ESC's FM
 the firmware's decode, the drive's cycle, the encode), most of a millisecond for the whole
 TALOS; the slave process then cannot keep up with a 1 kHz master. Here, for the logical
 datagrams (LRW/LRD/LWR) of a frame, every slave whose cycle is steady (`SlaveFirmware.
-steady_keys`: in OP, no transition pending, not on SYNC0) and whose FMMUs map exactly its
+steady_keys`: in OP, no transition pending, not on SYNC0; or `safe_op_keys`: in SAFE-OP,
+where the drive cycles on what it holds and the outputs are ignored) and whose FMMUs map exactly its
 output and input sync manager buffers has its outputs gathered out of the frame at once
 (numpy fancy indexing over the frame buffer), its drive cycled in one compiled call
 (`sim_bus.line_physics.DriveLine`), its inputs scattered into the frame at once and its
@@ -50,6 +51,7 @@ from sim_bus.ethercat.firmware import (
     SYNC_ERROR_WEIGHT,
     LineSync,
     SlaveFirmware,
+    missed_windows,
 )
 from sim_bus.line_physics import DriveLine, advance_line
 
@@ -106,6 +108,7 @@ LOST = 4  # the bookkeeping found its sync lost: its firmware drops it out of OP
 ELSEWHERE = 5  # not steady in OP on SYNC0: its firmware does the bookkeeping too
 _OP = int(ec.AlState.OP)
 _NONE = np.zeros(0, dtype=np.int64)  # an output the layout does not carry
+_NO_HOLDING = np.zeros(0, dtype=np.bool_)  # SYNC0: every slave in the pass applies its outputs
 _MILLI = objects.MILLI
 _OUTBOX = attrgetter("_outbox")  # a firmware's mailbox messages waiting for the master
 
@@ -132,7 +135,8 @@ def sync0_pass(now, present, steady_dc, memories, starts, local_at_zero, drift, 
     `LineSync.sync0_in_op`, the decode of the SM2 buffers (or the outputs the drives hold),
     `DriveLine.cycle` and the encode of the inputs into SM3 do for every slave steady in OP
     on SYNC0, in the same arithmetic, so the same results. Each present slave's SYNC0 due by
-    `now` is taken (its host time first worked out where a register write cleared it, for
+    `now` is taken, its pulses since the last look as one event at the last of them
+    (`sim_bus.ethercat.dc`; its host time first worked out where a register write cleared it, for
     every armed clock as `LineClocks.upcoming` does); the due rows and their times go into
     `due_rows`/`due_times`, what became of each into `kinds` (RAN ... ELSEWHERE). Returns
     how many were due. `out_fields` (offset, size, signed) and `in_fields` (offset, size,
@@ -160,12 +164,17 @@ def sync0_pass(now, present, steady_dc, memories, starts, local_at_zero, drift, 
         at = next_host[k]
         if not present[k] or not at <= now:
             continue
-        cycle = np.uint64(0)
+        cycle = np.uint32(0)
         for b in range(4):
-            cycle |= np.uint64(memory[dc.REG_SYNC0_CYCLE_TIME + b]) << np.uint64(8 * b)
-        next_sync0[k] += cycle
-        next_host[k] = at + cycle * 1e-9 / (1.0 + drift[k] + slew[k])
-        sync0_count[k] += 1
+            cycle |= np.uint32(memory[dc.REG_SYNC0_CYCLE_TIME + b]) << np.uint32(8 * b)
+        # the pulses since the last look latched into one event, at the last of them
+        # (`LineClocks.take_due`)
+        step = cycle * 1e-9 / (1.0 + drift[k] + slew[k])
+        late = np.int64(np.floor((now - at) / step)) if step > 0 else np.int64(0)
+        at = at + late * step
+        next_sync0[k] += np.uint64(cycle) * np.uint64(late + 1)
+        next_host[k] = at + step
+        sync0_count[k] += late + 1
         memory[dc.REG_SYNC0_STATUS] = 1
         due_rows[due], due_times[due] = k, at
         due += 1
@@ -214,7 +223,7 @@ def sync0_pass(now, present, steady_dc, memories, starts, local_at_zero, drift, 
         advance_line(cycle_rows[:cycling], controlwords, torque_out, current_out, 0, steady,
                      line_controlword, next_due, cycles, terms, flags, ranges, torque_targets,
                      current_targets, state, packed, packed_braked, draws, cursor, values,
-                     applied, outputs, substeps, done, unwritten)
+                     applied, outputs, substeps, done, unwritten, _NO_HOLDING)
         for n in range(cycling):
             if not done[n]:
                 continue
@@ -232,13 +241,16 @@ def sync0_pass(now, present, steady_dc, memories, starts, local_at_zero, drift, 
 
 
 @numba.njit(cache=True)
-def frame_pass(buffer, rows, out_at, in_at, memories, starts, out_fields, in_fields,
+def frame_pass(buffer, rows, out_at, in_at, holding, memories, starts, out_fields, in_fields,
                torque_field, current_field, controlwords, torque_out, current_out, encoded,
                line_arrays, substeps, done, unwritten) -> int:
     """Free run: the cycle of the batched slaves `rows` on a frame in one call, what the
     decode of their outputs at `out_at` in the frame `buffer`, `DriveLine.cycle` (through
     `advance_line`), the encode of the inputs and the copies into the frame (at `in_at`)
-    and into the SM2/SM3 buffers do, in the same arithmetic as `sync0_pass`. `done` gets,
+    and into the SM2/SM3 buffers do, in the same arithmetic as `sync0_pass`. A slave
+    `holding` (by line row: in SAFE-OP) cycles on the outputs its drive holds, as
+    `sync0_pass` does for a window without outputs: an ESC in SAFE-OP takes the outputs into
+    SM2 and the application ignores them. `done` gets,
     per row, whether its drive ran here (the others are left as they were: their ESC
     passes the frame). Returns how many ran. (As a dozen small numpy operations and two
     compiled calls this cost some 40 us for talos' 32 slaves, most of the frame.)"""
@@ -247,6 +259,13 @@ def frame_pass(buffer, rows, out_at, in_at, memories, starts, out_fields, in_fie
      outputs) = line_arrays
     for n in range(rows.shape[0]):
         k, at = rows[n], out_at[n]
+        if holding[k]:
+            controlwords[k] = line_controlword[k]
+            if torque_field >= 0:
+                torque_out[k] = np.int64(torque_targets[k])
+            if current_field >= 0:
+                current_out[k] = np.int64(np.rint(current_targets[k] * _MILLI))
+            continue
         controlwords[k] = _field(buffer, at + out_fields[0, 0], out_fields[0, 1],
                                  out_fields[0, 2] != 0)
         if torque_field >= 0:
@@ -259,7 +278,7 @@ def frame_pass(buffer, rows, out_at, in_at, memories, starts, out_fields, in_fie
     ran = advance_line(rows, controlwords, torque_out, current_out, 0, steady,
                        line_controlword, next_due, cycles, terms, flags, ranges,
                        torque_targets, current_targets, state, packed, packed_braked, draws,
-                       cursor, values, applied, outputs, substeps, done, unwritten)
+                       cursor, values, applied, outputs, substeps, done, unwritten, holding)
     out_size = 0
     for f in range(out_fields.shape[0]):
         out_size = max(out_size, out_fields[f, 0] + out_fields[f, 1])
@@ -375,6 +394,8 @@ class FrameBatch:
         self._drives_unknown = True
         self._steady = np.zeros(count, dtype=bool)
         self._dc = np.zeros(count, dtype=bool)  # steady on SYNC0 (else on the frame)
+        # steady in SAFE-OP (free run): cycles on the frame, its outputs ignored
+        self._holding = np.zeros(count, dtype=bool)
         self._keys: tuple | None = None
         self._layouts: tuple[PdoLayout, PdoLayout] | None = None
         self._encoder: InputEncoder | None = None
@@ -413,7 +434,8 @@ class FrameBatch:
         # compile: the master had given the line up after 100 ms)
         out_fields, in_fields, _, _ = self._fields
         scratch = self._scratch
-        frame_pass(np.zeros(0, dtype=np.uint8), none, none, none, self._memories, self._starts,
+        frame_pass(np.zeros(0, dtype=np.uint8), none, none, none, self._holding,
+                   self._memories, self._starts,
                    out_fields, in_fields, -1, -1, scratch["controlwords"], _NONE, _NONE,
                    self._no_inputs, self._line_arrays, dynamics.SUBSTEPS, scratch["done"],
                    self.line._unwritten)
@@ -427,7 +449,7 @@ class FrameBatch:
         """Which slaves are steady with one common batchable layout and plain FMMUs; the
         frame plans are kept while that stays as it was and nothing else changed."""
         before = self._steady.copy(), self._dc.copy()
-        self._steady[:] = self._dc[:] = False
+        self._steady[:] = self._dc[:] = self._holding[:] = False
         self._find_steady_into()
         if self._replan or not (np.array_equal(before[0], self._steady)
                               and np.array_equal(before[1], self._dc)):
@@ -435,7 +457,8 @@ class FrameBatch:
         self.stale = self._replan = False
 
     def _find_steady_into(self) -> None:
-        keys = [(firmware.steady_keys() or firmware.sync0_steady_keys()) if esc.present
+        keys = [(firmware.steady_keys() or firmware.safe_op_keys()
+                 or firmware.sync0_steady_keys()) if esc.present
                 else None for esc, firmware in zip(self.escs, self.firmwares, strict=True)]
         common = next((k for k in keys if k is not None and batchable_keys(*k)), None)
         if common is None:
@@ -464,6 +487,7 @@ class FrameBatch:
                     and reads[0][2] == in_start and reads[0][1] - reads[0][0] == in_length):
                 self._steady[k] = True
                 self._dc[k] = firmware.sync0_steady_keys() is not None
+                self._holding[k] = firmware.safe_op_keys() is not None
                 self._starts[k] = out_start, in_start
 
     def _plan(self, frame: bytearray, spans: list) -> "_Plan | None":
@@ -785,7 +809,8 @@ class FrameBatch:
         out_fields, in_fields, torque_field, current_field = self._fields
         scratch = self._scratch
         done = scratch["done"][:len(rows)]
-        ran = frame_pass(buffer, rows, out_at, in_at, self._memories, self._starts,
+        ran = frame_pass(buffer, rows, out_at, in_at, self._holding, self._memories,
+                         self._starts,
                          out_fields, in_fields, torque_field, current_field,
                          scratch["controlwords"],
                          scratch["torque"] if torque_field >= 0 else _NONE,
@@ -835,7 +860,7 @@ class FrameBatch:
                           scratch["due_rows"], scratch["due_times"], scratch["kinds"])
 
     def sync0(self, now: float, present: np.ndarray) -> np.ndarray:
-        """One round of the line's SYNC0 events due by `now` (the slaves `present`), each at
+        """The line's SYNC0 events due by `now` (the slaves `present`), one a slave, each at
         its own time (`LineClocks.take_due`): the rows whose SYNC0 fired. Every slave steady
         in OP on SYNC0 in one compiled call (`sync0_pass`: its window's bookkeeping, its
         drive's cycle on the SM2 buffer when outputs came in the window and on what it holds
@@ -873,8 +898,8 @@ class FrameBatch:
             return rows
         single = []
         for k in rows[kinds == LOST].tolist():
-            firmwares[k]._sync_lost(escs[k], ec.AL_SYNC_ERROR, "outputs missed their "
-                                    f"SYNC0 window {firmwares[k].missed_sync0} times")
+            firmwares[k]._sync_lost(escs[k], ec.AL_SYNC_ERROR, missed_windows(
+                firmwares[k].missed_sync0, int(self.sync.since[k])))
             single.append((k, False))
         single.extend((k, True) for k in rows[kinds == FRESH_LEFT].tolist())
         single.extend((k, False) for k in rows[kinds == HELD_LEFT].tolist())

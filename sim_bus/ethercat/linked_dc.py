@@ -125,11 +125,18 @@ class LinkedClock:
             self.run_sync0(self.clock.now() - 1e-9)
 
     def run_sync0(self, until: float) -> None:
+        """Each slave's SYNC0 pulses due by `until` taken, and its application run once, at
+        the last of them: pulses that came while the line was late are one event, as on a
+        segment (`sim_bus.ethercat.dc`); on drive time one pulse is due a frame."""
         for esc in self.escs:
+            taken = False
             while esc.present:
                 t = esc.dc.next_sync0_host_time(until)
-                if t is None or t > until or not esc.fire_sync0(t):
+                if t is None or t > until or not esc.take_sync0(t):
                     break
+                taken = True
+            if taken:
+                esc.firmware.sync0(esc)
 
 
 def _u16(esc: Esc, address: int) -> int:

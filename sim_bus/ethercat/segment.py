@@ -136,11 +136,14 @@ class Segment:
                            count=len(self.escs))
 
     def run_sync0(self, now: float) -> int:
-        """Every SYNC0 due by `now`, each at its own time (a late wake-up catches up, each
-        slave's events in order; slaves do not depend on each other), taken for the whole
-        line at once: with the batch, the whole round in one compiled call
+        """The SYNC0 events due by `now`, taken for the whole line at once: a slave's pulses
+        since the loop last looked are one event at the last of them, as a real ESC's
+        latched interrupt (`sim_bus.ethercat.dc`), so a late wake-up catches up in one pass
+        (replayed pulse by pulse, the line ran a device cycle per pulse and slave in Python
+        after a stall and never caught up); the loop wakes for every pulse when it is not
+        late. With the batch, the whole round in one compiled call
         (`FrameBatch.sync0`); slave by slave, `LineClocks.take_due` then each firmware's
-        `sync0`. The number fired."""
+        `sync0`. The number of events run."""
         fired = 0
         escs, batch, clocks = self.escs, self.batch, self.clocks
         if not clocks.armed.any():  # free run: no SYNC0 anywhere
