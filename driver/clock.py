@@ -362,6 +362,7 @@ class DriveTimers:
 
     def __init__(self) -> None:
         self._ns = 0
+        self._period, self._step = 0.0, 0  # the last tick's period (s) and its ns
         self._jobs: list[list] = []  # [due ns, interval ns, job or None once stopped]
         self._next_due = math.inf
         self._lock = threading.Lock()
@@ -371,7 +372,9 @@ class DriveTimers:
 
     def tick(self, period: float) -> None:
         """One cycle of `period` s passed; the jobs due by now run (each once)."""
-        self._ns += round(period * 1e9)
+        if period != self._period:  # the same every cycle: rounded once
+            self._period, self._step = period, round(period * 1e9)
+        self._ns += self._step
         if self._ns >= self._next_due:
             self._run_due()
 

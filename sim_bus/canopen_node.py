@@ -210,6 +210,8 @@ class CanOpenNode:
             network.subscribe, device.read,
             has(device.dictionary, objects.CONSUMER_HEARTBEAT, 1), device.master_lost,
             self.time, silence_timeout, f"node {node_id}", on_idle=device.run_alone)
+        # a SYNC's or an RPDO's call to the watch, only where it has a silence to judge
+        self._watches_silence = self.master_watch.watches_silence
         self._counting = has(device.dictionary, objects.SYNC_COUNTER_OVERFLOW)
         self._sync_length_reported = False
         self._late_once = self._twice_once = self._reboot_in_cycle = False
@@ -321,7 +323,8 @@ class CanOpenNode:
             log.warning("node %d: RPDO 0x%03X with %d bytes, %d expected", self.node_id,
                         can_id, len(data), pdo.codec.size)
             return
-        self.master_watch.activity()
+        if self._watches_silence:
+            self.master_watch.activity()
         values = pdo.codec.unpack(data)
         if pdo.synchronous:
             self._latched.append((pdo, values))  # CiA 301: applied at the next SYNC
@@ -339,7 +342,8 @@ class CanOpenNode:
         """A SYNC this operational node takes (`_BusSync`), before the cycle: the master is
         alive, the SYNC's length is checked, the synchronous RPDOs latched since the last
         one are applied."""
-        self.master_watch.activity()
+        if self._watches_silence:
+            self.master_watch.activity()
         counting = self._counting and self.device.setting(_SYNC_OVERFLOW) > 0
         if len(data) != (1 if counting else 0):
             if not self._sync_length_reported:

@@ -105,6 +105,8 @@ class MasterWatch:
         self._on_idle = on_idle
         self._time = time
         self._silence_timeout = silence_timeout
+        # whether `activity` is worth calling: without a silence watch nothing reads it
+        self.watches_silence = silence_timeout is not None
         self._name = name
         self._lock = threading.Lock()
         self._consumers: dict[int, float] = {}  # node id -> consumer time (s)
