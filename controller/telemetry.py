@@ -208,18 +208,20 @@ class TelemetryPublisher:
         # every message is this loop's Python while holding the interpreter's lock: one
         # look-up of its publisher's put by its class
         queue, puts, ros2 = self._queue, self._puts, self._ros2
+        popleft = queue.popleft
         with self._draining:
             while queue:
-                message = queue.popleft()
-                if until_blocking and type(message) is _FAULT:
+                message = popleft()
+                kind = type(message)
+                if until_blocking and kind is _FAULT:
                     queue.appendleft(message)
                     return False
                 try:
-                    puts[type(message)](message.SerializeToString())
+                    puts[kind](message.SerializeToString())
                     if ros2 is not None:
                         ros2.publish(message)
                 except Exception as exc:  # one bad message must not stop the telemetry
-                    log.error("publishing %s failed: %r", type(message).__name__, exc)
+                    log.error("publishing %s failed: %r", kind.__name__, exc)
         return True
 
     def close(self) -> None:

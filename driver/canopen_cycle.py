@@ -95,6 +95,9 @@ class BusCycle:
 
     def __init__(self, network: canopen.Network, watch: BusWatch, response_timeout: float):
         self.network = network
+        # a network that lets the waiting thread read its frames itself
+        # (`driver.canopen_multicast`), looked up once
+        self._receive_until = getattr(network, "receive_until", None)
         self.watch = watch
         self.clock = watch.clock
         self.response_timeout = response_timeout
@@ -250,10 +253,9 @@ class BusCycle:
     def collect(self) -> None:
         """Wait (up to the response timeout) for every TPDO answering the SYNC, then the
         bus's once-a-cycle jobs (`BusWatch.count_cycle`). A missing TPDO fails its drive."""
-        receive = getattr(self.network, "receive_until", None)
+        receive = self._receive_until
         if receive is not None and self._pending and not self.failed:
-            # the network lets the waiting thread read its frames itself
-            # (`driver.canopen_multicast`): no hand-over from a receive thread
+            # the waiting thread reads the frames itself: no hand-over from a receive thread
             receive(lambda: not self._pending or self.failed, self.response_timeout)
         with self._lock:  # the condition's lock (its own `with` costs two Python calls)
             if self._pending and not self.failed and receive is None:

@@ -144,6 +144,7 @@ class CanOpenBus(Segment):
         self._warning_lists = [lst for drive in drives for lst in drive.warning_lists]
         for drive in drives:
             drive.on_fault = self._alarm
+        self._shape = (len(drives), len(SAMPLE_COLUMNS))  # of a cycle's table
         self._layout = bus.input_layout(rows)
         bus.watch.restart_count()  # the other drives' bring-up is not load
 
@@ -188,7 +189,7 @@ class CanOpenBus(Segment):
         except DriveError as exc:
             raise self._blame(exc) from exc
         self._cycle += 1
-        table = np.empty((len(self.joints), len(SAMPLE_COLUMNS)))
+        table = np.empty(self._shape)
         glitch, faulted, saturated = decode(bus.image, self._layout, self._scale,
                                             self._cycle * self._period, self._previous, 1,
                                             table)

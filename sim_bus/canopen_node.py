@@ -131,6 +131,7 @@ class _CanLine(DriveLine):
         self.output_objects = (_CONTROLWORD,) + tuple(
             key for key in _TARGETS if all(has(d.dictionary, *key) for d in devices))
         self.output_rows = np.zeros((len(self.output_objects), count), dtype=np.int64)
+        self.controlwords = self.output_rows[0]  # a view, made once
         self.target_rows = list(self.output_rows[1:])
         self.unapplied: set[int] = set()
         self.rows = np.arange(count)
@@ -149,7 +150,9 @@ class _CanLine(DriveLine):
         """A received RPDO's `values` for row `j`: into the outputs when they repeat what the
         device acts on and nothing changed it since its terms were read, else to the device
         at once."""
-        columns = pdo.outputs_of(self.output_objects)
+        outputs = self.output_objects
+        # the RPDO's columns as last worked out (`outputs_of`), without a call each cycle
+        columns = pdo._columns if pdo._outputs is outputs else pdo.outputs_of(outputs)
         at = pdo.controlword_at
         if (columns is None or self._revisions[j] != device.revision + device.plant.revision
                 or not self._steady[j]
@@ -353,8 +356,9 @@ class CanOpenNode:
             self._sync_length_reported = False
         latched = self._latched
         if latched:
+            take, row, device = self._bus.line.take, self._row, self.device  # `_take`'s
             for pdo, values in latched:
-                self._take(pdo, values)
+                take(row, device, pdo, values)
             latched.clear()
         self.sync_count += 1
         self._reboot_in_cycle = False
@@ -585,7 +589,7 @@ class _BusSync:
         line = self.line
         rows = (line.rows if len(nodes) == len(self.nodes)
                 else np.array([node._row for node in nodes]))
-        done = line.cycle(rows, line.output_rows[0], line.output_objects, line.target_rows,
+        done = line.cycle(rows, line.controlwords, line.output_objects, line.target_rows,
                           counter).tolist()
         unapplied = line.unapplied
         if unapplied:  # what the batch took is applied; the others' devices take theirs
