@@ -195,6 +195,9 @@ class DriveLine:
         self._outputs_given: tuple | None = None
         self._torque_at = self._current_at = -1
         self._done = np.zeros(count, dtype=np.bool_)
+        # the arrays each `advance_line` call takes, gathered once (seventeen attribute
+        # look-ups a cycle otherwise): the line's own, never replaced
+        self._kernel = self.kernel_arrays()
 
     def __len__(self) -> int:
         return len(self.devices)
@@ -276,12 +279,8 @@ class DriveLine:
         ran = advance_line(rows, controlwords,
                            output_values[self._torque_at] if self._torque_at >= 0 else _NONE,
                            output_values[self._current_at] if self._current_at >= 0 else _NONE,
-                           counter, self._steady, self._controlword, self._next_due,
-                           self._cycles, self.terms, self.flags, self.ranges,
-                           self.torque_targets, self.current_targets, self.state, self.packed,
-                           self.packed_braked, self.draws, self.cursor, self.values,
-                           self.applied, self.outputs, dynamics.SUBSTEPS, done,
-                           self._unwritten, _NO_ROWS)
+                           counter, *self._kernel, dynamics.SUBSTEPS, done, self._unwritten,
+                           _NO_ROWS)
         if ran == len(devices):
             return done
         if others_idle:
