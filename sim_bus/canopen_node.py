@@ -48,7 +48,7 @@ from sim_bus.canopen_watchdogs import (
 )
 from sim_bus.device import LINE_KEYS, Cia402Device, DeviceAccessError
 from sim_bus.faults import FLOOD_COB_ID, FLOOD_SECONDS, TPDO_DELAY, Fault
-from sim_bus.line_physics import DriveLine
+from sim_bus.line_physics import STEADY, DriveLine
 
 log = logging.getLogger(__name__)
 
@@ -155,7 +155,7 @@ class _CanLine(DriveLine):
         columns = pdo._columns if pdo._outputs is outputs else pdo.outputs_of(outputs)
         at = pdo.controlword_at
         if (columns is None or self._revisions[j] != device.revision + device.plant.revision
-                or not self._steady[j]
+                or self._steady[j] != STEADY  # a drive commanded, and its terms steady
                 or (at >= 0 and values[at] != self._controlword[j])):
             device.write_outputs(pdo.keys, values)
             return
