@@ -138,14 +138,12 @@ class BusWatch:
 
     def count_cycle(self, warnings: list[str]) -> None:
         """Once per cycle of the bus, after its TPDOs: the load, then the clock's jobs."""
-        counts = self._counts  # `frames`, and `tick`'s look at the time, inline: two calls
-        total = counts._frames if counts is self else counts.frames  # fewer a cycle
+        total = self.frames
         frames, self._frames_at_cycle = total - self._frames_at_cycle, total
         if frames > self.frame_limit:
             warnings.append(f"bus overloaded: {frames} frames in one cycle (at most "
                             f"{self.frame_limit} expected)")
-        if self.clock.now() >= self._due:
-            self.tick()
+        self.tick()
 
     def tick(self) -> None:
         """What is due on the clock now: the master's heartbeats, every drive's heartbeat

@@ -150,9 +150,7 @@ class _CanLine(DriveLine):
         """A received RPDO's `values` for row `j`: into the outputs when they repeat what the
         device acts on and nothing changed it since its terms were read, else to the device
         at once."""
-        outputs = self.output_objects
-        # the RPDO's columns as last worked out (`outputs_of`), without a call each cycle
-        columns = pdo._columns if pdo._outputs is outputs else pdo.outputs_of(outputs)
+        columns = pdo.outputs_of(self.output_objects)
         at = pdo.controlword_at
         if (columns is None or self._revisions[j] != device.revision + device.plant.revision
                 or self._steady[j] != STEADY  # a drive commanded, and its terms steady
@@ -331,15 +329,10 @@ class CanOpenNode:
         values = pdo.codec.unpack(data)
         if pdo.synchronous:
             self._latched.append((pdo, values))  # CiA 301: applied at the next SYNC
-        else:
-            self._take(pdo, values)
+        else:  # to the bus's batch, which may keep them until the SYNC or hand them over
+            self._bus.line.take(self._row, self.device, pdo, values)
 
     # --- SYNC -------------------------------------------------------------------------------
-
-    def _take(self, pdo: _Pdo, values: tuple) -> None:
-        """An RPDO's values, to the bus's batch (which may keep them until the SYNC, or hand
-        them to the device at once)."""
-        self._bus.line.take(self._row, self.device, pdo, values)
 
     def _sync_arrived(self, data: bytearray) -> None:
         """A SYNC this operational node takes (`_BusSync`), before the cycle: the master is
@@ -356,7 +349,7 @@ class CanOpenNode:
             self._sync_length_reported = False
         latched = self._latched
         if latched:
-            take, row, device = self._bus.line.take, self._row, self.device  # `_take`'s
+            take, row, device = self._bus.line.take, self._row, self.device
             for pdo, values in latched:
                 take(row, device, pdo, values)
             latched.clear()
