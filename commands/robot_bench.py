@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
-from driver.clock import bare_loop
+from driver.host_floor import FloorBeside, bare_loop
 from protocol.bus_spec import is_ethercat, parse_bus_spec
 from robot.description import load_robot, robot_path
 from sim_bus.ethercat.netns import NamespacePair
@@ -72,13 +72,19 @@ def run(robot_file: str, duration: float, starts: int, sync: str | None = None, 
             stage(f"start {start}/{starts}: {joints} joint{'s' if joints != 1 else ''} of "
                   f"{robot.name}, "
                   f"{duration:g} s in real time{', drives embedded' if sim else ''}")
-            runs.append(_one_start(pair, path, duration, Path(folder) / f"run{start}.json",
-                                   robot.period_us, sim, cpus))
+            with FloorBeside(sorted(os.sched_getaffinity(0)),
+                             robot.period_us * 1e-6) as beside:
+                one = _one_start(pair, path, duration, Path(folder) / f"run{start}.json",
+                                 robot.period_us, sim, cpus)
+            if one.get("cycles_from_s") is not None:
+                one["floor_beside"] = beside.figures(one["cycles_from_s"], one["cycles_to_s"])
+            runs.append(one)
     cycles = round(duration * 1e6 / robot.period_us)
     for one in runs:
         if "missed" in one:
             one["missed_percent"] = round(100 * one["missed"] / cycles, 3)
     missed = [one["missed_percent"] for one in runs if one["started"] and "missed_percent" in one]
+    beside = [one["floor_beside"]["missed_percent"] for one in runs if "floor_beside" in one]
     return {
         "robot": robot.name, "joints": len(robot.joints), "duration_s": duration,
         "drives": "embedded" if sim else "own process", "busy_loops": busy_loops,
@@ -95,6 +101,9 @@ def run(robot_file: str, duration: float, starts: int, sync: str | None = None, 
         # over the starts that ran: what a reader holds against 3x the floor
         "missed_percent": {"median": float(np.median(missed)), "max": max(missed)}
         if missed else None,
+        # the floor beside each start, over that start's cycles (`driver.host_floor`)
+        "floor_beside_percent": {"median": float(np.median(beside)), "max": max(beside)}
+        if beside else None,
         "runs": runs,
     }
 

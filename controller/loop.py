@@ -83,6 +83,11 @@ class LoopReport:
     # decoding, safety, encoding (a figure of its own: what the service adds to the solver)
     master: RingStats = field(default_factory=RingStats)
     history: dict = field(default_factory=dict)
+    # s on the loop's clock (real time: `time.perf_counter`, the host's monotonic clock,
+    # which other processes read too): the rhythm's first deadline and the run's end, the
+    # span a host's stalls beside the run are counted over (`driver.host_floor`)
+    cycles_from: float = math.nan
+    cycles_to: float = math.nan
 
     @property
     def missed_cycles(self) -> int:
@@ -115,6 +120,9 @@ class LoopReport:
                 "cold_solve_us": self.cold_solve_us,
                 "jitter": {"p99_us": self.jitter.percentile(99), "max_us": self.jitter.max},
                 "mpc_tick": stats(self.solve), "master": stats(self.master),
+                # None: the run ended before its rhythm began (JSON has no NaN)
+                "cycles_from_s": None if math.isnan(self.cycles_from) else self.cycles_from,
+                "cycles_to_s": None if math.isnan(self.cycles_to) else self.cycles_to,
                 "exit_code": self.exit_code, "reason": self.reason}
 
     def count_missed(self, phases: Sequence[float], cycles: int) -> None:
@@ -534,6 +542,7 @@ class ControlLoop:
                 if math.isnan(report.cold_solve_us):
                     report.cold_solve_us = decide_time * 1e6
                 clock.restart()
+                report.cycles_from = options.clock.now()
             report.cycles += 1
             published = perf_counter()
             published_view(decide_time)
@@ -699,6 +708,7 @@ class ControlLoop:
                 action: str | None = None, t: float = 0.0) -> LoopReport:
         self.report.exit_code = code
         self.report.reason = reason
+        self.report.cycles_to = self.options.clock.now()
         if source is not None:
             self.fault(t, source, reason, action or "")
         self.publish(self._stats(t, whole_run=True))

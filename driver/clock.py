@@ -471,23 +471,3 @@ class CycleClock:
             self.missed_cycles += 1
             return True
         return False
-
-
-def bare_loop(duration: float, period: float = 1e-3,
-              priority: int = REAL_TIME_PRIORITY) -> CycleClock:
-    """This machine's floor: a cyclic sleep-and-wake loop with nothing else in it, for
-    `duration` s at `priority` (as a control loop runs; this thread only, given back after),
-    so a real-time figure can be read against what the host itself allows; with the CPUs
-    kept awake (`cpus_awake`) as the loops it is the floor of keep them. The clock holds the
-    missed cycles and the jitter."""
-    refused = prefer_real_time(priority) if priority else None
-    try:
-        clock = CycleClock(period, WallClock())
-        with cpus_awake():
-            for _ in range(int(round(duration / period))):
-                clock.wait()
-                clock.check_overrun()
-        return clock
-    finally:
-        if priority and refused is None:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))

@@ -64,6 +64,13 @@ def test_one_joint_runs_in_real_time_and_reports_its_misses(tmp_path, extra):
     assert run["missed_percent"] == pytest.approx(100 * run["missed"] / 1000, abs=1e-3)
     assert result["missed_percent"] == {"median": run["missed_percent"],
                                         "max": run["missed_percent"]}
+    # the floor beside the start, on every CPU the bench may use, over the run's own cycles
+    beside = run["floor_beside"]
+    assert beside["cpus"] == allowed
+    assert run["cycles_to_s"] - run["cycles_from_s"] == pytest.approx(1.0, abs=0.05)
+    assert beside["missed_percent"] == pytest.approx(
+        100 * beside["missed"] / ((run["cycles_to_s"] - run["cycles_from_s"]) * 1e3), abs=1e-3)
+    assert result["floor_beside_percent"]["max"] == beside["missed_percent"]
     assert set(_busy_loops()) <= before  # the bench's own loops were stopped
 
 
