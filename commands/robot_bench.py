@@ -78,6 +78,8 @@ def run(robot_file: str, duration: float, starts: int, sync: str | None = None, 
                                  robot.period_us, sim, cpus)
             if one.get("cycles_from_s") is not None:
                 one["floor_beside"] = beside.figures(one["cycles_from_s"], one["cycles_to_s"])
+                # the run's own misses a stall of the host explains, and those it does not
+                one["missed_in_host_stalls"] = beside.in_stalls(one.pop("missed_at_s"))
             runs.append(one)
     cycles = round(duration * 1e6 / robot.period_us)
     for one in runs:

@@ -42,6 +42,7 @@ from model.parameters import ActuatorParameters, Limits
 from protocol import cia402
 
 STALL_CYCLES = 10  # missed in a row: worth a message on the fault topic
+MISSES_KEPT = 20_000  # times cycles were missed, kept for the report
 # why a cycle missed its deadline: woken late by the host; the drive's sample late (the
 # exchange, SYNC to the last TPDO or the frame's round trip); the decision (safety and MPC)
 # over the period; the telemetry's hand-off and the loop's own messages
@@ -88,6 +89,9 @@ class LoopReport:
     # span a host's stalls beside the run are counted over (`driver.host_floor`)
     cycles_from: float = math.nan
     cycles_to: float = math.nan
+    # (s on the loop's clock, cycles): each time cycles were found missed, the first
+    # MISSES_KEPT times
+    missed_at: list[tuple[float, int]] = field(default_factory=list)
 
     @property
     def missed_cycles(self) -> int:
@@ -123,15 +127,19 @@ class LoopReport:
                 # None: the run ended before its rhythm began (JSON has no NaN)
                 "cycles_from_s": None if math.isnan(self.cycles_from) else self.cycles_from,
                 "cycles_to_s": None if math.isnan(self.cycles_to) else self.cycles_to,
+                "missed_at_s": self.missed_at,
                 "exit_code": self.exit_code, "reason": self.reason}
 
-    def count_missed(self, phases: Sequence[float], cycles: int) -> None:
-        """`cycles` missed, put down to the phase that took longest of the cycle behind them
-        (`phases`: s per cause, in MISSED_CAUSES order), so a user can tell their machine from
-        the service."""
+    def count_missed(self, phases: Sequence[float], cycles: int, at: float) -> None:
+        """`cycles` missed, seen at `at` (s on the loop's clock), put down to the phase that
+        took longest of the cycle behind them (`phases`: s per cause, in MISSED_CAUSES order),
+        so a user can tell their machine from the service; when, so a bench can hold them
+        against the host's own stalls (`driver.host_floor`)."""
         if cycles:
             longest = max(range(len(MISSED_CAUSES)), key=phases.__getitem__)
             self.missed_by_cause[MISSED_CAUSES[longest]] += cycles
+            if len(self.missed_at) < MISSES_KEPT:
+                self.missed_at.append((at, cycles))
 
 
 # The cycle's array work in two compiled calls whatever the number of joints: as numpy
@@ -516,7 +524,7 @@ class ControlLoop:
         while not self._stop.is_set():
             skipped = clock.wait(joints_clock_trim())
             if skipped:
-                report.count_missed(behind, skipped)
+                report.count_missed(behind, skipped, clock.clock.now())
                 if clock.missed_cycles - missed >= STALL_CYCLES and self._t is not None:
                     self.fault(self._t, "controller",
                                f"loop stalled: {clock.missed_cycles - missed} cycles missed",
@@ -533,7 +541,7 @@ class ControlLoop:
                 overrun = clock.check_overrun()
                 if overrun:
                     report.count_missed((clock.wake_lateness, self._exchange_time, decide_time,
-                                         0.0), overrun)
+                                         0.0), overrun, clock.clock.now())
                 solve.add(decide_time * 1e6)
                 master.add(master_time * 1e6)
             else:

@@ -12,6 +12,7 @@ on, a bare SCHED_FIFO loop on an otherwise idle host lost its CPU for 1-10 ms se
 beside a start sees that start's own.
 """
 
+import bisect
 import math
 import os
 import threading
@@ -130,6 +131,22 @@ class FloorBeside:
             if woke > deadline + period:
                 stalls.append(Stall(cpu, deadline, woke))
                 deadline += math.floor((woke - deadline) / period) * period
+
+    def in_stalls(self, missed_at: Iterable[tuple[float, int]]) -> int:
+        """Of a run's missed cycles (`missed_at`: when, s on the monotonic clock, and how
+        many, as `controller.loop.LoopReport` keeps them), those a stall beside it explains:
+        a stall of any CPU within the cycles behind the moment they were found missed (one
+        period more, the cycle that overran or slept through them)."""
+        stalls = sorted((s.deadline, s.woke) for s in self.stalls)
+        starts = [start for start, _ in stalls]
+        explained = 0
+        for at, cycles in missed_at:
+            since = at - (cycles + 1) * self.period
+            # the stalls that began before `at`; any of them that ended after `since` overlaps
+            last = bisect.bisect_right(starts, at)
+            if any(woke > since for _, woke in stalls[:last]):
+                explained += cycles
+        return explained
 
     def figures(self, begin: float = -math.inf, end: float = math.inf) -> dict:
         """The floor between `begin` and `end` (s, the monotonic clock: a run's cycles):

@@ -55,3 +55,15 @@ def test_the_hosts_steal_is_read_per_cpu():
         return
     assert set(steal) == set(range(os.cpu_count()))
     assert all(value >= 0 for value in steal.values())
+
+
+def test_a_runs_misses_are_put_down_to_the_stalls_beside_them():
+    floor = _floor([Stall(0, 10.0, 10.0045), Stall(1, 20.0, 20.0012)])
+    explained = floor.in_stalls([
+        (10.005, 4),    # found just after the first stall: explained
+        (15.0, 1),      # nothing near: the run's own
+        (20.003, 1),    # a cycle that overran through the second stall's end: explained
+        (20.5, 2),      # well after it: the run's own
+        (9.9, 1),       # before any stall began
+    ])
+    assert explained == 4 + 1
