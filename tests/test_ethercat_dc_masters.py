@@ -1,8 +1,9 @@
-"""The IgH EtherLab master's distributed-clock set-up against the virtual line, datagram by
-datagram (etherlab/ethercat 1.6: master/fsm_master.c, fsm_slave_scan.c, slave.c, master.c,
-fsm_slave_config.c), with what IgH itself checks on the way. It differs from SOEM's
-ecx_configdc (tests/test_ethercat_dc.py) where a slave could trip on it:
+"""Distributed-clock set-ups of masters nobody here wrote against the virtual line, datagram
+by datagram, with what each master itself checks on the way (SOEM's ecx_configdc is in
+tests/test_ethercat_dc.py).
 
+IgH's EtherLab master (etherlab/ethercat 1.6: master/fsm_master.c, fsm_slave_scan.c, slave.c,
+master.c, fsm_slave_config.c) differs from SOEM where a slave could trip on it:
 - the delays come from a one-byte BWR of 0x0900 and 16-byte reads of ports 0-3, ports whose
   time did not change since the scan's first read counted as bypassed, and the loop states of
   the DL status (0x0110);
@@ -15,6 +16,14 @@ ecx_configdc (tests/test_ethercat_dc.py) where a slave could trip on it:
   under 10 us, then the start time (the application's time + 100 ms, in phase with its first
   time), and only then the assignment and activation in one 16-bit write of 0x0980 (0x0300),
   all in PRE-OP, before SAFE-OP is asked for.
+
+KickCAT (leducp/KickCAT: lib/master/src/Bus.cc resetSlaves, dc.cc Bus::enableDC, as its
+marvin example calls it): its Python binding has no DC (no enableDC, no register access), so
+its C++ sequence is replayed here: the reset of Bus::init (a BWR of zeros on 0x0910, 0x0981,
+0x0980, then 0x0930 and the filter depths 0x0934), then in INIT the latch, each slave's
+receive times and offset/delay, 15000 FRMWs of 0x0910 back to back (static drift
+compensation), and SYNC0's cycle, start time and activation by broadcast writes, one start
+time for all; PRE-OP, mapping, SAFE-OP and OP after, with an FRMW in every cycle.
 """
 
 import struct
@@ -386,3 +395,124 @@ def test_igh_dc_set_up_runs_the_line_on_its_sync0():
     [(difference, wkc)] = igh.cycle((Cmd.BRD, dc.REG_SYSTEM_TIME_DIFFERENCE << 16, bytes(4)))
     assert wkc == igh.count
     assert struct.unpack("<I", difference)[0] & 0x7FFFFFFF < 1000
+
+
+# KickCAT's since_ecat_epoch at host time 0 (any epoch: it is the master's time)
+ECAT_EPOCH_NS = APP_EPOCH_NS
+KICKCAT_SHIFT_NS = 500_000  # enableDC(1ms, 500us, 100ms), as its marvin example
+KICKCAT_START_DELAY_NS = 100_000_000
+KICKCAT_SYNC_THRESHOLD_NS = 10_000  # isDCSynchronized(10us), as marvin
+DRIFT_COMPENSATION_FRAMES = 15_000
+DRIFT_COMPENSATION_SPACING = 50e-6  # s between them: as fast as a frame comes back
+
+
+def _exchange(frames: FrameMaster, *datagrams) -> list[tuple[bytes, int]]:
+    frame = frames.send([(c, k, a, d) for k, (c, a, d) in enumerate(datagrams)])
+    return [ec.datagram_result(frame, span) for span in ec.datagram_spans(frame)]
+
+
+def test_kickcat_enable_dc_runs_the_line_on_its_sync0():
+    """KickCAT's reset and Bus::enableDC against four of talos' drives, in INIT: the delays it
+    works out (its computePropagationDelay on a line) are the line's, after its burst of
+    FRMWs every slave's system time difference is under its 10 us, one start time broadcast
+    to all is in every slave's future and SYNC0 fires there every period on all of them; the
+    line then comes to OP on SYNC0 with an FRMW in every cycle and the drives follow."""
+    segment = Segment(talos_devices(4))
+    frames = FrameMaster(segment)  # station addresses, as Bus::init sets them
+    count = frames.count
+    frames.now = 20.0
+
+    def bwr(register: int, data: bytes) -> None:
+        [(_, wkc)] = _exchange(frames, (Cmd.BWR, register << 16, data))
+        assert wkc == count
+
+    def master_time() -> int:
+        return ECAT_EPOCH_NS + round(frames.now * 1e9)
+
+    bwr(dc.REG_SYSTEM_TIME, bytes(8))  # Bus::resetSlaves, its DC part
+    bwr(dc.REG_SYNC_ACTIVATION, bytes(1))
+    bwr(dc.REG_CYCLIC_UNIT_CONTROL, bytes(2))
+    bwr(dc.REG_SPEED_COUNTER_START, struct.pack("<H", 0x1000))
+    bwr(0x0934, struct.pack("<H", 0x0C00))  # filter depths
+    frames.now += 0.01
+    now = master_time()  # sampled before the latch
+    bwr(dc.REG_RECEIVE_TIME_PORT0, bytes(1))
+    ports, latched = [], []
+    for k in range(count):
+        [(times, wkc), (unit, unit_wkc)] = _exchange(
+            frames, (Cmd.FPRD, (0x1001 + k) | dc.REG_RECEIVE_TIME_PORT0 << 16, bytes(16)),
+            (Cmd.FPRD, (0x1001 + k) | dc.REG_RECEIVE_TIME_UNIT << 16, bytes(8)))
+        assert wkc == unit_wkc == 1
+        ports.append(struct.unpack("<4I", times))
+        latched.append(struct.unpack("<Q", unit)[0])
+    # on a line: port 0 the entry, port 1 to the next (open on all but the last)
+    deltas = [(p[1] - p[0]) & 0xFFFFFFFF if k < count - 1 else 0 for k, p in enumerate(ports)]
+    delays = [0]
+    for k in range(1, count):
+        delays.append(delays[-1] + (deltas[k - 1] - deltas[k]) // 2)
+    hop = dc.HOP_DELAY * 1e9
+    assert [abs(d - k * hop) <= k * hop * 1e-4 + 2 for k, d in enumerate(delays)] == [True] * 4
+    for k in range(count):  # applyMasterTime
+        for register, data in ((dc.REG_SYSTEM_TIME_DELAY, struct.pack("<I", delays[k])),
+                               (dc.REG_SYSTEM_TIME_OFFSET,
+                                struct.pack("<Q", (now - latched[k]) % 2**64))):
+            [(_, wkc)] = _exchange(frames, (Cmd.FPWR, (0x1001 + k) | register << 16, data))
+            assert wkc == 1
+    bwr(0x0934, struct.pack("<H", 0x0C00))
+    bwr(dc.REG_SPEED_COUNTER_START, struct.pack("<H", 0x1000))
+    for _ in range(DRIFT_COMPENSATION_FRAMES):  # static drift compensation
+        frames.now += DRIFT_COMPENSATION_SPACING
+        [(_, wkc)] = _exchange(frames, (Cmd.FRMW, 0x1001 | dc.REG_SYSTEM_TIME << 16,
+                                        struct.pack("<Q", master_time())))
+        assert wkc == count
+    differences = []
+    for k in range(1, count):  # isDCSynchronized
+        [(difference, wkc)] = _exchange(
+            frames, (Cmd.FPRD, (0x1001 + k) | dc.REG_SYSTEM_TIME_DIFFERENCE << 16, bytes(4)))
+        differences.append(struct.unpack("<I", difference)[0] & 0x7FFFFFFF)
+    assert max(differences) <= KICKCAT_SYNC_THRESHOLD_NS
+    bwr(dc.REG_SYNC0_CYCLE_TIME, struct.pack("<I", PERIOD_NS))
+    [(network_time, wkc)] = _exchange(frames, (Cmd.FPRD, 0x1001 | dc.REG_SYSTEM_TIME << 16,
+                                               bytes(8)))
+    assert wkc == 1
+    (network_time,) = struct.unpack("<Q", network_time)
+    start = (network_time // PERIOD_NS * PERIOD_NS + PERIOD_NS + KICKCAT_SHIFT_NS
+             + KICKCAT_START_DELAY_NS)
+    bwr(dc.REG_START_TIME, struct.pack("<Q", start))
+    bwr(dc.REG_SYNC_ACTIVATION, b"\x03")
+    assert [esc.dc.next_sync0 for esc in segment.escs] == [start] * count  # in every future
+    host_starts = [esc.dc.next_sync0_host_time(frames.now) for esc in segment.escs]
+    assert max(host_starts) - min(host_starts) < 50e-9  # the same instant on every slave
+
+    def cycle() -> list[tuple[bytes, int]]:
+        frames.now += PERIOD_NS * 1e-9
+        _wake_through(segment, frames.now)
+        datagrams = []
+        if hasattr(frames, "layouts"):
+            datagrams.append((Cmd.LRW, 0, frames.image(controlwords, np.zeros(count,
+                                                                              np.int64))))
+        datagrams.append((Cmd.FRMW, 0x1001 | dc.REG_SYSTEM_TIME << 16,
+                          struct.pack("<Q", master_time())))
+        return _exchange(frames, *datagrams)
+
+    controlwords = np.zeros(count, dtype=np.int64)
+    frames.map_process_data()  # PRE-OP, the mapping
+    for state in (AL.SAFE_OP, AL.OP):  # requestState, then the cycle until the line is there
+        bwr(ec.REG_AL_CONTROL, struct.pack("<H", state))
+        for _ in range(300):
+            cycle()
+            if frames.states() == [state] * count:
+                break
+        assert frames.states() == [state] * count
+    for n in range(200):
+        controlwords[:] = enable_sequence(n, count)
+        [(_, lrw_wkc), (_, frmw_wkc)] = cycle()
+    assert lrw_wkc == 3 * count and frmw_wkc == count
+    assert all(device.state.name == "OPERATION_ENABLED" for device in segment.drives.devices)
+    assert min(esc.dc.sync0_count for esc in segment.escs) > 200
+    assert [esc.dc.next_sync0 - start - esc.dc.sync0_count * PERIOD_NS
+            for esc in segment.escs] == [0] * count
+    differences = [struct.unpack("<I", _exchange(frames, (
+        Cmd.FPRD, (0x1001 + k) | dc.REG_SYSTEM_TIME_DIFFERENCE << 16, bytes(4)))[0][0])[0]
+        & 0x7FFFFFFF for k in range(1, count)]
+    assert max(differences) <= KICKCAT_SYNC_THRESHOLD_NS
