@@ -59,7 +59,7 @@ class DcLine:
         self._trim = 0.0
         self._anchor: tuple[float, int] | None = None  # (host time, reference time) of a frame
         self._recent: deque[int] = deque(maxlen=RELOCK_FRAMES)  # the last frames' offsets, ns
-        self.elapsed_periods = 1  # SYNC0 events between the last two cycles' frames
+        self.elapsed_periods = 1  # SYNC0 periods between the last two cycles' frames
         self.kept = 0  # frames the keeper sent into windows the cycle left empty
         self.waits_us = RingStats()  # the cycle's wait for the line's lock
         self.round_trips_us = RingStats()  # the cycle's frame, sent to answered
@@ -94,12 +94,7 @@ class DcLine:
         trim of the next wake-up."""
         period = self.period_ns
         if self._anchor is not None:
-            # the SYNC0 events between the two frames, each a drive cycle between the samples
-            # they read (rounding the time between them up counted two for half the frames,
-            # those a few us more than a period after the one before)
-            sync0 = dc_time - self.shift_ns
-            self.elapsed_periods = max(1, sync0 // period
-                                       - (self._anchor[1] - self.shift_ns) // period)
+            self.elapsed_periods = max(1, -(-(dc_time - self._anchor[1]) // period))
         self._anchor = (sent_at, dc_time)
         offset = (dc_time - int(MASTER_PHASE * period)) % period
         if offset > period // 2:
