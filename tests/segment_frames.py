@@ -70,6 +70,16 @@ class FrameMaster:
     def start(self, operational: bool = True) -> None:
         """INIT -> SAFE-OP with the image mapped, OP requested (entered with the first
         outputs) unless not `operational`."""
+        self.map_process_data()
+        self.request(AL.SAFE_OP)
+        assert self.states() == [AL.SAFE_OP] * self.count
+        if operational:
+            self.request(AL.OP)
+
+    def map_process_data(self) -> None:
+        """INIT -> PRE-OP (mailbox sync managers), then the PDO sync managers, FMMUs and the
+        process data watchdog written in PRE-OP: where a master leaves the line before it
+        sets distributed clocks up (IgH) or asks for SAFE-OP (SOEM)."""
         segment = self.segment
         esi = segment.esi
         for k in range(self.count):
@@ -98,10 +108,6 @@ class FrameMaster:
                 + ec.FMMU.pack(self.count * self.out_size + k * self.in_size, self.in_size,
                                0, 7, in_sm.start, 0, ec.FMMU_READ, 1))
             self.write(k, ec.REG_WATCHDOG_TIME_PROCESS_DATA, struct.pack("<H", 1000))  # 100 ms
-        self.request(AL.SAFE_OP)
-        assert self.states() == [AL.SAFE_OP] * self.count
-        if operational:
-            self.request(AL.OP)
 
     def start_dc(self, shift: float = 0.5e-3, period: float = 1e-3) -> None:
         """From SAFE-OP, what SOEM's ecx_configdc and ecx_dcsync0 send: receive times
@@ -130,16 +136,19 @@ class FrameMaster:
             self.write(k, REG_SYNC_ACTIVATION, b"\x03")
         self.request(AL.OP)
 
-    def lrw(self, controlwords: np.ndarray, torques: np.ndarray) -> bytearray:
-        """The cyclic frame: one LRW with every slave's controlword and target torque (and
-        zero for any other output), one cycle later."""
+    def image(self, controlwords: np.ndarray, torques: np.ndarray) -> bytes:
+        """The logical image an LRW carries: every slave's controlword and target torque (and
+        zero for any other output), then room for the inputs."""
         outputs = np.zeros(self.count, self.layouts[0].dtype)
         outputs["f0"] = controlwords
         if len(self.layouts[0].objects) > 1:
             outputs["f1"] = torques
+        return outputs.tobytes() + bytes(self.count * self.in_size)
+
+    def lrw(self, controlwords: np.ndarray, torques: np.ndarray) -> bytearray:
+        """The cyclic frame: one LRW of `image`, one cycle later."""
         self.now += 1e-3
-        return self.send([(Cmd.LRW, 0, 0, outputs.tobytes()
-                           + bytes(self.count * self.in_size))])
+        return self.send([(Cmd.LRW, 0, 0, self.image(controlwords, torques))])
 
     def inputs(self, frame: bytearray) -> np.ndarray:
         data, _ = ec.datagram_result(frame, ec.datagram_spans(frame)[0])
