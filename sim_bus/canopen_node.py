@@ -205,6 +205,8 @@ class CanOpenNode:
         # its TPDOs' (COB-ID, start, stop) in the bus's packed TPDO bytes (`_BusSync`; None:
         # they are packed one by one)
         self._tpdo_frames: tuple[tuple[int, int, int], ...] | None = None
+        # a network that sends those frames in one call (`sim_bus.embedded.LinkedNetwork`)
+        self._send_slices = getattr(network, "send_slices", None)
         self._heartbeat = HeartbeatProducer(network.send_message, node_id,
                                             lambda: self.nmt_state, self.time)
         self.master_watch = MasterWatch(
@@ -403,6 +405,9 @@ class CanOpenNode:
         self.time.tick(self.device.period)
         if self._silent or self._reboot_in_cycle:
             return
+        if self._send_slices is not None:
+            self._send_slices(data, frames)
+            return
         send = self.network.send_message
         for cob_id, start, stop in frames:
             send(cob_id, data[start:stop])
@@ -583,7 +588,17 @@ class _BusSync:
         rows = (line.rows if len(nodes) == len(self.nodes)
                 else np.array([node._row for node in nodes]))
         done = line.cycle(rows, line.controlwords, line.output_objects, line.target_rows,
-                          counter).tolist()
+                          counter)
+        fields, packed = self._packing or self._lay_out()
+        values = line.values
+        if line.ran == len(nodes):  # nearly always: every node's cycle was the batch's
+            line.unapplied.clear()
+            pack_tpdos(values, fields, packed)
+            data = packed.tobytes()
+            for node in nodes:
+                node._answer_packed(data, values)
+            return
+        done = done.tolist()
         unapplied = line.unapplied
         if unapplied:  # what the batch took is applied; the others' devices take theirs
             if all(done):
@@ -592,8 +607,6 @@ class _BusSync:
                 unapplied.difference_update(
                     j for j, ran in zip(rows.tolist(), done, strict=True) if ran)
         # every ran drive's TPDOs packed at once, cut into frames by each node
-        fields, packed = self._packing or self._lay_out()
-        values = line.values
         pack_tpdos(values, fields, packed)
         data = packed.tobytes()
         for node, ran in zip(nodes, done, strict=True):

@@ -195,6 +195,7 @@ class DriveLine:
         self._outputs_given: tuple | None = None
         self._torque_at = self._current_at = -1
         self._done = np.zeros(count, dtype=np.bool_)
+        self.ran = 0  # how many drives the last `cycle` ran
         # the arrays each `advance_line` call takes, gathered once (seventeen attribute
         # look-ups a cycle otherwise): the line's own, never replaced
         self._kernel = self.kernel_arrays()
@@ -269,18 +270,18 @@ class DriveLine:
         another way, so its terms are read again before its next. `refresh` False: the
         caller has just called `refresh`. `others_idle`: the caller knows the drives not in
         `rows` did not cycle (a SYNC0 batch of part of the line), so only those of `rows`
-        not run here are read again."""
+        not run here are read again. How many ran: `ran`."""
         if refresh and self.changed:
             self.refresh()
         devices = self.devices
         self.prepare(outputs)
         count = len(rows)
         done = self._done if count == len(devices) else self._done[:count]
-        ran = advance_line(rows, controlwords,
-                           output_values[self._torque_at] if self._torque_at >= 0 else _NONE,
-                           output_values[self._current_at] if self._current_at >= 0 else _NONE,
-                           counter, *self._kernel, dynamics.SUBSTEPS, done, self._unwritten,
-                           _NO_ROWS)
+        ran = self.ran = advance_line(
+            rows, controlwords,
+            output_values[self._torque_at] if self._torque_at >= 0 else _NONE,
+            output_values[self._current_at] if self._current_at >= 0 else _NONE,
+            counter, *self._kernel, dynamics.SUBSTEPS, done, self._unwritten, _NO_ROWS)
         if ran == len(devices):
             return done
         if others_idle:
