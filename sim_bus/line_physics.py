@@ -141,7 +141,43 @@ def advance_line(rows: np.ndarray, controlwords: np.ndarray, torque_out: np.ndar
     return ran
 
 
+@numba.njit(cache=True, nogil=True)
+def pack_values(values: np.ndarray, fields: np.ndarray, out: np.ndarray) -> None:
+    """Values of the line (`values`, a row per drive) into `out` (uint8), each
+    little-endian at its place (`fields`, a row per value: drive row, value column, offset,
+    size in bytes): a bus's TPDOs of its batch-cycled drives, as the drives' TPDOs carry
+    them (`sim_bus.canopen_node`)."""
+    for f in range(fields.shape[0]):
+        value = values[fields[f, 0], fields[f, 1]]
+        at = fields[f, 2]
+        for b in range(fields[f, 3]):
+            out[at + b] = (value >> (8 * b)) & 0xFF
+
+
+@numba.njit(cache=True, error_model="numpy")
+def advance_blocks(rows: np.ndarray, controlwords: np.ndarray, torque_out: np.ndarray,
+                   current_out: np.ndarray, counter: int, steady: np.ndarray,
+                   counts: np.ndarray, reals: np.ndarray, terms: np.ndarray,
+                   words: np.ndarray, ranges: np.ndarray, state: np.ndarray,
+                   plant: np.ndarray, draws: np.ndarray, values: np.ndarray, substeps: int,
+                   done: np.ndarray, unwritten: np.ndarray, fields: np.ndarray,
+                   packed: np.ndarray) -> int:
+    """`advance_line` on a `DriveLine`'s blocks of arrays (`DriveLine.__init__`: counts
+    are controlword, next_due, cycles, cursor; reals torque and current targets, applied;
+    plant the packed parameters, free and braked; words the flags and the outputs taken),
+    then the values packed where `fields` says (`pack_values`; none: no rows), in the one
+    call a cycle makes from Python. Returns how many drives ran."""
+    ran = advance_line(rows, controlwords, torque_out, current_out, counter, steady,
+                       counts[0], counts[1], counts[2], terms, words[0], ranges, reals[0],
+                       reals[1], state, plant[0], plant[1], draws, counts[3], values,
+                       reals[2], words[1], substeps, done, unwritten, _NO_ROWS)
+    pack_values(values, fields, packed)
+    return ran
+
+
 _NONE = np.zeros(0, dtype=np.int64)  # an output the layout does not carry
+_NO_FIELDS = np.zeros((0, 4), dtype=np.int64)  # no values to pack
+_NO_BYTES = np.zeros(0, dtype=np.uint8)
 _TORQUE_KEY = (objects.TARGET_TORQUE, 0)
 _CURRENT_KEY = (objects.TARGET_CURRENT, 0)
 
@@ -158,29 +194,32 @@ class DriveLine:
         self.devices = list(devices)
         count = len(self.devices)
         size = self.devices[0].plant.parameters.packed().size if count else 0
+        # the line's arrays, several in a block each (the named ones are its rows, or its
+        # planes: C-contiguous views, the types `advance_line` is compiled for), so that
+        # the cycle's compiled call takes eighteen arrays, not twenty-six (each array
+        # argument costs its dispatch about 55 ns)
+        self._counts = np.zeros((4, count), dtype=np.int64)
+        self._controlword, self._next_due, self._cycles, self.cursor = self._counts
+        self._reals = np.zeros((3, count))
+        # per mille of rated torque, A, A
+        self.torque_targets, self.current_targets, self.applied = self._reals
+        self._plant = np.zeros((2, count, size))
+        self.packed, self.packed_braked = self._plant
+        self._words = np.zeros((2, count, 3), dtype=np.int64)
+        # the integer terms; the outputs as taken (controlword, targets)
+        self.flags, self.outputs = self._words
         self.state = np.zeros((count, STATE_SIZE))
-        self.packed = np.zeros((count, size))
-        self.packed_braked = np.zeros((count, size))
         self.draws = np.zeros((count, NOISE_BATCH))
-        self.cursor = np.zeros(count, dtype=np.int64)
         for j, device in enumerate(self.devices):
             device.plant.adopt(self.state[j], self.packed[j], self.packed_braked[j],
                                self.draws[j], self.cursor[j:j + 1])
             device.join_line(self)
         self.terms = np.zeros((count, N_TERMS))
-        self.flags = np.zeros((count, N_FLAGS), dtype=np.int64)
         self.ranges = np.zeros((count, len(LINE_KEYS) - 2, 2), dtype=np.int64)
         self.values = np.zeros((count, N_VALUES), dtype=np.int64)
-        self.applied = np.zeros(count)
-        self.torque_targets = np.zeros(count)  # per mille of rated torque
-        self.current_targets = np.zeros(count)  # A
-        self.outputs = np.zeros((count, 3), dtype=np.int64)  # controlword, targets as taken
         # what decides, per drive, whether its next cycle is the batch's
         # terms steady (STEADY_HELD), and the controlword repeated (STEADY): `advance_line`
         self._steady = np.zeros(count, dtype=np.int8)
-        self._controlword = np.zeros(count, dtype=np.int64)
-        self._next_due = np.zeros(count, dtype=np.int64)
-        self._cycles = np.zeros(count, dtype=np.int64)
         self._drifting: list[int] = []
         # the devices' revisions the terms are from (-1: read them before the next cycle),
         # and whether any may have changed since (set by the devices and their plants)
@@ -196,9 +235,10 @@ class DriveLine:
         self._torque_at = self._current_at = -1
         self._done = np.zeros(count, dtype=np.bool_)
         self.ran = 0  # how many drives the last `cycle` ran
-        # the arrays each `advance_line` call takes, gathered once (seventeen attribute
+        # the arrays each `advance_blocks` call takes, gathered once (a dozen attribute
         # look-ups a cycle otherwise): the line's own, never replaced
-        self._kernel = self.kernel_arrays()
+        self._kernel = (self._steady, self._counts, self._reals, self.terms, self._words,
+                        self.ranges, self.state, self._plant, self.draws, self.values)
 
     def __len__(self) -> int:
         return len(self.devices)
@@ -261,7 +301,8 @@ class DriveLine:
 
     def cycle(self, rows: np.ndarray, controlwords: np.ndarray, outputs: tuple,
               output_values: list, counter: int = 0, refresh: bool = True,
-              others_idle: bool = False) -> np.ndarray:
+              others_idle: bool = False, fields: np.ndarray = _NO_FIELDS,
+              packed: np.ndarray = _NO_BYTES) -> np.ndarray:
         """One cycle of the drives `rows` (indices, in line order) under these outputs, a
         row per drive of the line: `controlwords` and, for the objects `outputs` other than
         the controlword (target torque and current), `output_values`. The rows whose cycle
@@ -270,18 +311,19 @@ class DriveLine:
         another way, so its terms are read again before its next. `refresh` False: the
         caller has just called `refresh`. `others_idle`: the caller knows the drives not in
         `rows` did not cycle (a SYNC0 batch of part of the line), so only those of `rows`
-        not run here are read again. How many ran: `ran`."""
+        not run here are read again. How many ran: `ran`. `fields`, `packed`: the values
+        packed after the cycle, in the same compiled call (`pack_values`)."""
         if refresh and self.changed:
             self.refresh()
         devices = self.devices
         self.prepare(outputs)
         count = len(rows)
         done = self._done if count == len(devices) else self._done[:count]
-        ran = self.ran = advance_line(
+        ran = self.ran = advance_blocks(
             rows, controlwords,
             output_values[self._torque_at] if self._torque_at >= 0 else _NONE,
             output_values[self._current_at] if self._current_at >= 0 else _NONE,
-            counter, *self._kernel, dynamics.SUBSTEPS, done, self._unwritten, _NO_ROWS)
+            counter, *self._kernel, dynamics.SUBSTEPS, done, self._unwritten, fields, packed)
         if ran == len(devices):
             return done
         if others_idle:
