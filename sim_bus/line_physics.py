@@ -50,6 +50,7 @@ from sim_bus.sensing import (  # the float terms' columns: a row per drive, from
 # columns of the integer terms
 I_KIND, I_BRAKED, I_FAULTED = range(3)
 N_FLAGS = 3
+N_OUTPUTS = 3  # the outputs a drive took: controlword, torque target, current target
 # columns of the values a cycle leaves (`LINE_KEYS` order): echo, statusword, the readings
 V_ECHO, V_STATUSWORD = 0, 1
 V_READINGS = 2  # then LIVE_READINGS (`sim_bus.sensing` writes them)
@@ -154,23 +155,63 @@ def pack_values(values: np.ndarray, fields: np.ndarray, out: np.ndarray) -> None
             out[at + b] = (value >> (8 * b)) & 0xFF
 
 
+_N_RANGES = len(LINE_KEYS) - 2  # the readings' ranges: per reading, low and high
+
+
+def buffer_sizes(count: int, size: int) -> tuple[int, int]:
+    """The lengths of a line's integer and float buffers (`line_blocks`) for `count` drives
+    whose packed parameters have `size` values."""
+    return (count * (4 + N_FLAGS + N_OUTPUTS + 2 * _N_RANGES + N_VALUES),
+            count * (3 + N_TERMS + STATE_SIZE + 2 * size + NOISE_BATCH))
+
+
+def line_blocks(ints: np.ndarray, reals: np.ndarray, count: int, size: int) -> tuple:
+    """A line's arrays as C-contiguous views of its two buffers (`buffer_sizes`), cut in
+    one place for Python (`DriveLine.__init__`) and the compiled cycle (`advance_blocks`),
+    so that its call takes two arrays for seventeen (each array argument costs numba's
+    dispatch about 55 ns): the integers' counts (controlword, next_due, cycles, cursor, a
+    row each), flags, outputs (as taken), ranges, values; the floats' scalars (torque
+    and current targets, applied current, a row each), terms, state, plant (packed
+    parameters, free; braked), noise draws."""
+    at = 4 * count
+    counts = ints[:at].reshape((4, count))
+    flags = ints[at:at + count * N_FLAGS].reshape((count, N_FLAGS))
+    at += count * N_FLAGS
+    outputs = ints[at:at + count * N_OUTPUTS].reshape((count, N_OUTPUTS))
+    at += count * N_OUTPUTS
+    ranges = ints[at:at + count * _N_RANGES * 2].reshape((count, _N_RANGES, 2))
+    at += count * _N_RANGES * 2
+    values = ints[at:at + count * N_VALUES].reshape((count, N_VALUES))
+    at = 3 * count
+    scalars = reals[:at].reshape((3, count))
+    terms = reals[at:at + count * N_TERMS].reshape((count, N_TERMS))
+    at += count * N_TERMS
+    state = reals[at:at + count * STATE_SIZE].reshape((count, STATE_SIZE))
+    at += count * STATE_SIZE
+    plant = reals[at:at + 2 * count * size].reshape((2, count, size))
+    at += 2 * count * size
+    draws = reals[at:at + count * NOISE_BATCH].reshape((count, NOISE_BATCH))
+    return counts, flags, outputs, ranges, values, scalars, terms, state, plant, draws
+
+
+_compiled_blocks = numba.njit(cache=True)(line_blocks)
+
+
 @numba.njit(cache=True, error_model="numpy")
 def advance_blocks(rows: np.ndarray, controlwords: np.ndarray, torque_out: np.ndarray,
                    current_out: np.ndarray, counter: int, steady: np.ndarray,
-                   counts: np.ndarray, reals: np.ndarray, terms: np.ndarray,
-                   words: np.ndarray, ranges: np.ndarray, state: np.ndarray,
-                   plant: np.ndarray, draws: np.ndarray, values: np.ndarray, substeps: int,
+                   ints: np.ndarray, reals: np.ndarray, size: int, substeps: int,
                    done: np.ndarray, unwritten: np.ndarray, fields: np.ndarray,
                    packed: np.ndarray) -> int:
-    """`advance_line` on a `DriveLine`'s blocks of arrays (`DriveLine.__init__`: counts
-    are controlword, next_due, cycles, cursor; reals torque and current targets, applied;
-    plant the packed parameters, free and braked; words the flags and the outputs taken),
-    then the values packed where `fields` says (`pack_values`; none: no rows), in the one
-    call a cycle makes from Python. Returns how many drives ran."""
+    """`advance_line` on a `DriveLine`'s buffers (`line_blocks`, `size` the packed
+    parameters'), then the values packed where `fields` says (`pack_values`; none: no
+    rows): the one call a cycle makes from Python. Returns how many drives ran."""
+    counts, flags, outputs, ranges, values, scalars, terms, state, plant, draws = (
+        _compiled_blocks(ints, reals, steady.shape[0], size))
     ran = advance_line(rows, controlwords, torque_out, current_out, counter, steady,
-                       counts[0], counts[1], counts[2], terms, words[0], ranges, reals[0],
-                       reals[1], state, plant[0], plant[1], draws, counts[3], values,
-                       reals[2], words[1], substeps, done, unwritten, _NO_ROWS)
+                       counts[0], counts[1], counts[2], terms, flags, ranges, scalars[0],
+                       scalars[1], state, plant[0], plant[1], draws, counts[3], values,
+                       scalars[2], outputs, substeps, done, unwritten, _NO_ROWS)
     pack_values(values, fields, packed)
     return ran
 
@@ -194,29 +235,21 @@ class DriveLine:
         self.devices = list(devices)
         count = len(self.devices)
         size = self.devices[0].plant.parameters.packed().size if count else 0
-        # the line's arrays, several in a block each (the named ones are its rows, or its
-        # planes: C-contiguous views, the types `advance_line` is compiled for), so that
-        # the cycle's compiled call takes eighteen arrays, not twenty-six (each array
-        # argument costs its dispatch about 55 ns)
-        self._counts = np.zeros((4, count), dtype=np.int64)
-        self._controlword, self._next_due, self._cycles, self.cursor = self._counts
-        self._reals = np.zeros((3, count))
+        # the line's arrays: views of two buffers (`line_blocks`), the types
+        # `advance_line` is compiled for
+        self._buffers = tuple(np.zeros(n, dtype=dtype) for n, dtype in zip(
+            buffer_sizes(count, size), (np.int64, np.float64), strict=True))
+        # the outputs as taken: controlword, torque and current targets
+        (counts, self.flags, self.outputs, self.ranges, self.values, scalars, self.terms,
+         self.state, plant, self.draws) = line_blocks(*self._buffers, count, size)
+        self._controlword, self._next_due, self._cycles, self.cursor = counts
         # per mille of rated torque, A, A
-        self.torque_targets, self.current_targets, self.applied = self._reals
-        self._plant = np.zeros((2, count, size))
-        self.packed, self.packed_braked = self._plant
-        self._words = np.zeros((2, count, 3), dtype=np.int64)
-        # the integer terms; the outputs as taken (controlword, targets)
-        self.flags, self.outputs = self._words
-        self.state = np.zeros((count, STATE_SIZE))
-        self.draws = np.zeros((count, NOISE_BATCH))
+        self.torque_targets, self.current_targets, self.applied = scalars
+        self.packed, self.packed_braked = plant
         for j, device in enumerate(self.devices):
             device.plant.adopt(self.state[j], self.packed[j], self.packed_braked[j],
                                self.draws[j], self.cursor[j:j + 1])
             device.join_line(self)
-        self.terms = np.zeros((count, N_TERMS))
-        self.ranges = np.zeros((count, len(LINE_KEYS) - 2, 2), dtype=np.int64)
-        self.values = np.zeros((count, N_VALUES), dtype=np.int64)
         # what decides, per drive, whether its next cycle is the batch's
         # terms steady (STEADY_HELD), and the controlword repeated (STEADY): `advance_line`
         self._steady = np.zeros(count, dtype=np.int8)
@@ -235,10 +268,9 @@ class DriveLine:
         self._torque_at = self._current_at = -1
         self._done = np.zeros(count, dtype=np.bool_)
         self.ran = 0  # how many drives the last `cycle` ran
-        # the arrays each `advance_blocks` call takes, gathered once (a dozen attribute
-        # look-ups a cycle otherwise): the line's own, never replaced
-        self._kernel = (self._steady, self._counts, self._reals, self.terms, self._words,
-                        self.ranges, self.state, self._plant, self.draws, self.values)
+        # the arrays each `advance_blocks` call takes, gathered once (attribute look-ups a
+        # cycle otherwise): the line's own, never replaced
+        self._kernel = (self._steady, *self._buffers, size)
 
     def __len__(self) -> int:
         return len(self.devices)
