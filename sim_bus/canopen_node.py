@@ -118,12 +118,18 @@ class _CanLine(DriveLine):
         self.output_rows = np.zeros((len(self.output_objects), count), dtype=np.int64)
         self.controlwords = self.output_rows[0]  # a view, made once
         self.target_rows = list(self.output_rows[1:])
+        self._output_views = list(self.output_rows)  # a row's item set costs less
+        # per drive, the controlword it acts on when commanded and steady (STEADY; None
+        # otherwise): what `take` checks an RPDO against, a Python int (reading it and
+        # `_steady` from their arrays cost more than the rest of the check)
+        self._held: list[int | None] = [None] * count
         self.unapplied: set[int] = set()
         self.rows = np.arange(count)
         self.load_kernel()
 
     def _read_terms(self, j: int) -> None:
         super()._read_terms(j)  # settles the device first: an unapplied RPDO is in it now
+        self._held[j] = (int(self._controlword[j]) if self._steady[j] == STEADY else None)
         rows = self.output_rows
         rows[0, j] = self._controlword[j]
         for n, key in enumerate(self.output_objects[1:], start=1):
@@ -136,14 +142,15 @@ class _CanLine(DriveLine):
         at once."""
         columns = pdo.outputs_of(self.output_objects)
         at = pdo.controlword_at
-        if (columns is None or self._revisions[j] != device.revision + device.plant.revision
-                or self._steady[j] != STEADY  # a drive commanded, and its terms steady
-                or (at >= 0 and values[at] != self._controlword[j])):
+        held = self._held[j]
+        if (columns is None or held is None  # a drive commanded, and its terms steady
+                or self._revisions[j] != device.revision + device.plant.revision
+                or (at >= 0 and values[at] != held)):
             device.write_outputs(pdo.keys, values)
             return
-        rows = self.output_rows
+        views = self._output_views
         for n, value in zip(columns, values, strict=True):
-            rows[n, j] = value
+            views[n][j] = value
         self.unapplied.add(j)
         self.pending = True
 
