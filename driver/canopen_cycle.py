@@ -98,6 +98,9 @@ class BusCycle:
         # a network that lets the waiting thread read its frames itself
         # (`driver.canopen_multicast`), looked up once
         self._receive_until = getattr(network, "receive_until", None)
+        # a network that sends several frames cut from one buffer in one call
+        # (`sim_bus.embedded.LinkedNetwork`), looked up once
+        self._send_slices = getattr(network, "send_slices", None)
         self.watch = watch
         self.clock = watch.clock
         self.response_timeout = response_timeout
@@ -323,6 +326,9 @@ class BusCycle:
 
     def send_frames(self, data: bytes, frames: Sequence[tuple[int, int, int]]) -> None:
         """RPDOs out of an output image (`output_layout`): each frame's slice of `data`."""
+        if self._send_slices is not None:
+            self._send_slices(data, frames)
+            return
         send = self.network.send_message
         for cob_id, start, stop in frames:
             send(cob_id, data[start:stop])

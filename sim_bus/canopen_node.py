@@ -5,10 +5,11 @@ A SYNC is handled once per network for every virtual drive on it (`_BusSync`), a
 carries one SYNC to all its nodes: the bus's drives, one or more, are a batch whose steady
 cycles advance in one compiled call (`sim_bus.line_physics.DriveLine`, as a virtual EtherCAT
 line's do), the others through `Cia402Device.cycle()` itself; the TPDOs of the batch's
-drives are packed from its values in one compiled call for the bus (`pack_tpdos`), each
-frame a slice of those bytes. A received RPDO that repeats what the drive acts on (its controlword,
-with new targets) goes into the batch's output arrays, not through the device; anything that
-reads or changes the device before the SYNC gets it applied first (`_CanLine.flush`). One
+drives are packed from its values in the same compiled call, for the whole bus
+(`sim_bus.line_physics.pack_values`), each frame a slice of those bytes. A received RPDO
+that repeats what the drive acts on (its controlword, with new targets) goes into the
+batch's output arrays, not through the device; anything that reads or changes the device
+before the SYNC gets it applied first (`_CanLine.flush`). One
 more drive on a batched bus costs about 7 us a SYNC (seven drives: 61 us a SYNC against 118
 through the devices' own cycles); a lone drive's SYNC, RPDO and three TPDOs about 1 us less
 as the batch than through its device. The device's own path stays the one behaviour; the
@@ -31,7 +32,6 @@ import threading
 import time
 
 import canopen
-import numba
 import numpy as np
 from canopen.emcy import EmcyProducer
 from canopen.objectdictionary import ObjectDictionary
@@ -68,21 +68,6 @@ def _tuple_getter(keys: tuple) -> "operator.itemgetter":
 _CONTROLWORD = (objects.CONTROLWORD, 0)
 _TARGETS = ((objects.TARGET_TORQUE, 0), (objects.TARGET_CURRENT, 0))  # a batch's outputs
 _COLUMN = {key: n for n, key in enumerate(LINE_KEYS)}
-# columns of a bus's TPDO layout (`_BusSync`): per mapped object, the batch row and value
-# column it comes from, its offset in the bus's TPDO bytes, its size in bytes
-_F_ROW, _F_COLUMN, _F_AT, _F_SIZE = range(4)
-
-
-@numba.njit(cache=True, nogil=True)
-def pack_tpdos(values: np.ndarray, fields: np.ndarray, out: np.ndarray) -> None:
-    """Every TPDO of a bus's batch-cycled drives from the batch's `values` into `out` (uint8),
-    each object little-endian at its place (`fields`, a row per mapped object: batch row,
-    value column, offset, size), as the drives' TPDOs carry them."""
-    for f in range(fields.shape[0]):
-        value = values[fields[f, _F_ROW], fields[f, _F_COLUMN]]
-        at = fields[f, _F_AT]
-        for b in range(fields[f, _F_SIZE]):
-            out[at + b] = (value >> (8 * b)) & 0xFF
 
 
 class _Pdo:
@@ -133,13 +118,18 @@ class _CanLine(DriveLine):
         self.output_rows = np.zeros((len(self.output_objects), count), dtype=np.int64)
         self.controlwords = self.output_rows[0]  # a view, made once
         self.target_rows = list(self.output_rows[1:])
+        self._output_views = list(self.output_rows)  # a row's item set costs less
+        # per drive, the controlword it acts on when commanded and steady (STEADY; None
+        # otherwise): what `take` checks an RPDO against, a Python int (reading it and
+        # `_steady` from their arrays cost more than the rest of the check)
+        self._held: list[int | None] = [None] * count
         self.unapplied: set[int] = set()
         self.rows = np.arange(count)
         self.load_kernel()
-        pack_tpdos(self.values, np.zeros((0, 4), dtype=np.int64), np.zeros(0, dtype=np.uint8))
 
     def _read_terms(self, j: int) -> None:
         super()._read_terms(j)  # settles the device first: an unapplied RPDO is in it now
+        self._held[j] = (int(self._controlword[j]) if self._steady[j] == STEADY else None)
         rows = self.output_rows
         rows[0, j] = self._controlword[j]
         for n, key in enumerate(self.output_objects[1:], start=1):
@@ -152,14 +142,15 @@ class _CanLine(DriveLine):
         at once."""
         columns = pdo.outputs_of(self.output_objects)
         at = pdo.controlword_at
-        if (columns is None or self._revisions[j] != device.revision + device.plant.revision
-                or self._steady[j] != STEADY  # a drive commanded, and its terms steady
-                or (at >= 0 and values[at] != self._controlword[j])):
+        held = self._held[j]
+        if (columns is None or held is None  # a drive commanded, and its terms steady
+                or self._revisions[j] != device.revision + device.plant.revision
+                or (at >= 0 and values[at] != held)):
             device.write_outputs(pdo.keys, values)
             return
-        rows = self.output_rows
+        views = self._output_views
         for n, value in zip(columns, values, strict=True):
-            rows[n, j] = value
+            views[n][j] = value
         self.unapplied.add(j)
         self.pending = True
 
@@ -205,6 +196,8 @@ class CanOpenNode:
         # its TPDOs' (COB-ID, start, stop) in the bus's packed TPDO bytes (`_BusSync`; None:
         # they are packed one by one)
         self._tpdo_frames: tuple[tuple[int, int, int], ...] | None = None
+        # a network that sends those frames in one call (`sim_bus.embedded.LinkedNetwork`)
+        self._send_slices = getattr(network, "send_slices", None)
         self._heartbeat = HeartbeatProducer(network.send_message, node_id,
                                             lambda: self.nmt_state, self.time)
         self.master_watch = MasterWatch(
@@ -403,6 +396,9 @@ class CanOpenNode:
         self.time.tick(self.device.period)
         if self._silent or self._reboot_in_cycle:
             return
+        if self._send_slices is not None:
+            self._send_slices(data, frames)
+            return
         send = self.network.send_message
         for cob_id, start, stop in frames:
             send(cob_id, data[start:stop])
@@ -509,7 +505,7 @@ class _BusSync:
         self.network = network
         self.nodes: list[CanOpenNode] = []
         self.line: _CanLine | None = None  # from the first drive's `join` on
-        # where each batch-packable TPDO's objects go in the bus's TPDO bytes (`pack_tpdos`),
+        # where each batch-packable TPDO's objects go in the bus's TPDO bytes (`pack_values`),
         # and those bytes; None: to be laid out again (the nodes or their PDOs changed)
         self._packing: tuple[np.ndarray, np.ndarray] | None = None
         network.subscribe(cia301.SYNC_COB_ID, self._on_sync)
@@ -582,8 +578,18 @@ class _BusSync:
         line = self.line
         rows = (line.rows if len(nodes) == len(self.nodes)
                 else np.array([node._row for node in nodes]))
+        # the cycle packs its values into the bus's TPDO bytes too, in the same call
+        fields, packed = self._packing or self._lay_out()
         done = line.cycle(rows, line.controlwords, line.output_objects, line.target_rows,
-                          counter).tolist()
+                          counter, fields=fields, packed=packed)
+        values = line.values
+        if line.ran == len(nodes):  # nearly always: every node's cycle was the batch's
+            line.unapplied.clear()
+            data = packed.tobytes()
+            for node in nodes:
+                node._answer_packed(data, values)
+            return
+        done = done.tolist()
         unapplied = line.unapplied
         if unapplied:  # what the batch took is applied; the others' devices take theirs
             if all(done):
@@ -591,10 +597,8 @@ class _BusSync:
             else:
                 unapplied.difference_update(
                     j for j, ran in zip(rows.tolist(), done, strict=True) if ran)
-        # every ran drive's TPDOs packed at once, cut into frames by each node
-        fields, packed = self._packing or self._lay_out()
-        values = line.values
-        pack_tpdos(values, fields, packed)
+        # every ran drive's TPDOs packed by the cycle (a drive's own cycle: it packs its
+        # own), cut into frames by each node
         data = packed.tobytes()
         for node, ran in zip(nodes, done, strict=True):
             if ran:

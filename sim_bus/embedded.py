@@ -9,6 +9,7 @@ rhythm in Python. `--bus virtual:NAME` still goes through python-can's virtual i
 
 import threading
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import canopen
@@ -49,6 +50,26 @@ class LinkedNetwork(canopen.Network):
                     callback(can_id, frame, now)
             else:
                 peer.notify(can_id, frame, now)
+
+    def send_slices(self, data: bytes, frames: Sequence[tuple[int, int, int]]) -> None:
+        """Several frames in one call, in order, each `(can_id, start, stop)` a slice of
+        `data` (a drive's TPDOs cut from one packed buffer, a master's RPDOs from its output
+        image): what `send_message` does for each, with one stamp (they leave together),
+        without a Python call, a stamp and a look at the peers per frame (a lone drive's
+        three TPDOs and its RPDO are four of a cycle's five frames)."""
+        now = time.time()
+        for peer in self.peers:
+            if type(peer) is LinkedNetwork:
+                subscribers = peer.subscribers
+                for can_id, start, stop in frames:
+                    frame = data[start:stop]
+                    peer.frames += 1
+                    peer.last_stamp = now
+                    for callback in subscribers.get(can_id, ()):
+                        callback(can_id, frame, now)
+            else:
+                for can_id, start, stop in frames:
+                    peer.notify(can_id, data[start:stop], now)
 
     def notify(self, can_id: int, data: bytes, timestamp: float) -> None:
         """canopen's dispatch to the subscribers, without its node scanner (nobody scans a

@@ -50,6 +50,7 @@ from sim_bus.sensing import (  # the float terms' columns: a row per drive, from
 # columns of the integer terms
 I_KIND, I_BRAKED, I_FAULTED = range(3)
 N_FLAGS = 3
+N_OUTPUTS = 3  # the outputs a drive took: controlword, torque target, current target
 # columns of the values a cycle leaves (`LINE_KEYS` order): echo, statusword, the readings
 V_ECHO, V_STATUSWORD = 0, 1
 V_READINGS = 2  # then LIVE_READINGS (`sim_bus.sensing` writes them)
@@ -141,7 +142,83 @@ def advance_line(rows: np.ndarray, controlwords: np.ndarray, torque_out: np.ndar
     return ran
 
 
+@numba.njit(cache=True, nogil=True)
+def pack_values(values: np.ndarray, fields: np.ndarray, out: np.ndarray) -> None:
+    """Values of the line (`values`, a row per drive) into `out` (uint8), each
+    little-endian at its place (`fields`, a row per value: drive row, value column, offset,
+    size in bytes): a bus's TPDOs of its batch-cycled drives, as the drives' TPDOs carry
+    them (`sim_bus.canopen_node`)."""
+    for f in range(fields.shape[0]):
+        value = values[fields[f, 0], fields[f, 1]]
+        at = fields[f, 2]
+        for b in range(fields[f, 3]):
+            out[at + b] = (value >> (8 * b)) & 0xFF
+
+
+_N_RANGES = len(LINE_KEYS) - 2  # the readings' ranges: per reading, low and high
+
+
+def buffer_sizes(count: int, size: int) -> tuple[int, int]:
+    """The lengths of a line's integer and float buffers (`line_blocks`) for `count` drives
+    whose packed parameters have `size` values."""
+    return (count * (4 + N_FLAGS + N_OUTPUTS + 2 * _N_RANGES + N_VALUES),
+            count * (3 + N_TERMS + STATE_SIZE + 2 * size + NOISE_BATCH))
+
+
+def line_blocks(ints: np.ndarray, reals: np.ndarray, count: int, size: int) -> tuple:
+    """A line's arrays as C-contiguous views of its two buffers (`buffer_sizes`), cut in
+    one place for Python (`DriveLine.__init__`) and the compiled cycle (`advance_blocks`),
+    so that its call takes two arrays for seventeen (each array argument costs numba's
+    dispatch about 55 ns): the integers' counts (controlword, next_due, cycles, cursor, a
+    row each), flags, outputs (as taken), ranges, values; the floats' scalars (torque
+    and current targets, applied current, a row each), terms, state, plant (packed
+    parameters, free; braked), noise draws."""
+    at = 4 * count
+    counts = ints[:at].reshape((4, count))
+    flags = ints[at:at + count * N_FLAGS].reshape((count, N_FLAGS))
+    at += count * N_FLAGS
+    outputs = ints[at:at + count * N_OUTPUTS].reshape((count, N_OUTPUTS))
+    at += count * N_OUTPUTS
+    ranges = ints[at:at + count * _N_RANGES * 2].reshape((count, _N_RANGES, 2))
+    at += count * _N_RANGES * 2
+    values = ints[at:at + count * N_VALUES].reshape((count, N_VALUES))
+    at = 3 * count
+    scalars = reals[:at].reshape((3, count))
+    terms = reals[at:at + count * N_TERMS].reshape((count, N_TERMS))
+    at += count * N_TERMS
+    state = reals[at:at + count * STATE_SIZE].reshape((count, STATE_SIZE))
+    at += count * STATE_SIZE
+    plant = reals[at:at + 2 * count * size].reshape((2, count, size))
+    at += 2 * count * size
+    draws = reals[at:at + count * NOISE_BATCH].reshape((count, NOISE_BATCH))
+    return counts, flags, outputs, ranges, values, scalars, terms, state, plant, draws
+
+
+_compiled_blocks = numba.njit(cache=True)(line_blocks)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def advance_blocks(rows: np.ndarray, controlwords: np.ndarray, torque_out: np.ndarray,
+                   current_out: np.ndarray, counter: int, steady: np.ndarray,
+                   ints: np.ndarray, reals: np.ndarray, size: int, substeps: int,
+                   done: np.ndarray, unwritten: np.ndarray, fields: np.ndarray,
+                   packed: np.ndarray) -> int:
+    """`advance_line` on a `DriveLine`'s buffers (`line_blocks`, `size` the packed
+    parameters'), then the values packed where `fields` says (`pack_values`; none: no
+    rows): the one call a cycle makes from Python. Returns how many drives ran."""
+    counts, flags, outputs, ranges, values, scalars, terms, state, plant, draws = (
+        _compiled_blocks(ints, reals, steady.shape[0], size))
+    ran = advance_line(rows, controlwords, torque_out, current_out, counter, steady,
+                       counts[0], counts[1], counts[2], terms, flags, ranges, scalars[0],
+                       scalars[1], state, plant[0], plant[1], draws, counts[3], values,
+                       scalars[2], outputs, substeps, done, unwritten, _NO_ROWS)
+    pack_values(values, fields, packed)
+    return ran
+
+
 _NONE = np.zeros(0, dtype=np.int64)  # an output the layout does not carry
+_NO_FIELDS = np.zeros((0, 4), dtype=np.int64)  # no values to pack
+_NO_BYTES = np.zeros(0, dtype=np.uint8)
 _TORQUE_KEY = (objects.TARGET_TORQUE, 0)
 _CURRENT_KEY = (objects.TARGET_CURRENT, 0)
 
@@ -158,29 +235,24 @@ class DriveLine:
         self.devices = list(devices)
         count = len(self.devices)
         size = self.devices[0].plant.parameters.packed().size if count else 0
-        self.state = np.zeros((count, STATE_SIZE))
-        self.packed = np.zeros((count, size))
-        self.packed_braked = np.zeros((count, size))
-        self.draws = np.zeros((count, NOISE_BATCH))
-        self.cursor = np.zeros(count, dtype=np.int64)
+        # the line's arrays: views of two buffers (`line_blocks`), the types
+        # `advance_line` is compiled for
+        self._buffers = tuple(np.zeros(n, dtype=dtype) for n, dtype in zip(
+            buffer_sizes(count, size), (np.int64, np.float64), strict=True))
+        # the outputs as taken: controlword, torque and current targets
+        (counts, self.flags, self.outputs, self.ranges, self.values, scalars, self.terms,
+         self.state, plant, self.draws) = line_blocks(*self._buffers, count, size)
+        self._controlword, self._next_due, self._cycles, self.cursor = counts
+        # per mille of rated torque, A, A
+        self.torque_targets, self.current_targets, self.applied = scalars
+        self.packed, self.packed_braked = plant
         for j, device in enumerate(self.devices):
             device.plant.adopt(self.state[j], self.packed[j], self.packed_braked[j],
                                self.draws[j], self.cursor[j:j + 1])
             device.join_line(self)
-        self.terms = np.zeros((count, N_TERMS))
-        self.flags = np.zeros((count, N_FLAGS), dtype=np.int64)
-        self.ranges = np.zeros((count, len(LINE_KEYS) - 2, 2), dtype=np.int64)
-        self.values = np.zeros((count, N_VALUES), dtype=np.int64)
-        self.applied = np.zeros(count)
-        self.torque_targets = np.zeros(count)  # per mille of rated torque
-        self.current_targets = np.zeros(count)  # A
-        self.outputs = np.zeros((count, 3), dtype=np.int64)  # controlword, targets as taken
         # what decides, per drive, whether its next cycle is the batch's
         # terms steady (STEADY_HELD), and the controlword repeated (STEADY): `advance_line`
         self._steady = np.zeros(count, dtype=np.int8)
-        self._controlword = np.zeros(count, dtype=np.int64)
-        self._next_due = np.zeros(count, dtype=np.int64)
-        self._cycles = np.zeros(count, dtype=np.int64)
         self._drifting: list[int] = []
         # the devices' revisions the terms are from (-1: read them before the next cycle),
         # and whether any may have changed since (set by the devices and their plants)
@@ -195,9 +267,10 @@ class DriveLine:
         self._outputs_given: tuple | None = None
         self._torque_at = self._current_at = -1
         self._done = np.zeros(count, dtype=np.bool_)
-        # the arrays each `advance_line` call takes, gathered once (seventeen attribute
-        # look-ups a cycle otherwise): the line's own, never replaced
-        self._kernel = self.kernel_arrays()
+        self.ran = 0  # how many drives the last `cycle` ran
+        # the arrays each `advance_blocks` call takes, gathered once (attribute look-ups a
+        # cycle otherwise): the line's own, never replaced
+        self._kernel = (self._steady, *self._buffers, size)
 
     def __len__(self) -> int:
         return len(self.devices)
@@ -260,7 +333,8 @@ class DriveLine:
 
     def cycle(self, rows: np.ndarray, controlwords: np.ndarray, outputs: tuple,
               output_values: list, counter: int = 0, refresh: bool = True,
-              others_idle: bool = False) -> np.ndarray:
+              others_idle: bool = False, fields: np.ndarray = _NO_FIELDS,
+              packed: np.ndarray = _NO_BYTES) -> np.ndarray:
         """One cycle of the drives `rows` (indices, in line order) under these outputs, a
         row per drive of the line: `controlwords` and, for the objects `outputs` other than
         the controlword (target torque and current), `output_values`. The rows whose cycle
@@ -269,18 +343,19 @@ class DriveLine:
         another way, so its terms are read again before its next. `refresh` False: the
         caller has just called `refresh`. `others_idle`: the caller knows the drives not in
         `rows` did not cycle (a SYNC0 batch of part of the line), so only those of `rows`
-        not run here are read again."""
+        not run here are read again. How many ran: `ran`. `fields`, `packed`: the values
+        packed after the cycle, in the same compiled call (`pack_values`)."""
         if refresh and self.changed:
             self.refresh()
         devices = self.devices
         self.prepare(outputs)
         count = len(rows)
         done = self._done if count == len(devices) else self._done[:count]
-        ran = advance_line(rows, controlwords,
-                           output_values[self._torque_at] if self._torque_at >= 0 else _NONE,
-                           output_values[self._current_at] if self._current_at >= 0 else _NONE,
-                           counter, *self._kernel, dynamics.SUBSTEPS, done, self._unwritten,
-                           _NO_ROWS)
+        ran = self.ran = advance_blocks(
+            rows, controlwords,
+            output_values[self._torque_at] if self._torque_at >= 0 else _NONE,
+            output_values[self._current_at] if self._current_at >= 0 else _NONE,
+            counter, *self._kernel, dynamics.SUBSTEPS, done, self._unwritten, fields, packed)
         if ran == len(devices):
             return done
         if others_idle:

@@ -110,3 +110,40 @@ def test_a_bus_of_drives_answers_every_sync_as_its_devices_alone_would(on_bus):
     for node in nodes:
         node.close()
     assert not hasattr(drives, "_virtual_drives_sync")
+
+
+def test_frames_sent_as_slices_arrive_as_frames_sent_one_by_one():
+    """`LinkedNetwork.send_slices` (a node's TPDOs, a bus's RPDOs) hands the peer's
+    subscribers, and a peer that is only a tap (`notify`), the same frames in the same order
+    as a `send_message` per frame, counted the same, with one stamp."""
+
+    class Tap:
+        def __init__(self):
+            self.frames = []
+
+        def notify(self, can_id, data, timestamp):
+            self.frames.append((can_id, bytes(data), timestamp))
+
+    data = bytes(range(20))
+    frames = ((0x181, 0, 8), (0x281, 8, 14), (0x381, 14, 20), (0x181, 3, 5))
+    received = []
+    for send in ("slices", "one by one"):
+        drives, master = _linked()
+        tap = Tap()
+        drives.peers.append(tap)
+        got = []
+        for cob_id in (0x181, 0x281, 0x381):
+            master.subscribe(cob_id, lambda can_id, frame, stamp, got=got: got.append(
+                (can_id, frame, stamp)))
+        if send == "slices":
+            drives.send_slices(data, frames)
+        else:
+            for cob_id, start, stop in frames:
+                drives.send_message(cob_id, data[start:stop])
+        assert master.frames == len(frames) and master.last_stamp == got[-1][2]
+        assert [frame[:2] for frame in got] == [frame[:2] for frame in tap.frames]
+        assert all(type(frame) is bytes for _, frame, _ in got)
+        received.append(got)
+    assert [frame[:2] for frame in received[0]] == [frame[:2] for frame in received[1]] == [
+        (cob_id, data[start:stop]) for cob_id, start, stop in frames]
+    assert len({stamp for *_, stamp in received[0]}) == 1  # they left together

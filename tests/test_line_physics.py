@@ -20,7 +20,7 @@ from protocol import objects
 from sim_bus.device import LINE_KEYS
 from sim_bus.embedded import make_device
 from sim_bus.faults import Fault
-from sim_bus.line_physics import DriveLine
+from sim_bus.line_physics import DriveLine, _compiled_blocks, buffer_sizes, line_blocks
 from sim_bus.plant import STATE_SIZE, SensorNoise
 
 JOINTS = 4
@@ -170,3 +170,30 @@ def test_the_linked_line_in_a_batch_is_the_line_slave_by_slave():
     finally:
         batched.close()
         single.close()
+
+
+def test_the_lines_arrays_are_cut_from_its_buffers_alike_in_python_and_compiled():
+    """`line_blocks` cuts a line's two buffers into its arrays once for Python and once in
+    the compiled cycle (`advance_blocks`): both cuts give every array the same elements, and
+    the line's named arrays are C-contiguous views of its buffers (the types `advance_line`
+    is compiled for, whoever calls it)."""
+    line = DriveLine(_drives()[:3])
+    count, size = len(line), line.packed.shape[1]
+    ints, reals = line._buffers
+    assert (ints.size, reals.size) == buffer_sizes(count, size)
+    ints[:], reals[:] = np.arange(ints.size), np.arange(reals.size) + 0.5
+    python = line_blocks(ints, reals, count, size)
+    compiled = _compiled_blocks(ints, reals, count, size)
+    for mine, theirs in zip(python, compiled, strict=True):
+        np.testing.assert_array_equal(mine, theirs)
+    # every element of both buffers in exactly one array
+    assert sorted(np.concatenate([a.ravel() for a in python if a.dtype == np.int64])) == list(
+        ints)
+    assert sum(a.size for a in python if a.dtype == np.float64) == reals.size
+    for name in ("_controlword", "_next_due", "_cycles", "cursor", "flags", "outputs",
+                 "ranges", "values", "torque_targets", "current_targets", "applied",
+                 "terms", "state", "packed", "packed_braked", "draws"):
+        array = getattr(line, name)
+        assert array.flags.c_contiguous and (np.shares_memory(array, ints)
+                                             or np.shares_memory(array, reals)), name
+    assert line.state.shape == (count, STATE_SIZE) and line.packed_braked.shape == (count, size)
