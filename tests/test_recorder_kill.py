@@ -67,7 +67,9 @@ def test_twenty_kills_at_random_moments_leave_twenty_readable_files(tmp_path):
         rng = random.Random(seed)
         path = tmp_path / f"kill{seed}.mcap"
         proc = subprocess.Popen([sys.executable, "-m", "commands.recorder", "--sinusoid",
-                                 "--duration", "30", "--sim", "--lockstep", "--no-progress",
+                                 # far longer than the kill comes: 30 s of drive time took
+                                 # under 1.5 s in lock-step once the cycle got faster
+                                 "--duration", "600", "--sim", "--lockstep", "--no-progress",
                                  "--seed", str(seed), "-o", str(path)],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         # 2 kB: past the header, metadata and provisional end (about 460 bytes), so the first
