@@ -40,36 +40,28 @@ class LinkedNetwork(canopen.Network):
         self.last_stamp = 0.0  # of the last frame received
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
-        # canopen's own services send lists; every receiver here reads bytes
-        frame, now = data if type(data) is bytes else bytes(data), time.time()
-        for peer in self.peers:
-            if type(peer) is LinkedNetwork:  # its `notify`, inline: a call fewer a frame
-                peer.frames += 1
-                peer.last_stamp = now
-                for callback in peer.subscribers.get(can_id, ()):
-                    callback(can_id, frame, now)
-            else:
-                peer.notify(can_id, frame, now)
+        # canopen's own services send lists; every receiver here reads bytes (a whole
+        # slice of bytes is the same object: no copy)
+        frame = data if type(data) is bytes else bytes(data)
+        self.send_slices(frame, ((can_id, 0, len(frame)),))
 
     def send_slices(self, data: bytes, frames: Sequence[tuple[int, int, int]]) -> None:
         """Several frames in one call, in order, each `(can_id, start, stop)` a slice of
         `data` (a drive's TPDOs cut from one packed buffer, a master's RPDOs from its output
-        image): what `send_message` does for each, with one stamp (they leave together),
-        without a Python call, a stamp and a look at the peers per frame (a lone drive's
-        three TPDOs and its RPDO are four of a cycle's five frames)."""
-        now = time.time()
-        for peer in self.peers:
-            if type(peer) is LinkedNetwork:
-                subscribers = peer.subscribers
-                for can_id, start, stop in frames:
-                    frame = data[start:stop]
+        image), each to every peer before the next, with one stamp (they leave together),
+        without a Python call and a stamp per frame (a lone drive's three TPDOs and its RPDO
+        are four of a cycle's five frames). `send_message` is one of them."""
+        now, peers = time.time(), self.peers
+        for can_id, start, stop in frames:
+            frame = data[start:stop]
+            for peer in peers:
+                if type(peer) is LinkedNetwork:  # its `notify`, inline: a call fewer a frame
                     peer.frames += 1
                     peer.last_stamp = now
-                    for callback in subscribers.get(can_id, ()):
+                    for callback in peer.subscribers.get(can_id, ()):
                         callback(can_id, frame, now)
-            else:
-                for can_id, start, stop in frames:
-                    peer.notify(can_id, data[start:stop], now)
+                else:
+                    peer.notify(can_id, frame, now)
 
     def notify(self, can_id: int, data: bytes, timestamp: float) -> None:
         """canopen's dispatch to the subscribers, without its node scanner (nobody scans a
