@@ -40,6 +40,10 @@ from robot.description import load_robot, robot_path
 from sim_bus.ethercat.netns import NamespacePair
 
 START_TIMEOUT = 180.0  # s for sim-bus to build and serve every drive on a busy host
+# s before a failed start's last cycle in which a stall of the host is named: a drive's
+# watchdog or sync monitor trips within tens of ms of the silence that trips it, and the
+# master finds out a few cycles later
+FAILURE_LOOKBACK = 0.1
 
 
 def stage(text: str) -> None:
@@ -80,6 +84,11 @@ def run(robot_file: str, duration: float, starts: int, sync: str | None = None, 
                 one["floor_beside"] = beside.figures(one["cycles_from_s"], one["cycles_to_s"])
                 # the run's own misses a stall of the host explains, and those it does not
                 one["missed_in_host_stalls"] = beside.in_stalls(one.pop("missed_at_s"))
+                if one.get("exit_code") not in (0, None):
+                    # a start that failed: did the host take a CPU away just before?
+                    end = one["cycles_to_s"]
+                    one["host_stall_before_failure"] = beside.longest_stall(
+                        end - FAILURE_LOOKBACK, end)
             runs.append(one)
     cycles = round(duration * 1e6 / robot.period_us)
     for one in runs:

@@ -148,6 +148,20 @@ class FloorBeside:
                 explained += cycles
         return explained
 
+    def longest_stall(self, begin: float, end: float) -> dict | None:
+        """The longest stall of any CPU that overlapped `begin`..`end` (s, the monotonic
+        clock): its CPU, its length and how long before `end` it ended (ms); None when there
+        was none. Read over the moments before a run failed, it says whether the host had
+        just taken a CPU away: a line on distributed clocks is out of sync after a few empty
+        SYNC0 windows (4 in a row at 1 kHz with the sync error limit of 9 talos_32's drives
+        have, 0x10F1:02), which a 4 ms stall of the master's CPU leaves."""
+        overlapping = [s for s in self.stalls if s.woke > begin and s.deadline < end]
+        if not overlapping:
+            return None
+        stall = max(overlapping, key=lambda s: s.woke - s.deadline)
+        return {"cpu": stall.cpu, "ms": round((stall.woke - stall.deadline) * 1e3, 2),
+                "ended_ms_before": round(max(end - stall.woke, 0.0) * 1e3, 2)}
+
     def figures(self, begin: float = -math.inf, end: float = math.inf) -> dict:
         """The floor between `begin` and `end` (s, the monotonic clock: a run's cycles):
         the deadlines missed on any of the CPUs (a stall of either costs a cycle whose

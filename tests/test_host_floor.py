@@ -67,3 +67,11 @@ def test_a_runs_misses_are_put_down_to_the_stalls_beside_them():
         (9.9, 1),       # before any stall began
     ])
     assert explained == 4 + 1
+
+
+def test_the_longest_stall_before_a_failure_is_named():
+    floor = _floor([Stall(0, 10.0, 10.0047), Stall(1, 10.03, 10.0322), Stall(1, 9.0, 9.5)])
+    # a run that failed at 10.05: the 4.7 ms stall of CPU 0 45.3 ms before its end
+    assert floor.longest_stall(9.95, 10.05) == {"cpu": 0, "ms": 4.7, "ended_ms_before": 45.3}
+    assert floor.longest_stall(10.031, 10.05)["cpu"] == 1   # only the later one overlaps
+    assert floor.longest_stall(11.0, 12.0) is None
