@@ -5,7 +5,9 @@ synchronous torque, holding a loaded joint against gravity (issue 27, item 6).
 
 Distributed clocks are not exercised: KickCAT's Python binding (2.5) exposes no DC call (the
 C++ Bus has its DC set-up, the binding has none of it), so a KickCAT master here runs the line
-SM-synchronous (free run); the DC set-up of other masters is in tests/test_ethercat_dc.py."""
+SM-synchronous (free run). Its C++ DC set-up (resetSlaves + enableDC), and IgH EtherLab's, are
+replayed frame by frame in tests/test_ethercat_dc_masters.py; this project's own master on DC is
+in tests/test_ethercat_dc.py."""
 
 import time
 
