@@ -153,14 +153,18 @@ class FloorBeside:
         clock): its CPU, its length and how long before `end` it ended (ms); None when there
         was none. Read over the moments before a run failed, it says whether the host had
         just taken a CPU away: a line on distributed clocks is out of sync after a few empty
-        SYNC0 windows (4 in a row at 1 kHz with the sync error limit of 9 talos_32's drives
-        have, 0x10F1:02), which a 4 ms stall of the master's CPU leaves."""
-        overlapping = [s for s in self.stalls if s.woke > begin and s.deadline < end]
+        SYNC0 windows (3 in a row at 1 kHz with the sync error limit of 9 talos_32's drives
+        have, 0x10F1:02), which a 3-4 ms stall of the master's CPU leaves."""
+        overlapping = self._between(begin, end)
         if not overlapping:
             return None
         stall = max(overlapping, key=lambda s: s.woke - s.deadline)
         return {"cpu": stall.cpu, "ms": round((stall.woke - stall.deadline) * 1e3, 2),
                 "ended_ms_before": round(max(end - stall.woke, 0.0) * 1e3, 2)}
+
+    def _between(self, begin: float, end: float) -> list[Stall]:
+        """The stalls that overlapped `begin`..`end`."""
+        return [s for s in self.stalls if s.woke > begin and s.deadline < end]
 
     def figures(self, begin: float = -math.inf, end: float = math.inf) -> dict:
         """The floor between `begin` and `end` (s, the monotonic clock: a run's cycles):
@@ -168,8 +172,8 @@ class FloorBeside:
         master and drives share them; stalls that overlap count once), their share of the
         span's periods, the longest stall (ms), and the host's steal per CPU over the whole
         block (s)."""
-        spans = sorted((max(s.deadline, begin), min(s.woke, end)) for s in self.stalls
-                       if s.woke > begin and s.deadline < end)
+        spans = sorted((max(s.deadline, begin), min(s.woke, end))
+                       for s in self._between(begin, end))
         missed, longest, merged_end = 0, 0.0, -math.inf
         merged_start = -math.inf
         for start, stop in [*spans, (math.inf, math.inf)]:
