@@ -225,8 +225,14 @@ class TelemetryPublisher:
         return True
 
     def close(self) -> None:
-        """Flush what is queued, then undeclare everything."""
+        """Flush what is queued, then undeclare everything. A thread waiting for a turn is
+        woken at once: it waited out TURN_LAPSE, and every lock-step run ended 0-0.1 s late
+        (at random: 57 ms at the end of a 22 s run, 18 ms of a 2 s one)."""
         self._closing.set()
+        try:
+            self._go.release()  # a turn: the thread drains, then sees `_closing`
+        except RuntimeError:  # a turn given and not yet taken: the thread wakes on that one
+            pass
         self._thread.join(5)
         for entity in [*self._publishers.values(), *self._queryables, self._audit, self._alive]:
             entity.undeclare()

@@ -6,9 +6,11 @@ import json
 import threading
 import time
 
+import pytest
 import zenoh
 
 from controller import messages
+from controller import telemetry as publishing
 from controller.loop import ControlLoop, LoopOptions
 from controller.mpc import Mpc
 from controller.telemetry import TURN_MESSAGES, TURN_PERIOD, TelemetryPublisher
@@ -134,3 +136,29 @@ def test_a_turn_publishes_in_the_loops_thread_up_to_a_fault_which_the_thread_pub
     assert puts[at][0] == "Fault"
     assert all(thread == loop for _, thread in puts[:at])
     assert all(thread != loop for _, thread in puts[at:])
+
+
+def test_closing_wakes_a_thread_that_waits_for_a_turn(monkeypatch: pytest.MonkeyPatch):
+    """A loop on drive time gave turns, then ended: `close` publishes what is left and ends
+    the thread, which does not wait out TURN_LAPSE (an hour here) for a turn that never
+    comes."""
+    monkeypatch.setattr(publishing, "TURN_LAPSE", 3600.0)
+    session = _session()
+    try:
+        publisher = TelemetryPublisher(session, PREFIX)
+        received: list[bytes] = []
+        subscriber = session.declare_subscriber(telemetry.key_expr(PREFIX, "fault"),
+                                                lambda sample: received.append(
+                                                    sample.payload.to_bytes()))
+        publisher.take_turn()  # the loop's first look: the thread now waits for turns
+        while not publisher.in_turns:
+            time.sleep(1e-3)
+        publisher.publish(messages.fault(0.5, "test", "last words", "none"))
+        publisher.close()
+        alive = publisher._thread.is_alive()
+        subscriber.undeclare()
+    finally:
+        session.close()
+    assert not alive
+    assert [messages.Fault.FromString(payload).cause for payload in received] == [
+        "last words"]
