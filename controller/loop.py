@@ -89,6 +89,11 @@ class LoopReport:
     # span a host's stalls beside the run are counted over (`driver.host_floor`)
     cycles_from: float = math.nan
     cycles_to: float = math.nan
+    # s on the host's performance counter over the same span, whatever the loop's clock: on
+    # drive time (lock-step) what a cycle costs as a whole, drives, MPC, master and telemetry
+    # together (`wall_per_cycle_us`), beside the MPC tick measured in the same run
+    wall_from: float = math.nan
+    wall_to: float = math.nan
     # (s on the loop's clock, cycles): each time cycles were found missed, the first
     # MISSES_KEPT times
     missed_at: list[tuple[float, int]] = field(default_factory=list)
@@ -101,6 +106,14 @@ class LoopReport:
     def jitter(self) -> RingStats:
         return self.clock.jitter_us if self.clock else RingStats(1)
 
+    @property
+    def wall_per_cycle_us(self) -> float:
+        """The wall time of a cycle after the first (NaN before a second cycle ran): on drive
+        time the whole cycle's cost, on the wall clock the period kept."""
+        if self.cycles < 2 or math.isnan(self.wall_to):
+            return math.nan
+        return (self.wall_to - self.wall_from) / (self.cycles - 1) * 1e6
+
     def summary(self) -> str:
         return (f"{self.cycles} cycles, {self.missed_cycles} missed, {self.fallbacks} safety "
                 f"fallbacks; cold solve {self.cold_solve_us:.0f} us; period jitter p99 "
@@ -108,7 +121,8 @@ class LoopReport:
                 f"median {self.solve.percentile(50):.1f} us, p99 "
                 f"{self.solve.percentile(99):.1f} us, max {self.solve.max:.1f} us; master "
                 f"(MPC excluded) median {self.master.percentile(50):.1f} us, p99 "
-                f"{self.master.percentile(99):.1f} us; missed by cause: "
+                f"{self.master.percentile(99):.1f} us; wall time a cycle "
+                f"{self.wall_per_cycle_us:.1f} us; missed by cause: "
                 + ", ".join(f"{cause} {n}" for cause, n in self.missed_by_cause.items())
                 + f"; {self.reason}")
 
@@ -124,6 +138,8 @@ class LoopReport:
                 "cold_solve_us": self.cold_solve_us,
                 "jitter": {"p99_us": self.jitter.percentile(99), "max_us": self.jitter.max},
                 "mpc_tick": stats(self.solve), "master": stats(self.master),
+                "wall_per_cycle_us": None if math.isnan(wall := self.wall_per_cycle_us)
+                else wall,
                 # None: the run ended before its rhythm began (JSON has no NaN)
                 "cycles_from_s": None if math.isnan(self.cycles_from) else self.cycles_from,
                 "cycles_to_s": None if math.isnan(self.cycles_to) else self.cycles_to,
@@ -551,6 +567,7 @@ class ControlLoop:
                     report.cold_solve_us = decide_time * 1e6
                 clock.restart()
                 report.cycles_from = options.clock.now()
+                report.wall_from = perf_counter()
             report.cycles += 1
             published = perf_counter()
             published_view(decide_time)
@@ -717,6 +734,7 @@ class ControlLoop:
         self.report.exit_code = code
         self.report.reason = reason
         self.report.cycles_to = self.options.clock.now()
+        self.report.wall_to = time.perf_counter()
         if source is not None:
             self.fault(t, source, reason, action or "")
         self.publish(self._stats(t, whole_run=True))

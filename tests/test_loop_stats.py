@@ -2,6 +2,7 @@
 percentiles cover the cycles since the last LoopStats (the last message: the run's), and a
 Plan is built from its arrays' bytes, the same message as field by field."""
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -59,6 +60,35 @@ def test_loop_stats_cover_the_cycles_since_the_last_and_the_last_the_run():
         since = until
     last = stats[-1]
     assert (last.solve_median_us, last.solve_p99_us) == tuple(np.percentile(solve, [50, 99]))
+
+
+def test_a_lockstep_run_reports_the_wall_time_of_its_whole_cycle():
+    """On drive time the loop never sleeps, so the run's wall time over its cycles is what a
+    whole cycle costs (drives, MPC, master, telemetry): within the run's own wall time,
+    above its MPC tick, in the summary and the report."""
+    spec = RobotSpec(name="wall", period_us=1000,
+                     joints=(JointSpec("elbow", "can0", 1, MODEL, None, {},
+                                       default_reference(MODEL.limits)),),
+                     bitrates={}, source=Path("<test>"))
+    connection = open_robot(spec, sim=True, clock=DriveClock(), seed=0, period=1e-3,
+                            response_timeout=1.0)
+    try:
+        connection.group.start()
+        batch = BatchMpc([JointProblem(MODEL, OcpSettings(horizon=10))])
+        loop = ControlLoop(connection.group, batch, LoopOptions(clock=DriveClock(),
+                                                                duration=0.3))
+        before = time.perf_counter()
+        report = loop.run()
+        run_wall = time.perf_counter() - before
+    finally:
+        connection.close()
+    wall = report.wall_per_cycle_us
+    assert report.cycles == 300
+    assert report.solve.percentile(50) < wall <= run_wall / (report.cycles - 1) * 1e6
+    assert report.figures()["wall_per_cycle_us"] == wall
+    assert f"wall time a cycle {wall:.1f} us" in report.summary()
+    # a run that ended before its second cycle has no such figure
+    assert report.__class__().figures()["wall_per_cycle_us"] is None
 
 
 def test_a_plan_from_its_arrays_bytes_is_the_plan_field_by_field():
