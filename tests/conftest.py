@@ -54,9 +54,26 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
+def _ephemeral_floor() -> int:
+    """The first port of the kernel's ephemeral range (Linux's default where it cannot be
+    read)."""
+    try:
+        return int(open("/proc/sys/net/ipv4/ip_local_port_range").read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
+
+
+def udp_port() -> int:
+    """A port for a test's udp_multicast bus, below the kernel's ephemeral range. The lean
+    multicast networks send from sockets on ephemeral ports, and a bus whose port one of them
+    holds (another process's, the moment it starts) is refused: "could not create or
+    configure socket", one sim-bus of ten in a CI run when ports were drawn up to 60000."""
+    return random.randint(10000, max(10001, _ephemeral_floor() - 1))
+
+
 def udp_bus_spec() -> str:
     """A multicast group and port of our own, so parallel runs do not hear each other."""
-    return f"udp_multicast:239.0.0.{random.randint(1, 250)}:{random.randint(20000, 60000)}"
+    return f"udp_multicast:239.0.0.{random.randint(1, 250)}:{udp_port()}"
 
 
 @contextmanager

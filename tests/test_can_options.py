@@ -16,7 +16,7 @@ from model.parameters import Payload, load_model
 from protocol import pdo
 from sim_bus.canopen_node import CanOpenNode
 from sim_bus.device import Cia402Device
-from tests.conftest import sim_bus_process
+from tests.conftest import sim_bus_process, udp_port
 
 pytestmark = pytest.mark.subprocess  # runs the commands as processes
 
@@ -144,7 +144,7 @@ def test_sim_bus_and_actuatord_on_udp_multicast_with_python_can_options(tmp_path
     read back with can.LogReader and hold every SYNC and PDO of the run."""
     import random
 
-    group, port = f"239.0.1.{random.randint(1, 250)}", str(random.randint(20000, 60000))
+    group, port = f"239.0.1.{random.randint(1, 250)}", str(udp_port())
     bus = ["-i", "udp_multicast", "-c", group, "--bus-kwargs", f"port={port}"]
     master_log, drive_log = tmp_path / "master.log", tmp_path / "drive.blf"
     with sim_bus_process(None, *bus, "--can-log", str(drive_log)):
@@ -189,7 +189,7 @@ def test_a_lost_drive_is_reported_once_end_to_end(tmp_path):
     the reason is read once."""
     import random
 
-    bus = f"udp_multicast:239.0.2.{random.randint(1, 250)}:{random.randint(20000, 60000)}"
+    bus = f"udp_multicast:239.0.2.{random.randint(1, 250)}:{udp_port()}"
     with sim_bus_process(bus, "--inject-fault", "heartbeat_stops@0.5"):
         proc = subprocess.run([sys.executable, "-m", "commands.recorder", "--sinusoid",
                                "--duration", "5", "--bus", bus, "--no-progress", "-o",

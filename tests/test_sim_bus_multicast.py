@@ -21,7 +21,7 @@ from sim_bus.canopen_node import CanOpenNode
 from sim_bus.device import Cia402Device
 from sim_bus.multicast import MulticastNetwork, MulticastReceiver
 from sim_bus.rhythm import RHYTHM, Rhythm
-from tests.conftest import udp_bus_spec
+from tests.conftest import udp_bus_spec, udp_port
 
 
 def test_a_drive_served_through_it_answers_sdo_and_sync_on_two_buses_from_one_thread():
@@ -107,7 +107,7 @@ def test_a_bus_does_not_hear_another_group_on_the_same_port():
     """Two buses on one port, groups of their own: a frame sent on the first reaches a
     python-can reader of the first group, and the second bus's socket never gets it
     (Linux's IP_MULTICAST_ALL default would queue it there too)."""
-    port = random.randint(20000, 60000)
+    port = udp_port()
     first, second = (f"udp_multicast:239.0.1.{n}:{port}"
                      for n in random.sample(range(1, 250), 2))
     witness = can.Bus(ignore_config=True, **parse_bus_spec(first))
