@@ -2,7 +2,9 @@
 percentiles cover the cycles since the last LoopStats (the last message: the run's), and a
 Plan is built from its arrays' bytes, the same message as field by field."""
 
+import contextlib
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +15,7 @@ from controller.mpc import BatchMpc, JointProblem
 from controller.policy import PlanSnapshot
 from controller.problem import OcpSettings
 from driver.clock import DriveClock, RingStats
+from driver.drive_group import DriveGroup
 from model.parameters import load_model
 from robot.description import JointSpec, RobotSpec, default_reference
 from robot.wiring import open_robot
@@ -32,23 +35,29 @@ def test_recent_percentiles_are_those_of_the_last_values_across_the_ring_wrap():
     assert np.isnan(ring.recent_percentiles((99,), 0)[0])
 
 
-def test_loop_stats_cover_the_cycles_since_the_last_and_the_last_the_run():
+@contextlib.contextmanager
+def _elbow_in_lockstep() -> Iterator[tuple[DriveGroup, BatchMpc]]:
+    """A robot of one joint on its virtual drive, started on drive time, and its MPC."""
     spec = RobotSpec(name="stats", period_us=1000,
                      joints=(JointSpec("elbow", "can0", 1, MODEL, None, {},
                                        default_reference(MODEL.limits)),),
                      bitrates={}, source=Path("<test>"))
     connection = open_robot(spec, sim=True, clock=DriveClock(), seed=0, period=1e-3,
                             response_timeout=1.0)
-    stats = []
     try:
         connection.group.start()
-        batch = BatchMpc([JointProblem(MODEL, OcpSettings(horizon=10))])
-        loop = ControlLoop(connection.group, batch,
+        yield connection.group, BatchMpc([JointProblem(MODEL, OcpSettings(horizon=10))])
+    finally:
+        connection.close()
+
+
+def test_loop_stats_cover_the_cycles_since_the_last_and_the_last_the_run():
+    stats = []
+    with _elbow_in_lockstep() as (group, batch):
+        loop = ControlLoop(group, batch,
                            LoopOptions(clock=DriveClock(), duration=0.25, stats_every=0.1),
                            [lambda m: stats.append(m) if type(m) is messages.LoopStats else None])
         report = loop.run()
-    finally:
-        connection.close()
     assert report.cycles == 250 and [m.cycles for m in stats] == [100, 200, 250]
     solve = report.solve.recent()  # every cycle's but the cold first
     since = 0
@@ -66,22 +75,11 @@ def test_a_lockstep_run_reports_the_wall_time_of_its_whole_cycle():
     """On drive time the loop never sleeps, so the run's wall time over its cycles is what a
     whole cycle costs (drives, MPC, master, telemetry): within the run's own wall time,
     above its MPC tick, in the summary and the report."""
-    spec = RobotSpec(name="wall", period_us=1000,
-                     joints=(JointSpec("elbow", "can0", 1, MODEL, None, {},
-                                       default_reference(MODEL.limits)),),
-                     bitrates={}, source=Path("<test>"))
-    connection = open_robot(spec, sim=True, clock=DriveClock(), seed=0, period=1e-3,
-                            response_timeout=1.0)
-    try:
-        connection.group.start()
-        batch = BatchMpc([JointProblem(MODEL, OcpSettings(horizon=10))])
-        loop = ControlLoop(connection.group, batch, LoopOptions(clock=DriveClock(),
-                                                                duration=0.3))
+    with _elbow_in_lockstep() as (group, batch):
+        loop = ControlLoop(group, batch, LoopOptions(clock=DriveClock(), duration=0.3))
         before = time.perf_counter()
         report = loop.run()
         run_wall = time.perf_counter() - before
-    finally:
-        connection.close()
     wall = report.wall_per_cycle_us
     assert report.cycles == 300
     assert report.solve.percentile(50) < wall <= run_wall / (report.cycles - 1) * 1e6
