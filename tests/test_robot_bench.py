@@ -67,7 +67,10 @@ def test_one_joint_runs_in_real_time_and_reports_its_misses(tmp_path, extra):
     # the floor beside the start, on every CPU the bench may use, over the run's own cycles
     beside = run["floor_beside"]
     assert beside["cpus"] == allowed
-    assert run["cycles_to_s"] - run["cycles_from_s"] == pytest.approx(1.0, abs=0.05)
+    # a second on the monotonic clock, and longer by the periods the run itself missed: a
+    # host that took the CPUs away (steal) made 1000 cycles last 1.08-1.09 s in one CI run
+    span = run["cycles_to_s"] - run["cycles_from_s"]
+    assert 0.95 <= span <= (1000 + run["missed"]) * 1e-3 + 0.05, (span, run["missed"])
     assert beside["missed_percent"] == pytest.approx(
         100 * beside["missed"] / ((run["cycles_to_s"] - run["cycles_from_s"]) * 1e3), abs=1e-3)
     assert result["floor_beside_percent"]["max"] == beside["missed_percent"]
