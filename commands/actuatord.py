@@ -263,8 +263,8 @@ def _run(args: argparse.Namespace, setup: _Setup, stop: threading.Event,
     loop = ControlLoop(group, setup.batch,
                        LoopOptions(period=setup.period, clock=clock_for(args.lockstep),
                                    duration=args.duration, keep_history=bool(args.plot)),
-                       [publisher.publish], lambda: publisher.dropped, stop,
-                       settle=TRACKING_SETTLE, take_turn=publisher.take_turn)
+                       (), lambda: publisher.dropped, stop, settle=TRACKING_SETTLE,
+                       take_turn=publisher.take_turn, wire_subscribers=[publisher.publish])
     signal.signal(signal.SIGINT, lambda *_: loop.stop())
     signal.signal(signal.SIGTERM, lambda *_: loop.stop())
     failure = None

@@ -30,7 +30,7 @@ import numpy as np
 from controller import messages
 from controller import workspace as ws
 from controller.ilqr import CONVERGED, MAX_ITERATIONS, STATUS_NAMES
-from controller.messages import Subscriber
+from controller.messages import Subscriber, WireSubscriber
 from controller.mpc import COLD, BatchMpc, Mpc
 from controller.policy import PlanSnapshot, Policy
 from controller.reference import reference_at
@@ -421,8 +421,12 @@ class ControlLoop:
     def __init__(self, joints: Joints, policy: "JointPolicies | BatchMpc | Mpc | Policy",
                  options: LoopOptions, subscribers: Sequence[Subscriber] = (),
                  dropped: Callable[[], int] = lambda: 0, stop: threading.Event | None = None,
-                 settle: float = 0.0, take_turn: Callable[[], None] | None = None):
-        """`dropped` counts the messages subscribers could not pass on (for LoopStats); `stop`,
+                 settle: float = 0.0, take_turn: Callable[[], None] | None = None,
+                 wire_subscribers: Sequence[WireSubscriber] = ()):
+        """`wire_subscribers`: subscribers that send bytes (a Zenoh publisher), given a robot
+        of one joint's view as one `messages.EncodedJointView` (its messages' wire bytes,
+        without the messages) and every other message as the others are. `dropped` counts
+        the messages subscribers could not pass on (for LoopStats); `stop`,
         when given, is the caller's flag to end the run (a signal handler sets it); `settle`
         (s of drive time): tracking errors count from then on (the approach from where a
         joint rests to its reference is not tracking). `take_turn`: called after each cycle
@@ -435,7 +439,9 @@ class ControlLoop:
         if len(policies.limits) != count:
             raise ValueError(f"{count} joints, {len(policies.limits)} policies")
         self.options = options
-        self._subscribers = tuple(subscribers)
+        self._view_subscribers = tuple(subscribers)  # the one-joint view as its messages
+        self._wire_subscribers = tuple(wire_subscribers)  # ... as its bytes
+        self._subscribers = self._view_subscribers + self._wire_subscribers  # every message
         self._take_turn = None if options.clock.runs_alone else take_turn
         self._dropped = dropped
         # appended by other threads, drained by the loop: deque's append and popleft are atomic
@@ -465,6 +471,7 @@ class ControlLoop:
         self._status: list[str] | None = None  # the cycle's status names (None: the codes')
         self._fallbacks: dict[int, str] = {}  # joint -> why the net overrode it this cycle
         self._published = self._joint_view if count == 1 else self._robot_view
+        self._encode_view = messages.JointViewEncoder(self._limits[0])
         self._history = {key: [] for key in HISTORY_KEYS}
         if options.keep_history:
             self.report.history = self._history
@@ -665,32 +672,43 @@ class ControlLoop:
 
     def _joint_view(self, decide_time: float) -> None:
         """A robot of one joint: the joint's own State, Command and SolverStats (and a Plan
-        every `plan_every` cycles), the topics of a single-joint dashboard or recording."""
-        t, sample = self._t, self.latest[0].tolist()
-        h = self._decided.header[0].tolist()
-        status = STATUS_NAMES[int(h[ws.STATUS])] if self._status is None else self._status[0]
-        current = self._currents[0].item()
-        view = messages.joint_view(t, sample, self._enabled_names[0], current, h, status,
-                                   0 in self._fallbacks, self._limits[0], decide_time)
-        subscribers = self._subscribers
-        for message in view:  # `publish`'s loop, inline: three calls fewer a cycle
-            for subscriber in subscribers:
-                subscriber(message)
+        every `plan_every` cycles), the topics of a single-joint dashboard or recording; to
+        wire subscribers as their bytes, encoded in one call (the messages are built only
+        for the others)."""
+        t, table, header = self._t, self.latest, self._decided.header
+        status = (STATUS_NAMES[int(header[0, ws.STATUS])] if self._status is None
+                  else self._status[0])
+        fallback = 0 in self._fallbacks
+        if self._wire_subscribers:
+            encoded = self._encode_view(t, table, header, self._enabled_names[0],
+                                        self._currents, status, fallback, decide_time)
+            for subscriber in self._wire_subscribers:
+                subscriber(encoded)
+        if self._view_subscribers:
+            view = messages.joint_view(t, table[0].tolist(), self._enabled_names[0],
+                                       self._currents[0].item(), header[0].tolist(), status,
+                                       fallback, self._limits[0], decide_time)
+            subscribers = self._view_subscribers
+            for message in view:  # `publish`'s loop, inline: three calls fewer a cycle
+                for subscriber in subscribers:
+                    subscriber(message)
         if self._fallbacks:
             self._fallback_faults(t)
         if self.report.cycles % self.options.plan_every == 0:
             snapshot = self.policy.plan(0, t)
             if snapshot is not None:
                 self.publish(messages.plan(snapshot))
-        if t >= self._settle:  # `_track` for the one joint, on the values at hand
-            error = sample[SAMPLE_POSITION] - h[ws.REFERENCE_POSITION]
+        if t >= self._settle:  # `_track` for the one joint
+            error = float(table[0, SAMPLE_POSITION] - header[0, ws.REFERENCE_POSITION])
             self._squared_error[0] += error * error
             self._tracked += 1
         if self.options.keep_history:
+            sample, h = table[0].tolist(), header[0].tolist()
             for key, value in zip(HISTORY_KEYS, (
                     t, sample[SAMPLE_POSITION], sample[SAMPLE_VELOCITY],
-                    h[ws.REFERENCE_POSITION], current, h[ws.PLANNED_CURRENT],
-                    *sample[SAMPLE_VELOCITY + 1:SAMPLE_STATUSWORD]), strict=True):
+                    h[ws.REFERENCE_POSITION], self._currents[0].item(),
+                    h[ws.PLANNED_CURRENT], *sample[SAMPLE_VELOCITY + 1:SAMPLE_STATUSWORD]),
+                    strict=True):
                 self._history[key].append(value)
 
     def _fallback_faults(self, t: float) -> None:

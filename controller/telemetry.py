@@ -11,7 +11,9 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 
 import zenoh
+from google.protobuf.message import Message
 
+from controller.messages import VIEW_CLASSES, EncodedJointView
 from controller.requests import Body, RequestHandler
 from protocol import telemetry as schema
 
@@ -89,6 +91,9 @@ class TelemetryPublisher:
         # each message class's publisher's put (`_drain`)
         self._puts = {schema.message_class(schema.TOPICS[topic]): publisher.put
                       for topic, publisher in self._publishers.items()}
+        # a one-joint view's (`EncodedJointView`) parts' puts, in its order (None: not a topic
+        # published here)
+        self._view_puts = tuple(self._puts.get(kind) for kind in VIEW_CLASSES)
         self._queryables: list = []
         # dashboards watch this token to tell a vanished actuatord from a quiet one
         self._alive = session.liveliness().declare_token(
@@ -108,8 +113,9 @@ class TelemetryPublisher:
         self._thread = threading.Thread(target=self._run, name="telemetry", daemon=True)
         self._thread.start()
 
-    def publish(self, message) -> None:
-        """Queue a message for the publisher thread. A full queue (a lock-step loop makes
+    def publish(self, message: "Message | EncodedJointView") -> None:
+        """Queue a message, or a one-joint view as its bytes (a wire subscriber of the loop),
+        for the publisher thread. A full queue (a lock-step loop makes
         messages far faster than Zenoh takes them) drops it and counts it, except a fault:
         faults are rare and are what a user must see, so they always join the queue (a
         refused request's fault went missing this way in lock-step runs)."""
@@ -207,7 +213,7 @@ class TelemetryPublisher:
         may block (left first in the queue). Whether the queue was emptied."""
         # every message is this loop's Python while holding the interpreter's lock: one
         # look-up of its publisher's put by its class
-        queue, puts, ros2 = self._queue, self._puts, self._ros2
+        queue, puts, view_puts, ros2 = self._queue, self._puts, self._view_puts, self._ros2
         popleft = queue.popleft
         with self._draining:
             while queue:
@@ -217,6 +223,15 @@ class TelemetryPublisher:
                     queue.appendleft(message)
                     return False
                 try:
+                    if kind is EncodedJointView:  # three messages' bytes, cut apart
+                        data, start = message.data, 0
+                        for put, end in zip(view_puts, message.ends, strict=True):
+                            if put is not None:
+                                put(data[start:end])
+                            start = end
+                        if ros2 is not None:
+                            ros2.publish(message.state())
+                        continue
                     puts[kind](message.SerializeToString())
                     if ros2 is not None:
                         ros2.publish(message)

@@ -89,6 +89,26 @@ def test_a_lockstep_run_reports_the_wall_time_of_its_whole_cycle():
     assert LoopReport().figures()["wall_per_cycle_us"] is None
 
 
+def test_a_wire_subscriber_gets_the_one_joint_view_as_the_bytes_of_its_messages():
+    """A subscriber that sends bytes (actuatord's publisher) gets each cycle's State, Command
+    and SolverStats as one `EncodedJointView`, a subscriber of messages the messages: the
+    same bytes, cycle for cycle; every other message reaches both as itself."""
+    views, wire = [], []
+    with _elbow_in_lockstep() as (group, batch):
+        loop = ControlLoop(group, batch, LoopOptions(clock=DriveClock(), duration=0.05),
+                           [views.append], wire_subscribers=[wire.append])
+        loop.run()
+    encoded = [m for m in wire if type(m) is messages.EncodedJointView]
+    assert len(encoded) == 50
+    own = [m for m in views if type(m) in messages.VIEW_CLASSES]
+    assert [part for m in encoded for part in m.parts()] == [m.SerializeToString()
+                                                            for m in own]
+    assert [m.t for m in encoded] == [m.t for m in own[::3]]
+    others = [m for m in wire if type(m) is not messages.EncodedJointView]
+    assert {type(m) for m in others} == {messages.Plan, messages.LoopStats}
+    assert others == [m for m in views if type(m) not in messages.VIEW_CLASSES]
+
+
 def test_a_plan_from_its_arrays_bytes_is_the_plan_field_by_field():
     rng = np.random.default_rng(1)
     states = rng.normal(size=(101, 3))  # strided columns, as the solver's trajectories give
