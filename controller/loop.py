@@ -697,7 +697,15 @@ class ControlLoop:
         if self.report.cycles % self.options.plan_every == 0:
             snapshot = self.policy.plan(0, t)
             if snapshot is not None:
-                self.publish(messages.plan(snapshot))
+                data = messages.plan_bytes(snapshot)
+                if self._wire_subscribers:
+                    encoded = messages.Encoded(messages.Plan, t, data)
+                    for subscriber in self._wire_subscribers:
+                        subscriber(encoded)
+                if self._view_subscribers:
+                    plan = messages.Plan.FromString(data)
+                    for subscriber in self._view_subscribers:
+                        subscriber(plan)
         if t >= self._settle:  # `_track` for the one joint
             error = float(table[0, SAMPLE_POSITION] - header[0, ws.REFERENCE_POSITION])
             self._squared_error[0] += error * error

@@ -13,7 +13,7 @@ from collections.abc import Callable, Iterable, Sequence
 import zenoh
 from google.protobuf.message import Message
 
-from controller.messages import VIEW_CLASSES, EncodedJointView
+from controller.messages import VIEW_CLASSES, Encoded, EncodedJointView
 from controller.requests import Body, RequestHandler
 from protocol import telemetry as schema
 
@@ -113,8 +113,8 @@ class TelemetryPublisher:
         self._thread = threading.Thread(target=self._run, name="telemetry", daemon=True)
         self._thread.start()
 
-    def publish(self, message: "Message | EncodedJointView") -> None:
-        """Queue a message, or a one-joint view as its bytes (a wire subscriber of the loop),
+    def publish(self, message: "Message | EncodedJointView | Encoded") -> None:
+        """Queue a message, or a one-joint view or plan as bytes (a wire subscriber of the loop),
         for the publisher thread. A full queue (a lock-step loop makes
         messages far faster than Zenoh takes them) drops it and counts it, except a fault:
         faults are rare and are what a user must see, so they always join the queue (a
@@ -223,6 +223,9 @@ class TelemetryPublisher:
                     queue.appendleft(message)
                     return False
                 try:
+                    if kind is Encoded:  # one message's bytes
+                        puts[message.kind](message.data)
+                        continue
                     if kind is EncodedJointView:  # three messages' bytes, cut apart
                         data, start = message.data, 0
                         for put, end in zip(view_puts, message.ends, strict=True):

@@ -91,8 +91,9 @@ def test_a_lockstep_run_reports_the_wall_time_of_its_whole_cycle():
 
 def test_a_wire_subscriber_gets_the_one_joint_view_as_the_bytes_of_its_messages():
     """A subscriber that sends bytes (actuatord's publisher) gets each cycle's State, Command
-    and SolverStats as one `EncodedJointView`, a subscriber of messages the messages: the
-    same bytes, cycle for cycle; every other message reaches both as itself."""
+    and SolverStats as one `EncodedJointView` and each Plan as `Encoded`, a subscriber of
+    messages the messages: the same bytes, cycle for cycle; every other message reaches both
+    as itself."""
     views, wire = [], []
     with _elbow_in_lockstep() as (group, batch):
         loop = ControlLoop(group, batch, LoopOptions(clock=DriveClock(), duration=0.05),
@@ -104,9 +105,13 @@ def test_a_wire_subscriber_gets_the_one_joint_view_as_the_bytes_of_its_messages(
     assert [part for m in encoded for part in m.parts()] == [m.SerializeToString()
                                                             for m in own]
     assert [m.t for m in encoded] == [m.t for m in own[::3]]
-    others = [m for m in wire if type(m) is not messages.EncodedJointView]
-    assert {type(m) for m in others} == {messages.Plan, messages.LoopStats}
-    assert others == [m for m in views if type(m) not in messages.VIEW_CLASSES]
+    # the plans as their bytes too, every other message as itself
+    plans = [m for m in wire if type(m) is messages.Encoded]
+    assert [m.kind for m in plans] == [messages.Plan] * 5
+    assert [m.decoded() for m in plans] == [m for m in views if type(m) is messages.Plan]
+    others = [m for m in wire if type(m) not in (messages.EncodedJointView, messages.Encoded)]
+    assert {type(m) for m in others} == {messages.LoopStats}
+    assert others == [m for m in views if type(m) is messages.LoopStats]
 
 
 def test_a_plan_from_its_arrays_bytes_is_the_plan_field_by_field():
@@ -114,13 +119,20 @@ def test_a_plan_from_its_arrays_bytes_is_the_plan_field_by_field():
     states = rng.normal(size=(101, 3))  # strided columns, as the solver's trajectories give
     snapshot = PlanSnapshot(0.25, 1e-3, states[:, 0], states[:, 1], rng.normal(size=100),
                             rng.normal(size=101))
-    assert messages.plan(snapshot) == messages.Plan(
+    expected = messages.Plan(
         t=0.25, dt=1e-3, position=states[:, 0].tolist(), velocity=states[:, 1].tolist(),
         current=snapshot.current.tolist(),
         reference_position=snapshot.reference_position.tolist())
+    assert messages.plan(snapshot) == expected
+    # what a Zenoh publisher sends: protobuf's own bytes
+    assert messages.plan_bytes(snapshot) == expected.SerializeToString()
     empty = np.zeros(0)
     assert messages.plan(PlanSnapshot(0.0, 1e-3, empty, empty, empty, empty)) == messages.Plan(
         dt=1e-3)
+    for t in (0.0, -0.0):  # proto3 leaves 0.0 out, not -0.0
+        at_zero = PlanSnapshot(t, 1e-3, empty, empty, snapshot.current, empty)
+        assert messages.plan_bytes(at_zero) == messages.Plan(
+            t=t, dt=1e-3, current=snapshot.current.tolist()).SerializeToString()
     long = np.arange(3000.0)  # a length of two varint bytes and more
     assert list(messages.plan(PlanSnapshot(0.0, 1e-3, long, long, long, long)).current) == (
         long.tolist())
