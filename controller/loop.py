@@ -9,7 +9,8 @@ lock-step (virtual drives) it runs as fast as the drives answer, and time is the
 Requests from outside (a new reference, new weights) are queued and applied at the start of a
 cycle, so the policy never sees a half-made change. Every message goes to the subscribers as a
 typed telemetry message (`controller.messages`), in this thread: a subscriber that does I/O
-hands the message to its own thread.
+hands the message to its own thread. A subscriber that only sends bytes (a Zenoh publisher)
+gets a one-joint cycle's messages and its plans as their wire bytes, without the messages.
 
 A failure of any joint's drive ends the run: the caller quick-stops every drive
 (`driver.drive_group.DriveGroup.quick_stop_all`), since the other joints' plans assumed that

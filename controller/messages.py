@@ -1,7 +1,10 @@
 """The telemetry messages of a control loop, built in one place as the protobuf messages of
 `protocol.telemetry`: a misspelt field or a value of the wrong type fails here, in the caller's
 thread (protobuf checks both at construction), not later in a publisher thread. Every
-subscriber (Zenoh, an MCAP recording, a test) receives the same objects.
+subscriber (an MCAP recording, a test) receives the same objects; a subscriber that only sends
+bytes (actuatord's Zenoh publisher) gets a one-joint cycle's messages and its plans as their
+wire bytes instead, encoded in one compiled call each (`JointViewEncoder`, `plan_bytes`):
+protobuf's own bytes, which the tests hold them to.
 """
 
 import functools
@@ -84,6 +87,19 @@ def joint_view(t: float, sample: list, drive_state: str, current: float, header:
     return state, command, stats
 
 
+def _key(message: type, name: str, kind: int, wire: int, repeated: bool = False) -> int:
+    """The key of field `name` (protobuf type `kind`, wire type `wire`): one byte, as the
+    compiled encoders write it."""
+    field = message.DESCRIPTOR.fields_by_name[name]
+    if field.type != kind or field.is_repeated != repeated:
+        raise TypeError(f"{message.__name__}.{name} is not a{' repeated' * repeated} "
+                        f"{field.type}")
+    key = field.number << 3 | wire
+    if key > 0x7F:
+        raise TypeError(f"{message.__name__}.{name}'s key takes more than one byte")
+    return key
+
+
 # --- one joint's view as its wire bytes -------------------------------------------------------
 # The fields the compiled encoder writes, message by message, in the order it writes them:
 # each message's fields by number, as protobuf writes them (checked here at import, so that a
@@ -102,23 +118,23 @@ _WIRE_TYPES = {FieldDescriptor.TYPE_DOUBLE: 1, FieldDescriptor.TYPE_UINT32: 0,
 
 
 def _view_keys() -> np.ndarray:
-    """Each written field's key (field number << 3 | wire type), one byte each."""
+    """Each written field's key, in the order the encoder writes them."""
     keys = []
     for kind, names in _VIEW_FIELDS:
         fields = sorted(kind.DESCRIPTOR.fields, key=lambda field: field.number)
         if tuple(field.name for field in fields) != names:
             raise TypeError(f"{kind.__name__}'s fields changed: the view's encoder writes "
                             f"{names}")
-        keys += [field.number << 3 | _WIRE_TYPES[field.type] for field in fields]
-    if max(keys) > 0x7F:
-        raise TypeError("a view field's key takes more than one byte")
+        keys += [_key(kind, field.name, field.type, _WIRE_TYPES[field.type])
+                 for field in fields]
     return np.array(keys, dtype=np.int64)
 
 
 _VIEW_KEYS = _view_keys()
-# bytes an encoded view takes at most, its two strings apart: 14 doubles (9 bytes each), three
-# uint32 (6), two bools (2), two string keys and lengths (6)
-_VIEW_FIXED = 14 * 9 + 3 * 6 + 2 * 2 + 2 * 6
+# bytes an encoded view takes at most, its two strings apart: 16 doubles (9 bytes each: State's
+# 5, Command's 8, SolverStats' 3), three uint32 (6), two bools (2), two string keys and lengths
+# (6)
+_VIEW_FIXED = 16 * 9 + 3 * 6 + 2 * 2 + 2 * 6
 
 
 @numba.njit(**ws.JIT)
@@ -238,9 +254,11 @@ WireSubscriber = Callable[["Message | EncodedJointView | Encoded"], None]
 class JointViewEncoder:
     """`joint_view`'s three messages as their wire bytes in one compiled call, for a loop's
     subscribers that send bytes (a Zenoh publisher): building the messages and serialising
-    them cost a one-joint cycle 4.4 us against 1.7 this way (the cycle's largest cost after
-    the MPC and the drives; `bench`). The bytes are protobuf's own for the same values,
-    field for field (a test holds them to `joint_view` + `SerializeToString`)."""
+    them cost 4.6 us a cycle against 2.0 this way (200 000 calls of each in a loop), the
+    largest cost of a one-joint cycle after the MPC and the drives. The bytes are protobuf's
+    own for the same values, field for field (a test holds them to `joint_view` +
+    `SerializeToString`); doubles are written in the host's byte order, the wire's
+    little-endian on every host numba compiles for here (x86-64, AArch64)."""
 
     def __init__(self, limits: Limits):
         self._out = np.empty(1024, dtype=np.uint8)  # the loop's own: one thread writes it
@@ -264,33 +282,13 @@ class JointViewEncoder:
         return EncodedJointView(t, out[:ends[2]].tobytes(), ends)
 
 
-@functools.cache  # a plan's lengths are two (N and N + 1 points)
-def _varint(value: int) -> bytes:
-    """`value` (>= 0) as a protobuf varint: seven bits a byte, low bits first."""
-    out = bytearray()
-    while value > 0x7F:
-        out.append(value & 0x7F | 0x80)
-        value >>= 7
-    out.append(value)
-    return bytes(out)
-
-
-def _key(message: type, name: str, kind: int, wire: int, repeated: bool = False) -> bytes:
-    """The key of field `name` (protobuf type `kind`, wire type `wire`)."""
-    field = message.DESCRIPTOR.fields_by_name[name]
-    if field.type != kind or field.is_repeated != repeated:
-        raise TypeError(f"{message.__name__}.{name} is not a{' repeated' * repeated} "
-                        f"{field.type}")
-    return _varint(field.number << 3 | wire)
-
-
 # a Plan's fields as protobuf writes them, by number: t and dt, then the snapshot's arrays
 _PLAN_FIELDS = ("t", "dt", "position", "velocity", "current", "reference_position")
 if tuple(field.name for field in sorted(Plan.DESCRIPTOR.fields, key=lambda f: f.number)) != (
         _PLAN_FIELDS):
     raise TypeError(f"Plan's fields changed: `plan_bytes` writes {_PLAN_FIELDS}")
-_PLAN_KEYS = np.array([_key(Plan, name, FieldDescriptor.TYPE_DOUBLE, 1)[0] for name in ("t", "dt")]
-                      + [_key(Plan, name, FieldDescriptor.TYPE_DOUBLE, 2, repeated=True)[0]
+_PLAN_KEYS = np.array([_key(Plan, name, FieldDescriptor.TYPE_DOUBLE, 1) for name in ("t", "dt")]
+                      + [_key(Plan, name, FieldDescriptor.TYPE_DOUBLE, 2, repeated=True)
                          for name in _PLAN_FIELDS[2:]], dtype=np.int64)
 _PLAN_FIXED = 2 * 9 + 4 * 11  # bytes: t and dt, each array's key and length (varint)
 

@@ -62,7 +62,8 @@ def _cycle(rng: np.random.Generator) -> tuple:
     header[0, ws.ROLLOUTS] = rng.choice([0, 3, 1 << 20])
     currents = np.array([rng.choice([0.0, 1.25, header[0, ws.PLANNED_CURRENT]])])
     drive_state = str(rng.choice(["OPERATION_ENABLED", "", "\u00e9" * 100]))
-    status = str(rng.choice(["converged", "max_iterations", "", "x" * 300]))
+    # a status longer than the encoder's first buffer: it makes room
+    status = str(rng.choice(["converged", "max_iterations", "", "x" * 300, "y" * 3000]))
     return (table, header, drive_state, currents, status, bool(rng.integers(2)),
             float(rng.choice([0.0, 12e-6])))
 
