@@ -25,6 +25,7 @@ from driver.interface import (
     SAMPLE_STATUSWORD,
     SAMPLE_T,
     SAMPLE_VELOCITY,
+    Sample,
 )
 from model.parameters import Limits
 from protocol import telemetry
@@ -137,7 +138,13 @@ _VIEW_KEYS = _view_keys()
 _VIEW_FIXED = 16 * 9 + 3 * 6 + 2 * 2 + 2 * 6
 
 
-@numba.njit(**ws.JIT)
+# The encoders keep the interpreter's lock (the solver's kernels release it): a microsecond's
+# work gains nothing from releasing it, and a release in the middle of a real-time cycle hands
+# the lock to whichever thread waits for it (the publisher's) until that thread lets go
+_JIT = {"cache": True, "error_model": "numpy"}
+
+
+@numba.njit(**_JIT)
 def _put_varint(out, at, value):  # pragma: no cover - compiled
     while value > 0x7F:
         out[at] = value & 0x7F | 0x80
@@ -147,7 +154,7 @@ def _put_varint(out, at, value):  # pragma: no cover - compiled
     return at + 1
 
 
-@numba.njit(**ws.JIT)
+@numba.njit(**_JIT)
 def _put_double(out, at, key, value, scratch, raw):  # pragma: no cover - compiled
     """A double field, left out when its bits are all zero (proto3's default: protobuf writes
     -0.0 and NaN, not 0.0); little-endian, the wire's order and the host's here."""
@@ -159,7 +166,7 @@ def _put_double(out, at, key, value, scratch, raw):  # pragma: no cover - compil
     return at + 9
 
 
-@numba.njit(**ws.JIT)
+@numba.njit(**_JIT)
 def _put_uint(out, at, key, value):  # pragma: no cover - compiled
     """A uint32 (or bool) field, left out when 0."""
     value = value & 0xFFFFFFFF
@@ -169,7 +176,7 @@ def _put_uint(out, at, key, value):  # pragma: no cover - compiled
     return _put_varint(out, at + 1, value)
 
 
-@numba.njit(**ws.JIT)
+@numba.njit(**_JIT)
 def _put_string(out, at, key, text):  # pragma: no cover - compiled
     """A string field (`text` its UTF-8 bytes), left out when empty."""
     if text.shape[0] == 0:
@@ -180,7 +187,7 @@ def _put_string(out, at, key, text):  # pragma: no cover - compiled
     return at + text.shape[0]
 
 
-@numba.njit(**ws.JIT)
+@numba.njit(**_JIT)
 def _encode_view(out, keys, table, header, currents, decide_time, limits, fallback,
                  drive_state, status):  # pragma: no cover - compiled
     """Joint 0's State, Command and SolverStats one after the other into `out`, as `joint_view`
@@ -293,7 +300,7 @@ _PLAN_KEYS = np.array([_key(Plan, name, FieldDescriptor.TYPE_DOUBLE, 1) for name
 _PLAN_FIXED = 2 * 9 + 4 * 11  # bytes: t and dt, each array's key and length (varint)
 
 
-@numba.njit(**ws.JIT)
+@numba.njit(**_JIT)
 def _put_packed(out, at, key, values):  # pragma: no cover - compiled
     """A repeated double in protobuf's packed encoding: key, byte length, the values as
     little-endian doubles (`values`: contiguous float64); left out when empty."""
@@ -306,7 +313,7 @@ def _put_packed(out, at, key, values):  # pragma: no cover - compiled
     return at + size
 
 
-@numba.njit(**ws.JIT)
+@numba.njit(**_JIT)
 def _encode_plan(out, keys, t, dt, position, velocity, current,
                  reference_position):  # pragma: no cover - compiled
     """A Plan's fields one after the other into `out` (at least `_PLAN_FIXED` bytes and 8 a
@@ -336,6 +343,17 @@ def plan_bytes(snapshot: PlanSnapshot) -> bytes:
 def plan(snapshot: PlanSnapshot) -> Message:
     """The snapshot as a Plan message (parsed from `plan_bytes` in one call)."""
     return Plan.FromString(plan_bytes(snapshot))
+
+
+def load_kernels(limits: Limits) -> None:
+    """The encoders' compiled code loaded now, on scratch values, not in a loop's first
+    cycles: loading them from numba's cache there held the cycle 15-20 ms (in real time,
+    one joint across two processes: 14-23 cycles missed as "publish back-pressure" in every
+    start)."""
+    empty = np.zeros(0)
+    JointViewEncoder(limits)(0.0, np.zeros((1, len(Sample._fields))), np.zeros((1, ws.HEADER)),
+                             "", np.zeros(1), "", False, 0.0)
+    plan_bytes(PlanSnapshot(0.0, 0.0, empty, empty, empty, empty))
 
 
 class Encoded(NamedTuple):
