@@ -472,7 +472,8 @@ class ControlLoop:
         self._status: list[str] | None = None  # the cycle's status names (None: the codes')
         self._fallbacks: dict[int, str] = {}  # joint -> why the net overrode it this cycle
         self._published = self._joint_view if count == 1 else self._robot_view
-        self._encode_view = messages.JointViewEncoder(self._limits[0])
+        # a robot of one joint's view to wire subscribers (a robot's is one JointStates)
+        self._encode_view = messages.JointViewEncoder(self._limits[0]) if count == 1 else None
         self._history = {key: [] for key in HISTORY_KEYS}
         if options.keep_history:
             self.report.history = self._history
@@ -487,7 +488,8 @@ class ControlLoop:
         _screen(table, self._screen_limits, np.zeros(count, dtype=bool))
         _check(np.zeros((count, ws.HEADER)), np.zeros(count, dtype=bool),
                self._safety.current_max, np.zeros(count))
-        messages.load_kernels(self._limits[0])
+        if self._encode_view is not None:
+            messages.load_kernels(self._encode_view)
 
     def solve_first(self, table: np.ndarray) -> None:
         """Every joint's cold solve from its measured state (`table`, a row per joint, as a

@@ -345,14 +345,14 @@ def plan(snapshot: PlanSnapshot) -> Message:
     return Plan.FromString(plan_bytes(snapshot))
 
 
-def load_kernels(limits: Limits) -> None:
-    """The encoders' compiled code loaded now, on scratch values, not in a loop's first
-    cycles: loading them from numba's cache there held the cycle 15-20 ms (in real time,
-    one joint across two processes: 14-23 cycles missed as "publish back-pressure" in every
-    start)."""
+def load_kernels(encoder: JointViewEncoder) -> None:
+    """The encoders' compiled code loaded now (through a loop's own `encoder`), on scratch
+    values, not in a loop's first cycles: loading them from numba's cache there held the
+    cycle 15-20 ms (in real time, one joint across two processes: 14-23 cycles missed as
+    "publish back-pressure" in every start)."""
     empty = np.zeros(0)
-    JointViewEncoder(limits)(0.0, np.zeros((1, len(Sample._fields))), np.zeros((1, ws.HEADER)),
-                             "", np.zeros(1), "", False, 0.0)
+    encoder(0.0, np.zeros((1, len(Sample._fields))), np.zeros((1, ws.HEADER)), "", np.zeros(1),
+            "", False, 0.0)
     plan_bytes(PlanSnapshot(0.0, 0.0, empty, empty, empty, empty))
 
 
