@@ -426,7 +426,8 @@ class ControlLoop:
                  wire_subscribers: Sequence[WireSubscriber] = ()):
         """`wire_subscribers`: subscribers that send bytes (a Zenoh publisher), given a robot
         of one joint's view as one `messages.EncodedJointView` (its messages' wire bytes,
-        without the messages) and every other message as the others are. `dropped` counts
+        without the messages), a robot's JointStates as `messages.Encoded`, and every other
+        message as the others are. `dropped` counts
         the messages subscribers could not pass on (for LoopStats); `stop`,
         when given, is the caller's flag to end the run (a signal handler sets it); `settle`
         (s of drive time): tracking errors count from then on (the approach from where a
@@ -461,7 +462,8 @@ class ControlLoop:
         self._tracked = 0
         self._settle = settle
         self.latest: np.ndarray | None = None  # the last cycle's samples, a row per joint
-        self._enabled_names = [cia402.State.OPERATION_ENABLED.value] * count
+        # every drive's state while the loop runs (it ends when one leaves operation enabled)
+        self._enabled_names = (cia402.State.OPERATION_ENABLED.value,) * count
         self._limits = policies.limits
         self._currents = np.zeros(count)  # what goes out this cycle (written in place)
         self._believed = np.zeros(count, dtype=bool)
@@ -472,8 +474,11 @@ class ControlLoop:
         self._status: list[str] | None = None  # the cycle's status names (None: the codes')
         self._fallbacks: dict[int, str] = {}  # joint -> why the net overrode it this cycle
         self._published = self._joint_view if count == 1 else self._robot_view
-        # a robot of one joint's view to wire subscribers (a robot's is one JointStates)
-        self._encode_view = messages.JointViewEncoder(self._limits[0]) if count == 1 else None
+        # the cycle's view to wire subscribers: a robot of one joint's three messages, or a
+        # robot's one JointStates
+        self._encode_view = (messages.JointViewEncoder(self._limits[0]) if count == 1
+                             else messages.JointStatesEncoder(self.names, self._enabled_names))
+        self._no_fallback = np.zeros(count, dtype=bool)
         self._history = {key: [] for key in HISTORY_KEYS}
         if options.keep_history:
             self.report.history = self._history
@@ -488,8 +493,7 @@ class ControlLoop:
         _screen(table, self._screen_limits, np.zeros(count, dtype=bool))
         _check(np.zeros((count, ws.HEADER)), np.zeros(count, dtype=bool),
                self._safety.current_max, np.zeros(count))
-        if self._encode_view is not None:
-            messages.load_kernels(self._encode_view)
+        messages.load_kernels(self._encode_view)
 
     def solve_first(self, table: np.ndarray) -> None:
         """Every joint's cold solve from its measured state (`table`, a row per joint, as a
@@ -663,15 +667,28 @@ class ControlLoop:
         return decide_time
 
     def _robot_view(self, decide_time: float) -> None:
-        """A robot's cycle: one JointStates message with every joint."""
+        """A robot's cycle: one JointStates message with every joint; to wire subscribers as
+        its bytes, encoded in one call (the message is built only for the others)."""
         t, table, header = self._t, self.latest, self._decided.header
-        status = _named(self._status, header)
-        fallback = np.zeros(len(self.names), dtype=bool)
-        fallback[list(self._fallbacks)] = True
-        self.publish(messages.joint_states(t, self.names, table, self._enabled_names,
-                                           self._currents, header, status, fallback,
-                                           decide_time))
-        self._fallback_faults(t)
+        if self._fallbacks:
+            fallback = np.zeros(len(self.names), dtype=bool)
+            fallback[list(self._fallbacks)] = True
+        else:
+            fallback = self._no_fallback
+        if self._wire_subscribers:
+            encoded = self._encode_view(t, table, self._currents, header, self._status,
+                                        fallback, decide_time)
+            for subscriber in self._wire_subscribers:
+                subscriber(encoded)
+        if self._view_subscribers:
+            message = messages.joint_states(t, self.names, table, self._enabled_names,
+                                            self._currents, header,
+                                            _named(self._status, header), fallback,
+                                            decide_time)
+            for subscriber in self._view_subscribers:
+                subscriber(message)
+        if self._fallbacks:
+            self._fallback_faults(t)
         self._track(t, table, header)
 
     def _joint_view(self, decide_time: float) -> None:

@@ -17,6 +17,7 @@ from google.protobuf.descriptor import FieldDescriptor
 from google.protobuf.message import Message
 
 from controller import workspace as ws
+from controller.ilqr import STATUS_NAMES
 from controller.policy import PlanSnapshot
 from driver.interface import (
     SAMPLE_JOINT_TORQUE,
@@ -253,8 +254,8 @@ class EncodedJointView(NamedTuple):
                      for kind, part in zip(VIEW_CLASSES, self.parts(), strict=True))
 
 
-# a subscriber that sends bytes: it takes a one-joint view as `EncodedJointView` and its Plan
-# as `Encoded`, every other message as itself
+# a subscriber that sends bytes: it takes a one-joint view as `EncodedJointView`, its Plan and
+# a robot's JointStates as `Encoded`, every other message as itself
 WireSubscriber = Callable[["Message | EncodedJointView | Encoded"], None]
 
 
@@ -345,11 +346,193 @@ def plan(snapshot: PlanSnapshot) -> Message:
     return Plan.FromString(plan_bytes(snapshot))
 
 
-def load_kernels(encoder: JointViewEncoder) -> None:
-    """The encoders' compiled code loaded now (through a loop's own `encoder`), on scratch
-    values, not in a loop's first cycles: loading them from numba's cache there held the
-    cycle 15-20 ms (in real time, one joint across two processes: 14-23 cycles missed as
-    "publish back-pressure" in every start)."""
+# --- a robot's cycle as one JointStates' wire bytes --------------------------------------------
+_STATES_FIELDS = ("t", "name", "position", "velocity", "effort", "motor_current", "current",
+                  "planned_current", "reference_position", "drive_state", "solver_status",
+                  "iterations", "fallback", "solve_time_us")
+if tuple(field.name for field in sorted(JointStates.DESCRIPTOR.fields,
+                                        key=lambda f: f.number)) != _STATES_FIELDS:
+    raise TypeError(f"JointStates' fields changed: `JointStatesEncoder` writes {_STATES_FIELDS}")
+_DOUBLE, _STRING, _UINT32, _BOOL = (FieldDescriptor.TYPE_DOUBLE, FieldDescriptor.TYPE_STRING,
+                                    FieldDescriptor.TYPE_UINT32, FieldDescriptor.TYPE_BOOL)
+# the keys in field order: t, the seven packed double arrays, iterations, fallback,
+# solve_time_us (the three string fields' keys are in their pre-encoded bytes)
+_STATES_KEYS = np.array(
+    [_key(JointStates, "t", _DOUBLE, 1)]
+    + [_key(JointStates, name, _DOUBLE, 2, repeated=True) for name in _STATES_FIELDS[2:9]]
+    + [_key(JointStates, "iterations", _UINT32, 2, repeated=True),
+       _key(JointStates, "fallback", _BOOL, 2, repeated=True),
+       _key(JointStates, "solve_time_us", _DOUBLE, 1)], dtype=np.int64)
+_NAME_KEY, _DRIVE_STATE_KEY, _SOLVER_STATUS_KEY = (
+    _key(JointStates, name, _STRING, 2, repeated=True)
+    for name in ("name", "drive_state", "solver_status"))
+# the sample's and the header's columns of the packed arrays, in field order (the commanded
+# currents, an array of their own, come between them)
+_STATES_TABLE_COLUMNS = np.array([SAMPLE_POSITION, SAMPLE_VELOCITY, SAMPLE_JOINT_TORQUE,
+                                  SAMPLE_MOTOR_CURRENT])
+_STATES_HEADER_COLUMNS = np.array([ws.PLANNED_CURRENT, ws.REFERENCE_POSITION])
+
+
+def _string_fields(key: int, texts: Sequence[str]) -> bytes:
+    """Repeated string field `key` as protobuf writes it: every element, each its key, its
+    length (a varint) and its UTF-8 bytes (an empty one too)."""
+    out = bytearray()
+    for text in texts:
+        data = text.encode()
+        out.append(key)
+        size = len(data)
+        while size > 0x7F:
+            out.append(size & 0x7F | 0x80)
+            size >>= 7
+        out.append(size)
+        out += data
+    return bytes(out)
+
+
+def _as_array(data: bytes) -> np.ndarray:
+    return np.frombuffer(data, dtype=np.uint8).copy()
+
+
+@numba.njit(**_JIT)
+def _put_packed_column(out, at, key, values, column):  # pragma: no cover - compiled
+    """Column `column` of `values` (rows of doubles) as a packed repeated double: key, byte
+    length, each value's 8 bytes (zeros too: a packed array writes every element)."""
+    count = values.shape[0]
+    out[at] = key
+    at = _put_varint(out, at + 1, 8 * count)
+    scratch = np.empty(1)
+    raw = scratch.view(np.uint8)
+    for j in range(count):
+        scratch[0] = values[j, column]
+        for byte in range(8):  # a slice's assignment a value cost twice as much
+            out[at + byte] = raw[byte]
+        at += 8
+    return at
+
+
+@numba.njit(**_JIT)
+def _varint_size(value):  # pragma: no cover - compiled
+    size = 1
+    while value > 0x7F:
+        value >>= 7
+        size += 1
+    return size
+
+
+@numba.njit(**_JIT)
+def _encode_joint_states(out, keys, table_columns, header_columns, t, names, table, currents,
+                         header, drive_states, status_by_code, status_at, status_given,
+                         fallback, decide_time):  # pragma: no cover - compiled
+    """A JointStates' fields in field order into `out` (`JointStatesEncoder` sizes it): the
+    string fields' elements pre-encoded (`names`, `drive_states`; the solver status either
+    `status_given` or, when that is empty, each joint's code's element in `status_by_code`,
+    which starts at `status_at[code]`); its end."""
+    count = table.shape[0]
+    scratch = np.empty(1)
+    raw = scratch.view(np.uint8)
+    at = _put_double(out, 0, keys[0], t, scratch, raw)
+    out[at:at + names.shape[0]] = names
+    at += names.shape[0]
+    for n in range(4):  # position, velocity, effort, motor_current
+        at = _put_packed_column(out, at, keys[1 + n], table, table_columns[n])
+    at = _put_packed_column(out, at, keys[5], currents.reshape(count, 1), 0)
+    for n in range(2):  # planned_current, reference_position
+        at = _put_packed_column(out, at, keys[6 + n], header, header_columns[n])
+    out[at:at + drive_states.shape[0]] = drive_states
+    at += drive_states.shape[0]
+    if status_given.shape[0] > 0:
+        out[at:at + status_given.shape[0]] = status_given
+        at += status_given.shape[0]
+    else:
+        for j in range(count):
+            code = np.int64(header[j, ws.STATUS])
+            if code < 0 or code >= status_at.shape[0] - 1:
+                raise ValueError("a solver status code that names no status")
+            start, stop = status_at[code], status_at[code + 1]
+            out[at:at + stop - start] = status_by_code[start:stop]
+            at += stop - start
+    size = 0
+    for j in range(count):
+        size += _varint_size(np.int64(header[j, ws.ITERATIONS]) & 0xFFFFFFFF)
+    out[at] = keys[8]
+    at = _put_varint(out, at + 1, size)
+    for j in range(count):
+        at = _put_varint(out, at, np.int64(header[j, ws.ITERATIONS]) & 0xFFFFFFFF)
+    out[at] = keys[9]
+    at = _put_varint(out, at + 1, count)
+    for j in range(count):
+        out[at] = 1 if fallback[j] else 0
+        at += 1
+    return _put_double(out, at, keys[10], decide_time * 1e6, scratch, raw)
+
+
+class JointStatesEncoder:
+    """`joint_states`' message as its wire bytes in one compiled call, for a robot loop's
+    subscribers that send bytes (a Zenoh publisher): building the message from the arrays'
+    lists cost 19 us a cycle for talos_arm's 7 joints and 32 us for talos_32's in the loop's
+    thread (`actuatord --sim --lockstep --robot`, `joint_states` timed in the run), and
+    serialising it cost more in the publisher's. The joints' names and drive states are
+    encoded once; a status the policy names (not the solver's codes) per call. The bytes are
+    protobuf's own for the same values (a test holds them to `joint_states` +
+    `SerializeToString`)."""
+
+    def __init__(self, names: Sequence[str], drive_states: Sequence[str]):
+        self._count = len(names)
+        if len(drive_states) != self._count:
+            raise ValueError(f"{self._count} joints, {len(drive_states)} drive states")
+        self._names = _as_array(_string_fields(_NAME_KEY, names))
+        self._drive_states = _as_array(_string_fields(_DRIVE_STATE_KEY, drive_states))
+        by_code = [_string_fields(_SOLVER_STATUS_KEY, [name]) for name in STATUS_NAMES]
+        self._status_by_code = _as_array(b"".join(by_code))
+        self._status_at = np.cumsum([0] + [len(field) for field in by_code])
+        self._longest_status = max(len(field) for field in by_code)
+        self._none = np.zeros(0, dtype=np.uint8)
+        # every field's bytes at most but the policy's own status names: t and solve time (9
+        # each), seven double arrays (key, length, 8 a joint), iterations (key, length, 5 a
+        # joint), fallback (key, length, 1 a joint)
+        self._fixed = (self._names.shape[0] + self._drive_states.shape[0] + 2 * 9
+                       + 7 * (6 + 8 * self._count) + (6 + 5 * self._count)
+                       + (6 + self._count))
+        self._out = np.empty(self._fixed + self._longest_status * self._count, dtype=np.uint8)
+
+    def __call__(self, t: float, table: np.ndarray, currents: np.ndarray, header: np.ndarray,
+                 status: Sequence[str] | None, fallback: np.ndarray, decide_time: float
+                 ) -> "Encoded":
+        """The cycle's arrays as `joint_states` takes them; `status` None: the solver's
+        codes' names (the header's)."""
+        if table.shape[0] != self._count:
+            raise ValueError(f"{table.shape[0]} rows of samples for {self._count} joints")
+        given = (self._none if status is None
+                 else _as_array(_string_fields(_SOLVER_STATUS_KEY, status)))
+        out = self._out
+        if out.shape[0] < self._fixed + given.shape[0]:  # long names: room for them, once
+            out = self._out = np.empty(2 * (self._fixed + given.shape[0]), dtype=np.uint8)
+        end = _encode_joint_states(out, _STATES_KEYS, _STATES_TABLE_COLUMNS,
+                                   _STATES_HEADER_COLUMNS, t, self._names,
+                                   np.ascontiguousarray(table, dtype=np.float64),
+                                   np.ascontiguousarray(currents, dtype=np.float64),
+                                   np.ascontiguousarray(header, dtype=np.float64),
+                                   self._drive_states, self._status_by_code, self._status_at,
+                                   given, np.ascontiguousarray(fallback, dtype=np.bool_),
+                                   decide_time)
+        return Encoded(JointStates, t, out[:end].tobytes())
+
+    def load(self) -> None:
+        """Its compiled code loaded now, on scratch values (see `load_kernels`)."""
+        count = self._count
+        self(0.0, np.zeros((count, len(Sample._fields))), np.zeros(count),
+             np.zeros((count, ws.HEADER)), None, np.zeros(count, dtype=bool), 0.0)
+
+
+def load_kernels(encoder: "JointViewEncoder | JointStatesEncoder") -> None:
+    """A loop's encoders' compiled code loaded now (through its own `encoder`: a joint's
+    view and its plans, or a robot's JointStates), on scratch values, not in a loop's first
+    cycles: loading them from numba's cache there held the cycle 15-20 ms (in real time, one
+    joint across two processes: 14-23 cycles missed as "publish back-pressure" in every
+    start)."""
+    if isinstance(encoder, JointStatesEncoder):
+        encoder.load()
+        return
     empty = np.zeros(0)
     encoder(0.0, np.zeros((1, len(Sample._fields))), np.zeros((1, ws.HEADER)), "", np.zeros(1),
             "", False, 0.0)

@@ -13,7 +13,7 @@ from collections.abc import Callable, Iterable, Sequence
 import zenoh
 from google.protobuf.message import Message
 
-from controller.messages import VIEW_CLASSES, Encoded, EncodedJointView
+from controller.messages import VIEW_CLASSES, Encoded, EncodedJointView, JointStates
 from controller.requests import Body, RequestHandler
 from protocol import telemetry as schema
 
@@ -225,6 +225,8 @@ class TelemetryPublisher:
                 try:
                     if kind is Encoded:  # one message's bytes
                         puts[message.kind](message.data)
+                        if ros2 is not None and message.kind is JointStates:
+                            ros2.publish(message.decoded())  # parsed here, off the loop
                         continue
                     if kind is EncodedJointView:  # three messages' bytes, cut apart
                         data, start = message.data, 0

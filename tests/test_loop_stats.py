@@ -119,24 +119,26 @@ def test_a_wire_subscriber_gets_the_one_joint_view_as_the_bytes_of_its_messages(
 
 @pytest.mark.subprocess
 def test_a_fresh_loop_has_its_encoders_loaded_before_its_first_cycle():
-    """Built, a one-joint loop has loaded the view's and the plan's encoders: loaded from
-    numba's cache in the first cycles instead, they held a real-time cycle 15-20 ms (14-23
-    cycles missed a start, one joint across two processes). A fresh process: none loaded
-    before."""
+    """Built, a one-joint loop has loaded the view's and the plan's encoders, and a robot's
+    loop the JointStates' encoder: loaded from numba's cache in the first cycles instead, they
+    held a real-time cycle 15-20 ms (14-23 cycles missed a start, one joint across two
+    processes). A fresh process: none loaded before, and each loop loads its own only."""
     probe = ("from controller import messages; from controller.loop import ControlLoop, "
              "LoopOptions; from controller.mpc import BatchMpc, JointProblem; "
              "from controller.problem import OcpSettings; from driver.clock import DriveClock; "
              "from model.parameters import load_model; "
-             "kernels = (messages._encode_view, messages._encode_plan); "
+             "kernels = (messages._encode_view, messages._encode_plan, "
+             "messages._encode_joint_states); "
              "assert not any(k.signatures for k in kernels); "
-             "ControlLoop(type('Joints', (), {'names': ['elbow']})(), "
-             "BatchMpc([JointProblem(load_model(), OcpSettings(horizon=5))]), "
-             "LoopOptions(clock=DriveClock())); "
-             "print(*(len(k.signatures) for k in kernels))")
+             "problem = JointProblem(load_model(), OcpSettings(horizon=5)); "
+             "loop = lambda names: ControlLoop(type('Joints', (), {'names': names})(), "
+             "BatchMpc([problem] * len(names)), LoopOptions(clock=DriveClock())); "
+             "loop(['elbow']); print(*(len(k.signatures) for k in kernels)); "
+             "loop(['shoulder', 'elbow']); print(*(len(k.signatures) for k in kernels))")
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
                          timeout=300)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.split() == ["1", "1"]
+    assert out.stdout.splitlines() == ["1 1 0", "1 1 1"]
 
 
 def test_a_plan_from_its_arrays_bytes_is_the_plan_field_by_field():
@@ -161,3 +163,29 @@ def test_a_plan_from_its_arrays_bytes_is_the_plan_field_by_field():
     long = np.arange(3000.0)  # a length of two varint bytes and more
     assert list(messages.plan(PlanSnapshot(0.0, 1e-3, long, long, long, long)).current) == (
         long.tolist())
+
+
+def test_a_wire_subscriber_gets_a_robots_joint_states_as_their_bytes():
+    """A robot of several joints: a subscriber that sends bytes gets each cycle's JointStates
+    as `Encoded`, a subscriber of messages the message: the same bytes, cycle for cycle."""
+    spec = RobotSpec(name="wire", period_us=1000,
+                     joints=tuple(JointSpec(name, "can0", node, MODEL, None, {},
+                                            default_reference(MODEL.limits))
+                                  for node, name in enumerate(("shoulder", "elbow"), start=1)),
+                     bitrates={}, source=Path("<test>"))
+    views, wire = [], []
+    connection = open_robot(spec, sim=True, clock=DriveClock(), seed=0, period=1e-3,
+                            response_timeout=1.0)
+    try:
+        connection.group.start()
+        batch = BatchMpc([JointProblem(MODEL, OcpSettings(horizon=10))] * 2)
+        ControlLoop(connection.group, batch, LoopOptions(clock=DriveClock(), duration=0.05),
+                    [views.append], wire_subscribers=[wire.append]).run()
+    finally:
+        connection.close()
+    states = [m for m in views if type(m) is messages.JointStates]
+    encoded = [m for m in wire if type(m) is messages.Encoded]
+    assert len(states) == 50 and list(states[0].name) == ["shoulder", "elbow"]
+    assert [m.kind for m in encoded] == [messages.JointStates] * 50
+    assert [m.data for m in encoded] == [m.SerializeToString() for m in states]
+    assert [m.t for m in encoded] == [m.t for m in states]

@@ -102,14 +102,19 @@ def test_joint_states_reach_a_ros2_subscriber_on_rmw_zenoh(ros2_messages):
     assert sequence == list(range(sequence[0], sequence[0] + len(sequence)))
 
 
-def test_a_robots_joint_states_carry_every_joint_by_name(ros2_messages):
+@pytest.mark.parametrize("path", ["ros2 publisher", "telemetry publisher"])
+def test_a_robots_joint_states_carry_every_joint_by_name(ros2_messages, path):
     """`actuatord --robot --ros2`: one JointState per cycle with every joint of the robot file,
-    as the SDK's subscriber decodes it (here from the publisher alone, in this process)."""
+    as the SDK's subscriber decodes it (here from the publishers alone, in this process):
+    given the message (the ROS 2 publisher), or as actuatord's telemetry publisher gets it
+    from a robot's loop, the message's wire bytes (`messages.Encoded`)."""
     import json
 
     import zenoh
 
+    from controller import messages
     from controller.ros2 import JointStatePublisher
+    from controller.telemetry import TelemetryPublisher
     from protocol import telemetry
 
     port = free_port()
@@ -117,21 +122,30 @@ def test_a_robots_joint_states_carry_every_joint_by_name(ros2_messages):
     config.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
     config.insert_json5("scouting/multicast/enabled", "false")
     session = zenoh.open(config)
-    publisher = JointStatePublisher(session, DOMAIN, "unused for a robot")
+    if path == "ros2 publisher":
+        publisher = JointStatePublisher(session, DOMAIN, "unused for a robot")
+        publish, sent = publisher.publish, lambda: publisher.sent
+    else:
+        publisher = TelemetryPublisher(session, "test/arm", telemetry.topics(3),
+                                       ros2_domain=DOMAIN)
+        publish, sent = publisher.publish, None
     received = []
     subscriber = None
     try:
         subscriber = sdk.ROS2Subscriber("/joint_states", "sensor_msgs/msg/JointState",
                                         received.append, domain_id=DOMAIN, router_port=port)
         names = ["arm_left_1_joint", "arm_left_2_joint", "arm_left_3_joint"]
-        joint_states = telemetry.message_class("JointStates")
         deadline = time.monotonic() + 10
         k = 0
         while len(received) < 5 and time.monotonic() < deadline:
             k += 1
-            publisher.publish(joint_states(t=k * 1e-3, name=names, position=[0.1, 0.2, 0.3],
-                                           velocity=[1.0, 2.0, 3.0], effort=[-1.0, -2.0, -3.0]))
-            publisher.publish(telemetry.message_class("Fault")(t=k * 1e-3))  # not a joint state
+            message = messages.JointStates(t=k * 1e-3, name=names, position=[0.1, 0.2, 0.3],
+                                           velocity=[1.0, 2.0, 3.0],
+                                           effort=[-1.0, -2.0, -3.0])
+            publish(message if sent is not None else
+                    messages.Encoded(messages.JointStates, message.t,
+                                     message.SerializeToString()))
+            publish(messages.Fault(t=k * 1e-3))  # not a joint state
             time.sleep(0.01)
     finally:
         if subscriber is not None:
@@ -141,7 +155,8 @@ def test_a_robots_joint_states_carry_every_joint_by_name(ros2_messages):
         publisher.close()
         session.close()
     assert len(received) >= 5
-    assert publisher.sent == k  # the faults were not published
+    if sent is not None:
+        assert sent() == k  # the faults were not published
     message = received[-1]
     assert list(message.name) == names
     assert message.position.tolist() == [0.1, 0.2, 0.3]
