@@ -478,6 +478,8 @@ class JointStatesEncoder:
 
     def __init__(self, names: Sequence[str], drive_states: Sequence[str]):
         self._count = len(names)
+        if not names:  # proto3 would leave every empty array out; the encoder writes them
+            raise ValueError("a robot of no joints")
         if len(drive_states) != self._count:
             raise ValueError(f"{self._count} joints, {len(drive_states)} drive states")
         self._names = _as_array(_string_fields(_NAME_KEY, names))

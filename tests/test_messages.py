@@ -146,3 +146,5 @@ def test_the_joint_states_encoder_refuses_what_names_no_joint_or_no_status():
         encode(0.0, table, np.zeros(2), header, None, np.zeros(2, dtype=bool), 0.0)
     with pytest.raises(ValueError, match="2 joints, 1 drive states"):
         messages.JointStatesEncoder(["a", "b"], ("OPERATION_ENABLED",))
+    with pytest.raises(ValueError, match="no joints"):
+        messages.JointStatesEncoder([], ())
