@@ -533,7 +533,11 @@ def test_pysoem_config_dc_against_the_virtual_slaves_over_a_veth(link):
             for _ in range(400):  # the first SYNC0 comes 100 ms after dc_sync
                 sent_at = time.monotonic()
                 master.send_processdata()
-                assert master.receive_processdata(10_000) in (3, 9)  # inputs; outputs in OP
+                # each slave's inputs count 1, its outputs 2 more once it is in OP: 3 before
+                # the SYNC0 that takes them to OP, 9 after it; 5 or 7 in a frame that passes
+                # while some have taken OP and others not yet (each takes it at its own SYNC0
+                # event, as a real slave does; seen once, on a host under heavy steal)
+                assert master.receive_processdata(10_000) in (3, 5, 7, 9)
                 clock.observe(master.dc_time, sent_at)
                 if master.read_state() == pysoem.OP_STATE:
                     operational = True  # every slave took OP at a SYNC0 with outputs
