@@ -404,7 +404,7 @@ def _put_packed_column(out, at, key, values, column):  # pragma: no cover - comp
     raw = scratch.view(np.uint8)
     for j in range(count):
         scratch[0] = values[j, column]
-        for byte in range(8):  # a slice's assignment a value cost twice as much
+        for byte in range(8):
             out[at + byte] = raw[byte]
         at += 8
     return at
@@ -502,8 +502,11 @@ class JointStatesEncoder:
                  ) -> "Encoded":
         """The cycle's arrays as `joint_states` takes them; `status` None: the solver's
         codes' names (the header's)."""
-        if table.shape[0] != self._count:
-            raise ValueError(f"{table.shape[0]} rows of samples for {self._count} joints")
+        # the compiled call reads as many rows of each as there are joints, unchecked
+        rows = (table.shape[0], currents.shape[0], header.shape[0], fallback.shape[0])
+        if rows != (self._count,) * 4:
+            raise ValueError(f"{rows} rows of samples, currents, decisions and fallbacks for "
+                             f"{self._count} joints")
         given = (self._none if status is None
                  else _as_array(_string_fields(_SOLVER_STATUS_KEY, status)))
         out = self._out

@@ -138,9 +138,12 @@ def test_a_robots_encoded_joint_states_are_the_bytes_protobuf_writes():
 def test_the_joint_states_encoder_refuses_what_names_no_joint_or_no_status():
     encode = messages.JointStatesEncoder(["a", "b"], ("OPERATION_ENABLED",) * 2)
     table, header = np.zeros((2, len(Sample._fields))), np.zeros((2, ws.HEADER))
-    with pytest.raises(ValueError, match="3 rows of samples for 2 joints"):
+    with pytest.raises(ValueError, match=r"\(3, 3, 3, 3\) rows .* for 2 joints"):
         encode(0.0, np.zeros((3, len(Sample._fields))), np.zeros(3), np.zeros((3, ws.HEADER)),
                None, np.zeros(3, dtype=bool), 0.0)
+    with pytest.raises(ValueError, match=r"\(2, 2, 1, 2\) rows"):  # one decision short
+        encode(0.0, table, np.zeros(2), np.zeros((1, ws.HEADER)), None,
+               np.zeros(2, dtype=bool), 0.0)
     header[1, ws.STATUS] = len(STATUS_NAMES)
     with pytest.raises(ValueError, match="names no status"):
         encode(0.0, table, np.zeros(2), header, None, np.zeros(2, dtype=bool), 0.0)
