@@ -493,7 +493,7 @@ class ControlLoop:
         _screen(table, self._screen_limits, np.zeros(count, dtype=bool))
         _check(np.zeros((count, ws.HEADER)), np.zeros(count, dtype=bool),
                self._safety.current_max, np.zeros(count))
-        messages.load_kernels(self._encode_view)
+        self._encode_view.load()
 
     def solve_first(self, table: np.ndarray) -> None:
         """Every joint's cold solve from its measured state (`table`, a row per joint, as a

@@ -289,6 +289,16 @@ class JointViewEncoder:
                                 self._limits, fallback, drive_state_bytes, status_bytes)
         return EncodedJointView(t, out[:ends[2]].tobytes(), ends)
 
+    def load(self) -> None:
+        """Its compiled code and `plan_bytes`' loaded now, on scratch values, not in a loop's
+        first cycles: loading them from numba's cache there held the cycle 15-20 ms (in real
+        time, one joint across two processes: 14-23 cycles missed as "publish back-pressure"
+        in every start)."""
+        empty = np.zeros(0)
+        self(0.0, np.zeros((1, len(Sample._fields))), np.zeros((1, ws.HEADER)), "", np.zeros(1),
+             "", False, 0.0)
+        plan_bytes(PlanSnapshot(0.0, 0.0, empty, empty, empty, empty))
+
 
 # a Plan's fields as protobuf writes them, by number: t and dt, then the snapshot's arrays
 _PLAN_FIELDS = ("t", "dt", "position", "velocity", "current", "reference_position")
@@ -353,19 +363,16 @@ _STATES_FIELDS = ("t", "name", "position", "velocity", "effort", "motor_current"
 if tuple(field.name for field in sorted(JointStates.DESCRIPTOR.fields,
                                         key=lambda f: f.number)) != _STATES_FIELDS:
     raise TypeError(f"JointStates' fields changed: `JointStatesEncoder` writes {_STATES_FIELDS}")
-_DOUBLE, _STRING, _UINT32, _BOOL = (FieldDescriptor.TYPE_DOUBLE, FieldDescriptor.TYPE_STRING,
-                                    FieldDescriptor.TYPE_UINT32, FieldDescriptor.TYPE_BOOL)
+_DOUBLE, _UINT32, _BOOL = (FieldDescriptor.TYPE_DOUBLE, FieldDescriptor.TYPE_UINT32,
+                           FieldDescriptor.TYPE_BOOL)
 # the keys in field order: t, the seven packed double arrays, iterations, fallback,
-# solve_time_us (the three string fields' keys are in their pre-encoded bytes)
+# solve_time_us (the three string fields are copied in as protobuf writes them, `_strings`)
 _STATES_KEYS = np.array(
     [_key(JointStates, "t", _DOUBLE, 1)]
     + [_key(JointStates, name, _DOUBLE, 2, repeated=True) for name in _STATES_FIELDS[2:9]]
     + [_key(JointStates, "iterations", _UINT32, 2, repeated=True),
        _key(JointStates, "fallback", _BOOL, 2, repeated=True),
        _key(JointStates, "solve_time_us", _DOUBLE, 1)], dtype=np.int64)
-_NAME_KEY, _DRIVE_STATE_KEY, _SOLVER_STATUS_KEY = (
-    _key(JointStates, name, _STRING, 2, repeated=True)
-    for name in ("name", "drive_state", "solver_status"))
 # the sample's and the header's columns of the packed arrays, in field order (the commanded
 # currents, an array of their own, come between them)
 _STATES_TABLE_COLUMNS = np.array([SAMPLE_POSITION, SAMPLE_VELOCITY, SAMPLE_JOINT_TORQUE,
@@ -373,20 +380,10 @@ _STATES_TABLE_COLUMNS = np.array([SAMPLE_POSITION, SAMPLE_VELOCITY, SAMPLE_JOINT
 _STATES_HEADER_COLUMNS = np.array([ws.PLANNED_CURRENT, ws.REFERENCE_POSITION])
 
 
-def _string_fields(key: int, texts: Sequence[str]) -> bytes:
-    """Repeated string field `key` as protobuf writes it: every element, each its key, its
-    length (a varint) and its UTF-8 bytes (an empty one too)."""
-    out = bytearray()
-    for text in texts:
-        data = text.encode()
-        out.append(key)
-        size = len(data)
-        while size > 0x7F:
-            out.append(size & 0x7F | 0x80)
-            size >>= 7
-        out.append(size)
-        out += data
-    return bytes(out)
+def _strings(field: str, texts: Sequence[str]) -> np.ndarray:
+    """JointStates' repeated string `field` holding `texts`, as protobuf writes it (every
+    element its key, length and UTF-8 bytes): the bytes the encoder copies in."""
+    return _as_array(JointStates(**{field: texts}).SerializeToString())
 
 
 def _as_array(data: bytes) -> np.ndarray:
@@ -482,10 +479,10 @@ class JointStatesEncoder:
             raise ValueError("a robot of no joints")
         if len(drive_states) != self._count:
             raise ValueError(f"{self._count} joints, {len(drive_states)} drive states")
-        self._names = _as_array(_string_fields(_NAME_KEY, names))
-        self._drive_states = _as_array(_string_fields(_DRIVE_STATE_KEY, drive_states))
-        by_code = [_string_fields(_SOLVER_STATUS_KEY, [name]) for name in STATUS_NAMES]
-        self._status_by_code = _as_array(b"".join(by_code))
+        self._names = _strings("name", names)
+        self._drive_states = _strings("drive_state", drive_states)
+        by_code = [_strings("solver_status", [name]) for name in STATUS_NAMES]
+        self._status_by_code = np.concatenate(by_code)
         self._status_at = np.cumsum([0] + [len(field) for field in by_code])
         self._longest_status = max(len(field) for field in by_code)
         self._none = np.zeros(0, dtype=np.uint8)
@@ -508,7 +505,7 @@ class JointStatesEncoder:
             raise ValueError(f"{rows} rows of samples, currents, decisions and fallbacks for "
                              f"{self._count} joints")
         given = (self._none if status is None
-                 else _as_array(_string_fields(_SOLVER_STATUS_KEY, status)))
+                 else _strings("solver_status", status))
         out = self._out
         if out.shape[0] < self._fixed + given.shape[0]:  # long names: room for them, once
             out = self._out = np.empty(2 * (self._fixed + given.shape[0]), dtype=np.uint8)
@@ -523,25 +520,10 @@ class JointStatesEncoder:
         return Encoded(JointStates, t, out[:end].tobytes())
 
     def load(self) -> None:
-        """Its compiled code loaded now, on scratch values (see `load_kernels`)."""
+        """Its compiled code loaded now, on scratch values (see `JointViewEncoder.load`)."""
         count = self._count
         self(0.0, np.zeros((count, len(Sample._fields))), np.zeros(count),
              np.zeros((count, ws.HEADER)), None, np.zeros(count, dtype=bool), 0.0)
-
-
-def load_kernels(encoder: "JointViewEncoder | JointStatesEncoder") -> None:
-    """A loop's encoders' compiled code loaded now (through its own `encoder`: a joint's
-    view and its plans, or a robot's JointStates), on scratch values, not in a loop's first
-    cycles: loading them from numba's cache there held the cycle 15-20 ms (in real time, one
-    joint across two processes: 14-23 cycles missed as "publish back-pressure" in every
-    start)."""
-    if isinstance(encoder, JointStatesEncoder):
-        encoder.load()
-        return
-    empty = np.zeros(0)
-    encoder(0.0, np.zeros((1, len(Sample._fields))), np.zeros((1, ws.HEADER)), "", np.zeros(1),
-            "", False, 0.0)
-    plan_bytes(PlanSnapshot(0.0, 0.0, empty, empty, empty, empty))
 
 
 class Encoded(NamedTuple):
