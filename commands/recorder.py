@@ -284,8 +284,8 @@ def _record_trajectory(args: argparse.Namespace, stop: threading.Event) -> int:
     try:
         group.start()
         with collector_off_the_cycle():
-            report = run_trajectory(group, trajectory, law, model.limits, [record],
-                                    clock_for(args.lockstep), bar, stop)
+            report = run_trajectory(group, trajectory, law, model.limits, (),
+                                    clock_for(args.lockstep), bar, stop, [record])
         if writer.failure is not None:
             code = 1  # reported below, once the file is closed
         elif stop.is_set():

@@ -50,6 +50,11 @@ def topic_of(message: Message) -> str:
     return _TOPICS[type(message)]
 
 
+def topic_of_kind(kind: type) -> str:
+    """`topic_of` a message of class `kind` (an `Encoded` message's: its bytes name none)."""
+    return _TOPICS[kind]
+
+
 def joint_view(t: float, sample: list, drive_state: str, current: float, header: list,
                status: str, fallback: bool, limits: Limits, decide_time: float
                ) -> tuple[Message, Message, Message]:

@@ -384,3 +384,43 @@ def test_recorder_export_refuses_in_one_line(tmp_path, case, needle):
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and needle in lines[0], proc.stderr
     assert not output.exists()
+
+
+def test_a_views_bytes_are_recorded_as_its_messages_would_be(tmp_path):
+    """The recorder takes a joint's State and Command as the bytes the loop encoded them to
+    (`EncodedJointView`, no message built): the file holds what it would hold had it been
+    given the messages (same channels, drive-time stamps and bytes), and the part it does not
+    record (SolverStats) is left out as a message of its kind would be."""
+    from controller import messages
+    from controller import workspace as ws
+    from model.parameters import load_model
+
+    limits = load_model().limits
+    header = [0.0] * ws.HEADER
+    header[ws.ITERATIONS], header[ws.PLANNED_CURRENT], header[ws.REFERENCE_POSITION] = 2, 1.5, -1
+    written = {}
+    for kind in ("messages", "bytes"):
+        writer = McapRecorder(tmp_path / f"{kind}.mcap", METADATA)
+        record = writer.subscriber(("state", "command", "fault"), telemetry.DEFAULT_PREFIX)
+        for k in range(1, 301):
+            t = k * 1e-3
+            view = messages.joint_view(
+                t, [t, -1.2 + np.sin(t), np.cos(t), 1.5, -9 + t, 0x1237],
+                "OPERATION_ENABLED", 1.5, [*header[:-1], k], "converged", False, limits, 1e-5)
+            if kind == "messages":
+                for message in view:
+                    record(message)
+            else:
+                parts = [message.SerializeToString() for message in view]
+                ends = tuple(int(end) for end in np.cumsum([len(part) for part in parts]))
+                record(messages.EncodedJointView(t, b"".join(parts), ends))
+            if k % 100 == 0:
+                record(messages.fault(t, "controller", "a fault", "none"))
+        writer.close()
+        with open(tmp_path / f"{kind}.mcap", "rb") as stream:
+            found = [(channel.topic, message.publish_time, message.data) for _, channel, message
+                     in make_reader(stream).iter_messages(log_time_order=False)]
+        first = found[0][1]
+        written[kind] = [(topic, stamp - first, data) for topic, stamp, data in found]
+    assert len(written["bytes"]) == 2 * 300 + 3
+    assert written["bytes"] == written["messages"]
