@@ -176,7 +176,8 @@ class McapRecorder:
         layout serves the live bridge and every recording), logged and published at its drive
         time on the run's time base. A joint's State and Command come as the bytes the loop
         encoded them to in one call (`EncodedJointView`): written as they are, no message is
-        built or serialised for them (in lock-step a recording's cycle cost a quarter less)."""
+        built or serialised for them (a 9.5 s exciting trajectory in lock-step took 1.0-1.1 s of
+        wall time instead of 1.2-1.5)."""
         channels = {topic: self.channel(telemetry.key_expr(prefix, topic),
                                         telemetry.TOPICS[topic]) for topic in topics}
         # the channel of each part of a view, in the view's order (None: not recorded)
