@@ -182,6 +182,8 @@ def link():
 
 # A run of at least this many tests compiles the code it needs before its first test (below).
 WARM_UP_FROM = 100
+# s a warm-up command may take: a cold compile took 50 s here, 90 s on a loaded host
+WARM_UP_TIMEOUT = 600
 
 
 def _warm_up_legs(folder: Path) -> list[list[list[str]]]:
@@ -207,12 +209,13 @@ def _warm_up_legs(folder: Path) -> list[list[list[str]]]:
 
 def pytest_collection_finish(session) -> None:
     """numba compiles a kernel the first time a process calls it and caches it on disk, so on a
-    fresh clone (CI's every run) the suite compiled about 140 s of code inside its tests, one
-    test and one core at a time (on two cores, two processes of the same test sometimes
-    compiled the same kernels side by side). Here the legs run side by side on the machine's
-    cores before the first test, so the tests find the cache filled: about half that wall
-    time cold, about 15 s when the cache is already warm. A leg that fails is said on stderr
-    and the tests go on (they compile what it did not)."""
+    fresh clone (CI's every run) the suite compiled its code inside its tests, one test and
+    one core at a time (the elbow's actuatord alone 50 s cold, the arm's 26, talos_32's 21 and
+    `bench` 36 more; the model-gap cases' two processes compiled the same kernels side by
+    side). Here the legs run side by side on the machine's cores before the first test, so
+    the tests find the cache filled: 87-104 s cold on two cores, 14 s with the cache filled.
+    A leg that fails or hangs is said on stderr and the tests go on (they compile what it
+    did not)."""
     if len(session.items) < WARM_UP_FROM or session.config.option.collectonly:
         return
     started = time.monotonic()
@@ -220,8 +223,12 @@ def pytest_collection_finish(session) -> None:
 
         def leg(commands: list[list[str]]) -> str | None:
             for command in commands:
-                done = subprocess.run(command, capture_output=True, text=True, timeout=900,
-                                      cwd=Path(__file__).resolve().parent.parent)
+                try:
+                    done = subprocess.run(command, capture_output=True, text=True,
+                                          timeout=WARM_UP_TIMEOUT,
+                                          cwd=Path(__file__).resolve().parent.parent)
+                except subprocess.TimeoutExpired:
+                    return f"{' '.join(command[1:4])}: still running after {WARM_UP_TIMEOUT} s"
                 if done.returncode:
                     last = (done.stderr.strip().splitlines() or ["no output"])[-1]
                     return f"{' '.join(command[1:4])}: exit {done.returncode}: {last}"
