@@ -1,13 +1,10 @@
 import contextlib
-import json
 import os
 import random
 import socket
 import subprocess
 import sys
-import tempfile
 import time
-from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -178,68 +175,6 @@ def link():
         pytest.skip(str(exc))
     with virtual:
         yield virtual
-
-
-# A run of at least this many tests compiles the code it needs before its first test (below).
-WARM_UP_FROM = 100
-# s a warm-up command may take: a cold compile took 50 s here, 90 s on a loaded host
-WARM_UP_TIMEOUT = 600
-
-
-def _warm_up_legs(folder: Path) -> list[list[list[str]]]:
-    """Commands that between them call nearly every compiled kernel with the signatures the
-    tests call them with, in three legs (each leg's commands one after the other): the
-    elbow's record-identify-explain chain (tests/gap_case.py on one clean case), the robots
-    (a CAN arm of four buses, talos_32's EtherCAT line, linked in this process) and `bench`
-    (the scalar reference solver, the threaded batch), then the elbow under a model with
-    extra effects."""
-    cases = folder / "cases.json"
-    cases.write_text(json.dumps([[str(folder), 0, []]]))
-    python, root = sys.executable, Path(__file__).resolve().parent.parent
-    actuatord = [python, "-m", "commands.actuatord", "--sim", "--lockstep", "--duration",
-                 "0.05", "--no-multicast-scouting", "--prefix", "warm-up"]
-    return [[[python, "-m", "tests.gap_case", str(cases)]],
-            [[*actuatord, "--robot", str(root / "robots" / name)]
-             for name in ("talos_32.toml", "talos_arm.toml")],
-            [[python, "-m", "commands.bench", "--json", "--ticks", "2", "--numpy-ticks", "1",
-              "--joint-ticks", "2", "--master-cycles", "20"],
-             # a controller's model with extra effects: the solver's other variant
-             [*actuatord, "--model", str(root / "docs" / "gap-combined" / "improved.toml")]]]
-
-
-def pytest_collection_finish(session) -> None:
-    """numba compiles a kernel the first time a process calls it and caches it on disk, so on a
-    fresh clone (CI's every run) the suite compiled its code inside its tests, one test and
-    one core at a time (the elbow's actuatord alone 50 s cold, the arm's 26, talos_32's 21 and
-    `bench` 36 more; the model-gap cases' two processes compiled the same kernels side by
-    side). Here the legs run side by side on the machine's cores before the first test, so
-    the tests find the cache filled: 87-104 s cold on two cores, 14 s with the cache filled.
-    A leg that fails or hangs is said on stderr and the tests go on (they compile what it
-    did not)."""
-    if len(session.items) < WARM_UP_FROM or session.config.option.collectonly:
-        return
-    started = time.monotonic()
-    with tempfile.TemporaryDirectory(prefix="warm-up-") as folder:
-
-        def leg(commands: list[list[str]]) -> str | None:
-            for command in commands:
-                try:
-                    done = subprocess.run(command, capture_output=True, text=True,
-                                          timeout=WARM_UP_TIMEOUT,
-                                          cwd=Path(__file__).resolve().parent.parent)
-                except subprocess.TimeoutExpired:
-                    return f"{' '.join(command[1:4])}: still running after {WARM_UP_TIMEOUT} s"
-                if done.returncode:
-                    last = (done.stderr.strip().splitlines() or ["no output"])[-1]
-                    return f"{' '.join(command[1:4])}: exit {done.returncode}: {last}"
-            return None
-
-        with ThreadPoolExecutor(os.cpu_count() or 2) as pool:
-            failed = [why for why in pool.map(leg, _warm_up_legs(Path(folder))) if why]
-        if (error := Path(folder, "error.txt")).exists():  # tests.gap_case's own failure
-            failed.append(f"tests.gap_case: {error.read_text().strip().splitlines()[-1]}")
-    sys.stderr.write(f"\ncompiled code warmed in {time.monotonic() - started:.0f} s"
-                     + "".join(f"; a leg failed ({why})" for why in failed) + "\n")
 
 
 _exit_status: list[int] = []
