@@ -188,12 +188,9 @@ class McapRecorder:
             kind = type(message)
             if kind is EncodedJointView:
                 stamp = self.time_base.stamp(message.t)
-                data, start = message.data, 0
-                for channel, end in zip(view_channels, message.ends, strict=True):
+                for channel, data in zip(view_channels, message.parts(), strict=True):
                     if channel is not None:
-                        self.write(channel, data[start:end], publish_time_ns=stamp,
-                                   log_time_ns=stamp)
-                    start = end
+                        self.write(channel, data, publish_time_ns=stamp, log_time_ns=stamp)
                 return
             channel = channels.get(messages.topic_of_kind(message.kind) if kind is Encoded
                                    else topic_of(message))
