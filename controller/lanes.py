@@ -71,6 +71,8 @@ from controller.ilqr import (
     MU_MAX,
     MU_MIN,
     NOT_FINITE,
+    WARM_COST_RATIO,
+    WARM_TRIALS,
 )
 from controller.lane_math import exp, sin_cos, tanh
 from controller.problem import (
@@ -248,7 +250,7 @@ def _rows(a, width):
 def _any(S, c, row, width):
     """Whether any lane of chunk c has scratch[row] set: a chunk none of whose joints works in
     a round is left out of its sweep or simulation. A tick's rounds go on until its slowest
-    joint is done (a failed warm line search is 10 trials and a solve from the controls), and
+    joint is done (a cold solve's line search is up to 10 trials an iteration), and
     a chunk of joints that finished early must not pay for them: measured on talos_32's
     problem, the wrists' and grippers' line searches (their friction step at the edge of
     stability) made every chunk run up to 16 simulations a tick."""
@@ -720,10 +722,15 @@ def _after_rollout(G, scratch, state, n, c0, c1, width):
             state[c, ATTEMPT, w] += 1
             alpha = scratch[c, ALPHA, w]
             expected = -(alpha * scratch[c, DV1, w] + alpha * alpha * scratch[c, DV2, w])
-            if np.isfinite(total) and scratch[c, MERIT, w] - total > ARMIJO * expected:
+            warm = state[c, AFTER_WARM, w] == 1
+            allowed = WARM_TRIALS if warm else LINE_SEARCH_STEPS
+            last = state[c, ATTEMPT, w] >= allowed  # a warm tick may take its smallest step
+            merit = scratch[c, MERIT, w]
+            if np.isfinite(total) and (merit - total > ARMIJO * expected
+                                       or warm and last and total <= WARM_COST_RATIO * merit):
                 scratch[c, TAKES, w] = 1.0
                 trials = state[c, ATTEMPT, w]
-                if state[c, AFTER_WARM, w] == 1:
+                if warm:
                     if state[c, MAX_ITER, w] == 1:
                         scratch[c, COST, w] = total
                         scratch[c, MU, w] = MU_MIN
@@ -743,12 +750,12 @@ def _after_rollout(G, scratch, state, n, c0, c1, width):
                 if improvement < scratch[c, TOLERANCE, w] * max(total, 1.0):
                     _finish(state, c, w, CONVERGED)
                 continue
-            if state[c, ATTEMPT, w] < LINE_SEARCH_STEPS:
+            if not last:
                 scratch[c, ALPHA, w] = alpha * 0.5
                 continue
-            if state[c, AFTER_WARM, w] == 1:  # the warm step failed: solve anew from the controls
+            if warm:  # the warm step diverged: solve anew from the controls
                 state[c, AFTER_WARM, w] = 0
-                state[c, ROLLOUTS_OFFSET, w] = LINE_SEARCH_STEPS
+                state[c, ROLLOUTS_OFFSET, w] = WARM_TRIALS
                 _start_first_rollout(G, scratch, state, c, w, n)
                 continue
             state[c, ROLLOUTS, w] += LINE_SEARCH_STEPS

@@ -11,7 +11,7 @@ import pytest
 from controller import ilqr_reference, lane_math, lanes
 from controller import workspace as ws
 from controller.benchmark import measure_joints, measure_threads
-from controller.ilqr import LINE_SEARCH_STEPS
+from controller.ilqr import WARM_TRIALS
 from controller.mpc import BatchMpc, JointProblem, Mpc, _lane_plan
 from controller.problem import OcpSettings, pack_cost
 from controller.reference import Setpoint, Sinusoid, reference_at
@@ -152,19 +152,39 @@ def test_lane_decisions_equal_the_scalar_kernel_with_joints_in_every_mode():
     assert backtracked, "no tick had one joint's line search reject a step while others took it"
 
 
-def test_a_line_search_that_fails_falls_back_alike():
-    """An impossible kick: the warm step's line search rejects all ten trials, the joint solves
+def test_a_warm_step_that_diverges_falls_back_alike():
+    """An impossible kick: the warm step's trials cost far more than its merit, the joint solves
     again from its controls; its neighbours in the lanes carry on."""
     twins = Twins(3)
     for k in range(20):
         twins.tick(k)
     twins.states[1] = [-0.4, 40.0]  # far beyond the velocity limit
     decisions = twins.tick(20)
-    # ten rejected trials, then a simulation of the controls and a new line search
-    assert decisions[1][1].rollouts > LINE_SEARCH_STEPS + 1
+    # the warm step's trials, then a simulation of the controls and a new line search
+    assert decisions[1][1].rollouts > WARM_TRIALS + 1
     assert decisions[1][0].rollouts == 1 and decisions[1][2].rollouts == 1
     for k in range(21, 40):
         twins.tick(k)
+
+
+@pytest.mark.parametrize("kick,solves_anew", [(0.5, False), (1.0, True)])
+def test_a_warm_tick_simulates_at_most_its_trials_unless_its_step_diverged(kick, solves_anew):
+    """A small kick (0.5 rad/s): no trial passes the Armijo test, and the smallest one, close to
+    its merit, is taken after WARM_TRIALS simulations, in both kernels alike (measured: the
+    unbounded search took a fourth trial here). A larger one (1 rad/s) diverges and solves
+    anew. No joint's warm tick simulates more than WARM_TRIALS times otherwise."""
+    twins = Twins(3)
+    for k in range(20):
+        twins.tick(k)
+    twins.states[1, 1] += kick
+    kicked = twins.tick(20)[1][1]
+    assert kicked.ok and kicked.status == "max_iterations"
+    assert (kicked.rollouts > WARM_TRIALS + 1) is solves_anew, kicked.rollouts
+    if not solves_anew:
+        assert kicked.rollouts == WARM_TRIALS
+    for k in range(21, 60):
+        twins.tick(k)
+    assert max(max(rollouts) for rollouts in twins.rollouts[21:]) <= WARM_TRIALS
 
 
 def test_two_threads_decide_as_one():
