@@ -178,7 +178,10 @@ def _one_start(pair: NamespacePair | None, path: Path, duration: float, report: 
             return {"started": False, "error": f"sim-bus did not start: {ready.strip()} "
                                                f"{errors.read_text().strip()[-300:]}"}
         threading.Thread(target=drives.stdout.read, daemon=True).start()
-        return _master(inside, path, duration, report, period_us, cpus=master_cpus)
+        out = _master(inside, path, duration, report, period_us, cpus=master_cpus)
+        if not out["started"]:  # the drives' side of it: e.g. why a slave refused a state
+            out["drives_said"] = errors.read_text().strip()[-600:]
+        return out
     finally:
         drives.send_signal(2)  # SIGINT: sim-bus reports and ends
         try:

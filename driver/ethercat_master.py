@@ -69,6 +69,16 @@ STATE_READ_TRIES = 3
 STATE_READ_PAUSE = 0.05  # s
 STATE_READ_TIMEOUT_US = 20_000
 REG_AL_STATUS_SPAN = 6  # AL status (0x0130), reserved, AL status code (0x0134): one read
+# How long SOEM waits for an acyclic frame to come back (its EC_TIMEOUTRET, process-wide):
+# while the line is configured, and from OP on. Configuring, a frame later than that is the
+# worst case: the slave still answers the mailbox request it carried, SOEM's next SDO read of
+# the same object takes that stale answer for its own (it checks the index, not the
+# subindex), config_map sums a PDO entry's wrong length, and the slave refuses SAFE-OP with
+# 0x001E (measured: talos_32's virtual line in another process on a loaded host, 2 of 8
+# starts). So while nothing is cyclic SOEM waits as for a slow link (its EC_TIMEOUTSAFE);
+# in OP its default again, so a cycle's state read never waits longer than two periods.
+CONFIGURING_RETURN_TIMEOUT_US = 20_000
+OPERATIONAL_RETURN_TIMEOUT_US = 2_000
 
 
 class LineFailure(DriveError):
@@ -183,6 +193,7 @@ class EthercatMaster:
 
     def _scan_once(self) -> DriveError | None:
         self.close_line()
+        pysoem.settings.timeouts.ret = CONFIGURING_RETURN_TIMEOUT_US
         master = self._open_master()
         try:
             master.open(self.interface)
@@ -260,6 +271,7 @@ class EthercatMaster:
             master.receive_processdata(self.response_timeout_us)
             if master.state_check(pysoem.OP_STATE, 1000) == pysoem.OP_STATE:
                 self.operational = True
+                pysoem.settings.timeouts.ret = OPERATIONAL_RETURN_TIMEOUT_US
                 self._last_frame = time.monotonic()
                 self._start_keeper()
                 return
@@ -284,6 +296,7 @@ class EthercatMaster:
             frames += 1
             if frames % DC_OP_CHECK_FRAMES == 0 and master.read_state() == pysoem.OP_STATE:
                 self.operational = True
+                pysoem.settings.timeouts.ret = OPERATIONAL_RETURN_TIMEOUT_US
                 self._last_frame = time.monotonic()
                 self._start_keeper()
                 return

@@ -305,3 +305,39 @@ def test_a_stalled_controller_holds_the_command_instead_of_tripping_the_watchdog
             group.close()
         report = line.report()
     assert [r["master_loss"] for r in report] == [None, None]
+
+
+
+class _Recording(pysoem.Master):
+    """SOEM's master, noting how long SOEM waits for an acyclic frame at each step."""
+
+    waits: dict[str, int] = {}
+
+    def config_init(self, *args):
+        self.waits["config_init"] = pysoem.settings.timeouts.ret
+        return super().config_init(*args)
+
+    def config_map(self, *args):
+        self.waits["config_map"] = pysoem.settings.timeouts.ret
+        return super().config_map(*args)
+
+
+def test_the_master_configures_waiting_for_late_frames_and_cycles_with_soems_wait(link):
+    """Real time: while the line is configured SOEM waits 20 ms for an acyclic frame, not its
+    2 ms. A frame later than SOEM waits still carries its mailbox request to the slave, whose
+    answer SOEM then takes for the next SDO read of the same object (it checks the index, not
+    the subindex): config_map sums a wrong PDO length and the slave refuses SAFE-OP (0x001E,
+    talos_32's virtual line on a loaded host: 2 starts in 8). From OP on, SOEM's own 2 ms: a
+    cycle's state read must not wait longer."""
+    with slaves(link, 2), link.entered():
+        drives = open_ethercat_drives(link.master_port, [joint(0), joint(1)],
+                                      clock=clock_for(False), open_master=_Recording)
+        try:
+            for drive in drives:
+                drive.start()
+            assert drives[0].transport.line.operational
+            assert pysoem.settings.timeouts.ret == 2_000
+        finally:
+            for drive in drives:
+                drive.close()
+    assert _Recording.waits == {"config_init": 20_000, "config_map": 20_000}
