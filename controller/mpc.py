@@ -17,8 +17,9 @@ improves on it. A step that costs more than that is a plan that diverged (a kick
 ticks after a cold solve): the joint solves anew from its controls, as an unbounded search
 did. Why: on talos_32, whose 32 joints tick in four chunks of eight lanes, a tick lasts as
 long as the sum of each chunk's longest search. With ten trials and every failed search
-solving anew (up to 21 simulations a joint), its p99 was 26 rounds and 614 us in lock-step,
-which with the master's exchange overran a 1 ms cycle in real time.
+solving anew (up to 21 simulations a joint), its p99 was 26 rounds and 490-614 us in
+lock-step (12 rounds and 320-380 us bounded), which with the master's exchange overran a 1 ms
+cycle in real time.
 
 Two compiled kernels tick a batch: `controller.lanes` puts the joints side by side in SIMD
 lanes (the default), `tick_joints` below runs each joint's scalar iLQR in turn, in parallel
