@@ -221,6 +221,9 @@ def _master(inside: Callable[[str, list[str]], list[str]], path: Path, duration:
     errors = [line for line in stderr.splitlines() if ": error: " in line]
     if errors:
         out["error"] = errors[0]
+    elif not out["started"]:  # no error of its own: a crash, a signal; what it left
+        out["error"] = (f"actuatord ended with exit code {master.returncode} before its first "
+                        f"cycle: {stderr.strip()[-600:]}")
     return out
 
 

@@ -341,3 +341,32 @@ def test_the_master_configures_waiting_for_late_frames_and_cycles_with_soems_wai
             for drive in drives:
                 drive.close()
     assert _Recording.waits == {"config_init": 20_000, "config_map": 20_000}
+
+
+class _Misread(pysoem.Master):
+    """SOEM's master whose reads of the first slave's RxPDO find one entry, not two, as a
+    lost or late mailbox answer makes them (the slave's own assignment changed to match, so
+    only the master can tell)."""
+
+    def config_map(self, *args):
+        slave = self.slaves[0]
+        slave.sdo_write(0x1C12, 0, b"\x00")
+        slave.sdo_write(0x1600, 0, b"\x01")
+        slave.sdo_write(0x1C12, 0, b"\x01")
+        return super().config_map(*args)
+
+
+def test_a_process_image_other_than_the_pdos_written_is_refused_by_name(link):
+    """SOEM sizes the image from its own reads of the assignment: an image that is not what
+    the transport mapped is one clear error naming the slave, not a cycle that cannot decode
+    its frames (talos_32 beside two busy loops: "internal error: unpack requires a buffer of
+    4 bytes")."""
+    with slaves(link, 1), link.entered():
+        drives = open_ethercat_drives(link.master_port, [joint(0)], clock=clock_for(False),
+                                      open_master=_Misread)
+        try:
+            with pytest.raises(DriveError, match=r"slave 0: SOEM mapped 2 output and 16 input "
+                                                 r"bytes where the PDOs written carry 4 and 16"):
+                drives[0].start()
+        finally:
+            drives[0].close()
