@@ -230,7 +230,7 @@ class EthercatTransport(Transport):
         """The line's process image exists (SOEM's config_map): this slave's part of it
         checked against the PDOs this transport mapped, then its outputs staged. SOEM sizes
         the image from SDO reads of its own, which a lost or late mailbox answer corrupts
-        (talos_32 beside two busy loops: 1 start in 8 got 2 output bytes for 4): a clear
+        (talos_32 beside two busy loops: 1 start in 5 got 2 output bytes for 4): a clear
         refusal, not a process image the cycle cannot decode."""
         slave = self.slave
         sizes = (len(slave.output), len(slave.input))
