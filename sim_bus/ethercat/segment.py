@@ -36,6 +36,7 @@ from sim_bus.ethercat.esc import Esc
 from sim_bus.ethercat.firmware import LineSync, SlaveFirmware
 from sim_bus.ethercat.frame_batch import FrameBatch
 from sim_bus.line_physics import DriveLine
+from sim_bus.priority import RealTimeBudget
 from sim_bus.rhythm import AHEAD, Rhythm
 
 log = logging.getLogger(__name__)
@@ -328,8 +329,11 @@ def run(sock: socket.socket, segment: Segment, stop: threading.Event) -> None:
     # awake from AHEAD before the master's next frame is due (`sim_bus.rhythm`): asleep,
     # this thread answered each frame 50-150 us late, as long as this host takes to wake it
     rhythm = Rhythm()
+    # under the kernel's real-time bandwidth while a master's configuration keeps it busy
+    budget = RealTimeBudget(clock())
     while not stop.is_set():
         now = clock()
+        budget.spent(now)
         sync0 = segment.next_sync0(now)
         timeout = POLL if sync0 is None else min(POLL, max(0.0, sync0 - now))
         look = rhythm.due - AHEAD - now
