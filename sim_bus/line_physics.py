@@ -56,6 +56,9 @@ V_ECHO, V_STATUSWORD = 0, 1
 V_READINGS = 2  # then LIVE_READINGS (`sim_bus.sensing` writes them)
 N_VALUES = len(LINE_KEYS)
 _MILLI = objects.MILLI
+# drives whose noise draws a line renews a cycle at most: 2 of ~30 us each, so talos_32's 32
+# drives, half their draws used (1 024 cycles before they run out), are renewed in 16 cycles
+DRAWS_RENEWED = 2
 
 
 # `advance_line`'s steady levels of a drive: its cycle is the physics alone while it applies
@@ -274,6 +277,22 @@ class DriveLine:
 
     def __len__(self) -> int:
         return len(self.devices)
+
+    def renew_draws(self, most: int = DRAWS_RENEWED) -> int:
+        """Renew the noise draws of at most `most` drives that have used half of theirs, the
+        most used first (`Plant.refill_draws`, the sequence unchanged). A line's drives use
+        theirs up together, and the cycle that emptied them renewed every one: on talos_32
+        one frame in 2 048 took 3 ms to answer (the drives' cycles out of the batch), which
+        the master saw as a late sample. Called once a cycle, off the answer's path where the
+        caller has one, this spreads that work over the cycles before. How many renewed."""
+        cursor = self.cursor
+        if not cursor.size or cursor.max() < NOISE_BATCH // 2:
+            return 0
+        rows = np.flatnonzero(cursor >= NOISE_BATCH // 2)
+        rows = rows[np.argsort(-cursor[rows], kind="stable")][:most]
+        for j in rows.tolist():
+            self.devices[j].plant.refill_draws()
+        return len(rows)
 
     def flush(self) -> None:
         """Write what the batch's cycles left into the devices they ran for."""

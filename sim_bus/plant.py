@@ -172,8 +172,14 @@ class Plant:
         sensing.sample(self.state, self.draws, self.cursor, terms, ranges, readings)
 
     def refill_draws(self) -> None:
-        """The next batch of N(0, 1) draws from the generator (one numpy call per draw cost
-        more than the rest of a measurement); the sequence is the one scalar draws give.
-        Every period takes two (current, then torque), so a batch is used up exactly."""
-        self._rng.standard_normal(out=self.draws)
+        """The draws not used yet moved to the front and the rest of the batch drawn from the
+        generator (one numpy call per draw cost more than the rest of a measurement): the
+        sequence is the one scalar draws give however early this is called (the generator
+        fills in order, in chunks or not), so a line renews its drives' draws a few at a
+        time (`DriveLine.renew_draws`) instead of all of them in the cycle that empties them."""
+        used = int(self.cursor[0])
+        rest = NOISE_BATCH - used
+        if rest:
+            self.draws[:rest] = self.draws[used:].copy()
+        self._rng.standard_normal(out=self.draws[rest:])
         self.cursor[0] = 0

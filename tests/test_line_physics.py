@@ -119,6 +119,43 @@ def test_the_batch_runs_the_devices_cycles_exactly():
     assert batched[1].plant.drifts and 0.004 < excess < 0.006, excess
 
 
+def test_draws_renewed_a_few_a_cycle_keep_the_sequence_and_the_batch():
+    """Two lines of the same drives under the same outputs for 3 000 cycles (past the 2 048
+    a batch of noise draws lasts): one renews a drive's draws a cycle once half are used
+    (`DriveLine.renew_draws`), the other only when they run out, in the cycle (as before).
+    Every state and reading is the same, to the last bit, and only the early-renewing line
+    keeps every cycle in its batch: the other's drives all leave it in the same cycle."""
+    def line_of_drives() -> DriveLine:
+        devices = [make_device(load_model(), Payload(), SensorNoise(seed=j), commissioned=True)
+                   for j in range(JOINTS)]
+        for device in devices:
+            device.write(objects.MODES_OF_OPERATION, 0, objects.MODE_CYCLIC_SYNC_TORQUE)
+        return DriveLine(devices)
+
+    early, late = line_of_drives(), line_of_drives()
+    rows = np.arange(JOINTS)
+    out_of_batch = ([], [])
+    renewed = 0
+    for k in range(3000):
+        controlword = (SHUTDOWN, SWITCH_ON, ENABLE)[min(k, 2)]
+        outputs = np.array([(controlword, int(40 * math.sin(k / 50 + j)), 0)
+                            for j in range(JOINTS)], dtype=np.int64)
+        for side, line in enumerate((early, late)):
+            done = line.cycle(rows, outputs[:, 0], OUTPUTS, [outputs[:, 1], outputs[:, 2]])
+            for j in np.flatnonzero(~done):
+                line.devices[j].write_outputs(OUTPUTS, tuple(int(v) for v in outputs[j]))
+                line.devices[j].cycle()
+                if k > 2:
+                    out_of_batch[side].append((k, int(j)))
+        renewed += early.renew_draws(most=1)
+    np.testing.assert_array_equal(early.state, late.state)
+    for a, b in zip(early.devices, late.devices, strict=True):
+        assert _observed(a) == _observed(b)
+    assert out_of_batch[0] == []
+    assert out_of_batch[1] == [(2047, j) for j in range(JOINTS)]  # 2 draws a cycle
+    assert renewed == 2 * JOINTS  # at 1 024 cycles and at 2 048, one drive a cycle
+
+
 def _three_elbows_on_a_line():
     from pathlib import Path
 

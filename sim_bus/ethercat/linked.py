@@ -280,6 +280,7 @@ class LinkedMaster:
                          else sum(slave._exchange() for slave in self.slaves))
             self._segment.frames += 1
             self._clock.after_frame()
+            self._segment.drives.renew_draws()  # a few a cycle, not all in one
         self.slave_seconds.append(time.perf_counter() - start)
 
     def receive_processdata(self, timeout_us: int = 0) -> int:

@@ -108,6 +108,12 @@ class Segment:
             self.dropped += 1
         return answered
 
+    def renew_draws(self) -> None:
+        """A few drives' noise draws renewed (`DriveLine.renew_draws`): once a frame, after
+        its answer went."""
+        with self.lock:
+            self.drives.renew_draws()
+
     def answered(self, arrival: float, sent: float) -> None:
         """The answer to the frame that arrived at `arrival` left at `sent`: a late one
         (this process stalled) excuses the SYNC0 windows the master could not fill while it
@@ -370,6 +376,7 @@ def run(sock: socket.socket, segment: Segment, stop: threading.Event) -> None:
             if twice:
                 sock.send(view[:length])
             segment.answered(now, clock())
+            segment.renew_draws()
         segment.check_watchdogs(now)
 
 
