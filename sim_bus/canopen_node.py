@@ -588,6 +588,7 @@ class _BusSync:
             data = packed.tobytes()
             for node in nodes:
                 node._answer_packed(data, values)
+            line.renew_draws()  # after the answers: a few drives' a cycle, not all in one
             return
         done = done.tolist()
         unapplied = line.unapplied
