@@ -46,7 +46,6 @@ from protocol.can_datagram import (
     receiver_options,
     sender_options,
 )
-from sim_bus.priority import RealTimeBudget
 from sim_bus.rhythm import AHEAD, Rhythm
 
 log = logging.getLogger(__name__)
@@ -191,10 +190,8 @@ class MulticastReceiver(threading.Thread):
             poller = select.poll()
             for fd in fds:
                 poller.register(fd, select.POLLIN)
-        budget = RealTimeBudget(clock())  # its looks and answers under the kernel's bandwidth
         while not stopping.is_set():
             now = clock()
-            budget.spent(now)
             if timed:
                 wait = rhythm.due - AHEAD - now
                 ready = select.select(fds, (), (), min(wait, POLL_TIMEOUT) if wait > 0 else 0)[0]
