@@ -49,8 +49,9 @@ def answer_like_hardware(priority: int = HARDWARE_PRIORITY) -> str | None:
 # last second (as the kernel counts: a thread that cycles at 80 % is never stopped) below
 # BUDGET_HIGH, taking normal priority while it has used more: looked at every BUDGET_WINDOW,
 # it cannot pass the kernel's 95 % before the next look. (Judged on 100 ms windows alone, a
-# thread above 80 % for one of them left real time: talos_arm's CAN drives, which cycle near
-# that, then missed 0.3-42 % of cycles in 10 starts against 0.6-2.2 % without.)
+# thread above 80 % for one of them left real time, which a thread that cycles near that
+# must not: talos_arm's CAN drives with it missed 0.3-42 % of cycles in 10 starts, the set
+# before without it 0.6-2.2 %, on a host that was slowing down.)
 BUDGET_WINDOW = 0.02  # s of wall time: how often the thread's CPU time is looked at
 BUDGET_WINDOWS = 50  # windows in the second the kernel counts a real-time thread's time over
 BUDGET_HIGH = 0.9  # share of the last second above which the thread leaves real time
