@@ -13,6 +13,7 @@ from sim_bus.priority import (
     BUDGET_LOW,
     BUDGET_WINDOW,
     BUDGET_WINDOWS,
+    DEMOTED_NICE,
     RealTimeBudget,
 )
 
@@ -36,9 +37,9 @@ def _in_a_thread(job):
     return result["value"]
 
 
-def _policies(shares: list[float]) -> list[int]:
-    """The thread's policy after each window of `shares` (its CPU time / wall time), the
-    thread at SCHED_RR 3 to begin with."""
+def _policies(shares: list[float]) -> list[tuple[int, int]]:
+    """The thread's policy and nice value after each window of `shares` (its CPU time / wall
+    time), the thread at SCHED_RR 3 and nice 0 to begin with."""
     os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(3))
     cpu = [0.0]
     now = 100.0
@@ -50,7 +51,8 @@ def _policies(shares: list[float]) -> list[int]:
         now += step
         cpu[0] += share * step
         budget.spent(now)
-        seen.append(os.sched_getscheduler(0))
+        seen.append((os.sched_getscheduler(0),
+                     os.getpriority(os.PRIO_PROCESS, threading.get_native_id())))
     return seen
 
 
@@ -86,12 +88,14 @@ def test_a_second_over_the_share_leaves_real_time_priority_and_a_quiet_one_takes
 
     seen, priority = _in_a_thread(job)
     expected = _expected(shares)
-    assert seen == expected
+    # out of real time at the strongest normal priority, back at nice 0 after
+    assert seen == [(policy, 0 if policy == os.SCHED_RR else DEMOTED_NICE)
+                    for policy in expected]
     # the thread left real time once, well into the busy second, and took it back once
     changes = [k for k in range(1, len(seen)) if seen[k] != seen[k - 1]]
     assert len(changes) == 2
     assert 2 * BUDGET_WINDOWS < changes[0] < 3 * BUDGET_WINDOWS < changes[1]
-    assert seen[-1] == os.SCHED_RR and priority == 3
+    assert seen[-1] == (os.SCHED_RR, 0) and priority == 3
 
 
 def test_a_thread_at_normal_priority_is_left_alone():
