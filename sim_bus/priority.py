@@ -58,9 +58,10 @@ BUDGET_WINDOWS = 50  # windows in the second the kernel counts a real-time threa
 BUDGET_HIGH = 0.9  # share of the last second above which the thread leaves real time
 BUDGET_LOW = 0.6  # share of the last second below which it takes its real time again
 # the nice value of a thread out of real time: the strongest normal priority, so CFS runs it
-# at once on waking against work at nice 0 (weight 88 761 against 1 024). At nice 0 beside
-# two busy loops the line left a KickCAT scan without an answer for its 10 ms
-# (tests/test_kickcat.py, in a clean clone's suite beside two `while True` loops)
+# at once on waking against work at nice 0 (weight 88 761 against 1 024). At nice 0, waiting
+# its turn beside two busy loops, the line likely left a KickCAT scan without an answer for
+# its 10 ms (tests/test_kickcat.py failed once in a clean clone's suite beside two `while True`
+# loops; not reproduced in 3 runs of the test alone)
 DEMOTED_NICE = -20
 
 
