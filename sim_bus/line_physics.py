@@ -59,6 +59,10 @@ _MILLI = objects.MILLI
 # drives whose noise draws a line renews a cycle at most: 2 of ~30 us each, so talos_32's 32
 # drives, half their draws used (1 024 cycles before they run out), are renewed in 16 cycles
 DRAWS_RENEWED = 2
+# cycles between two looks at the draws used while no drive's were due: a look (numpy's max
+# over the line's cursors) cost 5 us of a one-joint lock-step cycle's 80 here; 32 cycles use
+# 64 of the 2 048 draws a drive has left when half are used
+DRAWS_LOOK_EVERY = 32
 
 
 # `advance_line`'s steady levels of a drive: its cycle is the physics alone while it applies
@@ -271,6 +275,7 @@ class DriveLine:
         self._torque_at = self._current_at = -1
         self._done = np.zeros(count, dtype=np.bool_)
         self.ran = 0  # how many drives the last `cycle` ran
+        self._renew_wait = 0  # calls of `renew_draws` before it looks at the draws again
         # the arrays each `advance_blocks` call takes, gathered once (attribute look-ups a
         # cycle otherwise): the line's own, never replaced
         self._kernel = (self._steady, *self._buffers, size)
@@ -285,8 +290,12 @@ class DriveLine:
         one frame in 2 048 took 3 ms to answer (the drives' cycles out of the batch), which
         the master saw as a late sample. Called once a cycle, off the answer's path where the
         caller has one, this spreads that work over the cycles before. How many renewed."""
+        if self._renew_wait:
+            self._renew_wait -= 1
+            return 0
         cursor = self.cursor
         if not cursor.size or cursor.max() < NOISE_BATCH // 2:
+            self._renew_wait = DRAWS_LOOK_EVERY - 1
             return 0
         rows = np.flatnonzero(cursor >= NOISE_BATCH // 2)
         rows = rows[np.argsort(-cursor[rows], kind="stable")][:most]
