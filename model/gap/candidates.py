@@ -104,10 +104,14 @@ def best_terms(problem: Problem, fixed: tuple[Term, ...], effect: Effect,
     if effect.shape is None:
         return [Term(effect, 0.0) for _ in left_out]
     pick = np.array([[fold != block for block in range(FOLDS)] for fold in left_out], float)
+    # the columns of `fixed` once, not once a shape (the same values: a ripple's harmonics
+    # were a tenth of a model-gap case's time, recomputed for each of ~40 shapes)
+    fixed_design = problem.design(fixed)
 
     def errors(shape: float) -> np.ndarray:
         """Squared error of each entry of `left_out` at this shape."""
-        z = np.column_stack([problem.design((*fixed, Term(effect, shape))), problem.target])
+        z = np.column_stack([fixed_design, problem.columns(Term(effect, shape)),
+                             problem.target])
         grams = np.array([z[rows].T @ z[rows] for rows in problem.blocks])
         gram = np.einsum("fb,bij->fij", pick, grams)
         a, b = gram[:, :-1, :-1], gram[:, :-1, -1]
