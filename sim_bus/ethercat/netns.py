@@ -10,6 +10,7 @@ CAP_SYS_ADMIN and CAP_NET_RAW); `LinkUnavailable` says what is missing.
 
 import contextlib
 import ctypes
+import gc
 import multiprocessing
 import os
 import secrets
@@ -210,6 +211,12 @@ def _serve_line(namespace: str, port: str, count: int, model: ActuatorModel, pay
                                                             None if noise.seed is None
                                                             else noise.seed + k))
                    for k in range(count)]
+        # the start-up heap collected once and frozen for the process's life, as `sim-bus`
+        # does (`driver.clock.collector_off_the_cycle`): a full collection of it takes 73 ms
+        # here, and one that came during a master's scan lost its frames (KickCAT waits 10 ms
+        # for each: "Error while fetching eeprom data", once in this project's suite)
+        gc.collect()
+        gc.freeze()
         segment = serve(port, devices, stop, on_ready=lambda _: pipe.send("ready"))
     except Exception as exc:  # the parent raises it with the reason
         pipe.send(f"{type(exc).__name__}: {exc}")
