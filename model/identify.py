@@ -32,7 +32,6 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy import signal
 
 from model import dynamics
 from model.defaults import CUTOFF_HZ
@@ -113,6 +112,10 @@ def prepare(experiment: Experiment, cutoff_hz: float = CUTOFF_HZ) -> Columns:
     rate = 1.0 / dt
     if cutoff_hz >= 0.5 * rate:
         raise IdentificationError(f"cutoff {cutoff_hz} Hz is above Nyquist for {rate:.0f} Hz")
+    # imported here, once the data passed its checks: scipy.signal takes about 1 s to import
+    # (it loads scipy.stats and more), which a refused recording's one line should not wait for
+    from scipy import signal
+
     sos = signal.butter(FILTER_ORDER, cutoff_hz, fs=rate, output="sos")
     qd = np.gradient(q, dt)
     qdd = np.gradient(qd, dt)
