@@ -202,3 +202,16 @@ def pytest_unconfigure(config) -> None:
         sys.stderr.flush()
         sys.stdout.flush()
         os._exit(_exit_status[-1] if _exit_status else 1)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items) -> None:
+    """The suite's groups for pytest-xdist's `--dist loadgroup` (pyproject.toml): the tests
+    marked real_time in one group, so that two of them never run at once (two real-time loops
+    at real-time priority on two cores would each miss the other's deadlines, and a second
+    holder of the CPU latency request hides the first's); every other test in the group of its
+    file, whose module and session fixtures are then made on one worker only."""
+    for item in items:
+        group = ("real_time" if item.get_closest_marker("real_time") is not None
+                 else item.nodeid.split("::", 1)[0])
+        item.add_marker(pytest.mark.xdist_group(group))

@@ -75,6 +75,7 @@ def test_environment_and_canrc_are_python_cans_own(no_can_config, monkeypatch):
     assert bus_config(parse("-c", "239.0.0.7"))["channel"] == "239.0.0.7"  # options win
 
 
+@pytest.mark.real_time
 def test_can_log_over_a_python_can_bus_holds_every_frame(no_can_config, tmp_path):
     """In one process on python-can's virtual bus, in lock-step: every SYNC the master sent,
     every TPDO that answered it and every RPDO, in a candump .log that can.LogReader reads."""
@@ -139,6 +140,7 @@ def test_can_log_of_the_sim_link_in_lockstep(tmp_path):
     check_cycles(list(can.LogReader(path)), expected=cycles_in(proc.stdout))
 
 
+@pytest.mark.real_time
 def test_sim_bus_and_actuatord_on_udp_multicast_with_python_can_options(tmp_path):
     """Two processes, the bus named the python-can way; both logs (candump .log and .blf)
     read back with can.LogReader and hold every SYNC and PDO of the run."""
@@ -184,6 +186,7 @@ def test_a_fault_logged_by_a_library_and_reported_by_the_command_shows_once():
     assert proc.stderr == "recorder: error: node 2: heartbeat lost\n"
 
 
+@pytest.mark.real_time
 def test_a_lost_drive_is_reported_once_end_to_end(tmp_path):
     """sim-bus stops its heartbeat; the master's watchdog logs it, the recorder fails with it:
     the reason is read once."""

@@ -18,6 +18,7 @@ def _current_latency_us() -> int:
 @pytest.mark.root
 @pytest.mark.skipif(os.geteuid() != 0 or not os.path.exists(CPU_DMA_LATENCY),
                     reason="needs root and /dev/cpu_dma_latency")
+@pytest.mark.real_time
 def test_the_request_holds_while_inside_and_ends_after():
     before = _current_latency_us()
     if before == 0:

@@ -585,6 +585,7 @@ class Terminal:
         return os.waitstatus_to_exitcode(os.waitpid(self.pid, 0)[1])
 
 
+@pytest.mark.real_time
 def test_terminal_dashboard_keeps_up_with_a_real_time_actuatord_and_quits_cleanly():
     """`dashboard tui` on a terminal under actuatord --sim in real time (1 kHz): the clock it
     shows stays within 0.5 s of the newest state on the wire (every look but one, the last

@@ -101,6 +101,7 @@ def test_close_leaves_the_drive_disabled(pair):
     assert sim.nmt_state_name == "PRE-OPERATIONAL"
 
 
+@pytest.mark.real_time
 def test_heartbeat_loss_is_reported_within_three_periods_and_commanding_stops():
     """Real time: the consumer runs on the clock while no cycle runs."""
     with virtual_pair(lockstep=False) as (sim, master):

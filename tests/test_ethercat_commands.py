@@ -75,6 +75,7 @@ def error_lines(stderr: str) -> list[str]:
     return [line for line in stderr.splitlines() if ": error: " in line]
 
 
+@pytest.mark.real_time
 def test_actuatord_runs_the_mpc_over_ethercat_for_5_s_in_lockstep(link):
     with sim_bus(link) as slaves:
         result = run(link, "actuatord", "--bus", f"ethercat:{link.master_port}", "--lockstep",
@@ -89,6 +90,7 @@ def test_actuatord_runs_the_mpc_over_ethercat_for_5_s_in_lockstep(link):
     assert "drive 'switch on disabled'" in report  # left disabled by the master at exit
 
 
+@pytest.mark.real_time
 def test_a_lost_line_stops_actuatord_in_real_time_naming_the_slave(link):
     with sim_bus(link) as slaves:
         actuatord = subprocess.Popen(
@@ -117,6 +119,7 @@ def test_a_lost_line_stops_actuatord_in_real_time_naming_the_slave(link):
     assert "drive failed" in stdout  # the summary names the cause too
 
 
+@pytest.mark.real_time
 def test_recorder_records_a_sinusoid_over_ethercat(link, tmp_path):
     output = tmp_path / "sinusoid.mcap"
     with sim_bus(link) as slaves:
@@ -131,6 +134,7 @@ def test_recorder_records_a_sinusoid_over_ethercat(link, tmp_path):
     assert np.ptp(recording.q) > 0.5  # rad: the joint followed the sinusoid's first 2 s
 
 
+@pytest.mark.real_time
 def test_sim_bus_serves_slaves_that_soem_finds_and_reports_each_on_sigint(link):
     esi = load_esi(esi_path())
     with sim_bus(link, "--slaves", "2") as slaves:
@@ -171,6 +175,7 @@ def end_position(report: str, name: str) -> float:
 
 
 @pytest.mark.parametrize("served_by", ["slaves", "robot file"])
+@pytest.mark.real_time
 def test_actuatord_runs_a_robot_of_two_joints_on_one_line_in_slave_order(link, tmp_path,
                                                                          served_by):
     """Each joint's setpoint must reach the drive at its own slave position (the end positions
@@ -193,6 +198,7 @@ def test_actuatord_runs_a_robot_of_two_joints_on_one_line_in_slave_order(link, t
     assert end_position(report, upper) == pytest.approx(-0.5, abs=0.05), report
 
 
+@pytest.mark.real_time
 def test_no_slave_on_the_line_is_a_failed_job_naming_the_bus(link):
     result = run(link, "actuatord", "--bus", f"ethercat:{link.master_port}", "--lockstep", ZENOH)
     assert result.returncode == 1, result.stderr

@@ -507,6 +507,7 @@ def test_a_sync0_cycle_other_than_the_drives_period_is_refused():
 
 @pytest.mark.root
 @pytest.mark.subprocess
+@pytest.mark.real_time
 def test_pysoem_config_dc_against_the_virtual_slaves_over_a_veth(link):
     """SOEM's own ecx_configdc and ecx_dcsync0 (pysoem) on a line in another process: the
     delays it measured are the line's, every slave takes OP on SYNC0, the reference clock's

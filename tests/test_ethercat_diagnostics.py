@@ -261,6 +261,7 @@ def test_actuatord_quick_stops_the_robot_and_names_the_joint_that_left_op(tmp_pa
 
 @pytest.mark.root
 @pytest.mark.subprocess
+@pytest.mark.real_time
 def test_soem_names_the_slave_that_vanished_and_the_one_that_left_op(link):
     """Over a veth with SOEM: a slave made silent mid-run (fault 2 written to 0x2010) is named
     as not answering by the frame that misses it; on a fresh line a slave that leaves OP is
@@ -432,6 +433,7 @@ def test_actuatord_exits_2_for_a_bad_start_up_parameter_and_1_for_a_refused_one(
 
 @pytest.mark.root
 @pytest.mark.subprocess
+@pytest.mark.real_time
 def test_soem_browses_the_drives_dictionary_by_sdo_information(link):
     """pysoem's `od` (SOEM's ecx_readODlist, ecx_readODdescription, ecx_readOE: an
     implementation nobody here wrote) lists every object the slave reaches by SDO, with the
@@ -485,6 +487,7 @@ def _slaveinfo_builds() -> list[str]:
 @pytest.mark.root
 @pytest.mark.subprocess
 @pytest.mark.parametrize("option", ["-sdo", "-map"])
+@pytest.mark.real_time
 def test_soems_slaveinfo_browses_and_maps_the_slave(link, option):
     """SOEM's C sample itself: `-sdo` (SDO Information for every object; v1.4 used to get
     'service not supported' for each) and `-map` (entry descriptions of the mapped objects;

@@ -67,6 +67,7 @@ def close(transports):
         transport.close()
 
 
+@pytest.mark.real_time
 def test_soem_finds_the_slaves_reads_their_sii_and_maps_the_cst_layout(link):
     with slaves(link, 2), link.entered():
         master = pysoem.Master()
@@ -96,6 +97,7 @@ def test_soem_finds_the_slaves_reads_their_sii_and_maps_the_cst_layout(link):
             master.close()
 
 
+@pytest.mark.real_time
 def test_lockstep_drives_move_each_joint_the_commanded_way_one_frame_per_cycle(link):
     with slaves(link, 2) as line, link.entered():
         drives = open_ethercat_drives(link.master_port, [joint(0), joint(1)], clock=clock_for(True))
@@ -122,6 +124,7 @@ def test_lockstep_drives_move_each_joint_the_commanded_way_one_frame_per_cycle(l
     assert not any(r["master_loss"] for r in report)
 
 
+@pytest.mark.real_time
 def test_a_line_is_one_segment_of_a_drive_group(link):
     """The robot's seam: three joints on one line, started in joint order (the line goes to
     OP with the last), one frame per group cycle, a quick stop for all."""
@@ -149,6 +152,7 @@ def test_a_line_is_one_segment_of_a_drive_group(link):
     assert [r["brake_engaged"] for r in report] == [True] * 3
 
 
+@pytest.mark.real_time
 def test_identity_other_than_the_esi_is_refused(link):
     other = dataclasses.replace(ESI, product_code=0x999)
     with slaves(link, 1), link.entered():
@@ -161,6 +165,7 @@ def test_identity_other_than_the_esi_is_refused(link):
             close([transport])
 
 
+@pytest.mark.real_time
 def test_killed_slave_process_is_lost_within_one_cycle(link):
     with slaves(link, 1) as line, link.entered():
         [transport] = open_ethercat_transports(link.master_port, [0], clock=clock_for(True),
@@ -178,6 +183,7 @@ def test_killed_slave_process_is_lost_within_one_cycle(link):
             close([transport])
 
 
+@pytest.mark.real_time
 def test_bootstrap_request_is_refused_by_name(link):
     with slaves(link, 1), link.entered():
         master = pysoem.Master()
@@ -195,6 +201,7 @@ def test_bootstrap_request_is_refused_by_name(link):
             master.close()
 
 
+@pytest.mark.real_time
 def test_safe_op_refused_for_a_wrong_output_size_names_the_code(link):
     with slaves(link, 1), link.entered():
         [transport] = open_ethercat_transports(link.master_port, [0], clock=clock_for(True))
@@ -215,6 +222,7 @@ def test_safe_op_refused_for_a_wrong_output_size_names_the_code(link):
             close([transport])
 
 
+@pytest.mark.real_time
 def test_master_loss_trips_the_watchdog_and_the_drive_stops_on_its_brake(link):
     with slaves(link, 1) as line, link.entered():
         [drive] = open_ethercat_drives(link.master_port, [joint(0)], clock=clock_for(False))
@@ -233,6 +241,7 @@ def test_master_loss_trips_the_watchdog_and_the_drive_stops_on_its_brake(link):
     assert slave["brake_engaged"]
 
 
+@pytest.mark.real_time
 def test_drive_fault_arrives_as_a_coe_emergency_with_its_code(link):
     with slaves(link, 1), link.entered():
         [drive] = open_ethercat_drives(link.master_port, [joint(0)], clock=clock_for(True))
@@ -250,6 +259,7 @@ def test_drive_fault_arrives_as_a_coe_emergency_with_its_code(link):
     assert drive.last_emergency.register == 0x02
 
 
+@pytest.mark.real_time
 def test_malformed_frames_do_not_stop_the_line(link):
     with slaves(link, 2) as line, link.entered():
         raw = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ec.ETHERTYPE))
@@ -280,6 +290,7 @@ def test_malformed_frames_do_not_stop_the_line(link):
     assert len(report) == 2
 
 
+@pytest.mark.real_time
 def test_a_stalled_controller_holds_the_command_instead_of_tripping_the_watchdog(link):
     """Real time: the line's own keeper sends frames while the cycle stalls (a cold solve, a
     collection), so the slaves' 100 ms watchdog never fires for a master that is alive."""
@@ -322,6 +333,7 @@ class _Recording(pysoem.Master):
         return super().config_map(*args)
 
 
+@pytest.mark.real_time
 def test_the_master_configures_waiting_for_late_frames_and_cycles_with_soems_wait(link):
     """Real time: while the line is configured SOEM waits 20 ms for an acyclic frame, not its
     2 ms. A frame later than SOEM waits still carries its mailbox request to the slave, whose
@@ -356,6 +368,7 @@ class _Misread(pysoem.Master):
         return super().config_map(*args)
 
 
+@pytest.mark.real_time
 def test_a_process_image_other_than_the_pdos_written_is_refused_by_name(link):
     """SOEM sizes the image from its own reads of the assignment: an image that is not what
     the transport mapped is one clear error naming the slave, not a cycle that cannot decode

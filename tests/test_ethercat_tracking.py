@@ -56,6 +56,7 @@ def ethercat_drive(link: VirtualLink):
         0, MODEL.limits.velocity_max, MODEL.parameters.drive_gain), clock=clock_for(True))
 
 
+@pytest.mark.real_time
 def test_mpc_over_ethercat_tracks_within_ten_percent_of_can(link):
     sim = EmbeddedDrive(MODEL, Payload(), SensorNoise(seed=0), 2, clock=DriveClock())
     try:
@@ -97,6 +98,7 @@ def record(drive, payload: Payload, path) -> None:
         path)
 
 
+@pytest.mark.real_time
 def test_exciting_trajectory_over_ethercat_identifies_the_model_as_over_can(link, tmp_path):
     models = {}
     for bus in ("can", "ethercat"):

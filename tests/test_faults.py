@@ -100,6 +100,7 @@ def test_sdo_injection_and_schedules_are_validated():
         parse_fault("silent@soon")
 
 
+@pytest.mark.real_time
 def test_a_stall_in_real_time_is_reported_on_the_fault_topic():
     """With the embedded drive the late frames block the sender, so the loop's own clock is
     what notices: 200 ms without a cycle is 200 missed cycles."""

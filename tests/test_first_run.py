@@ -2,9 +2,12 @@
 
 import time
 
+import pytest
+
 from commands.first_run import CompileNotice
 
 
+@pytest.mark.real_time
 def test_a_slow_start_is_said_once_and_a_quick_one_not_at_all(capsys):
     with CompileNotice("actuatord", after=0.05):
         time.sleep(0.3)

@@ -13,6 +13,7 @@ pytestmark = pytest.mark.subprocess  # runs the commands as processes
 TRIES = 10
 
 
+@pytest.mark.real_time
 def test_a_fresh_sim_bus_is_driven_by_actuatord_at_the_first_try_ten_times_out_of_ten():
     # ten fresh drives, each on its own bus, started together to spare the suite's time; once
     # every one says ready, each gets actuatord (real time: a sample 100 ms late is a dead

@@ -36,6 +36,7 @@ def test_only_the_runs_span_counts():
     assert figures["missed_percent"] == pytest.approx(100 * 103 / 7000, abs=1e-3)
 
 
+@pytest.mark.real_time
 def test_the_loops_run_on_their_cpus_until_the_block_ends():
     cpus = sorted(os.sched_getaffinity(0))
     with FloorBeside(cpus) as floor:

@@ -88,6 +88,7 @@ def command(slave: kickcat.Slave, controlword: int, torque_permille: int) -> Non
                            + torque_permille.to_bytes(2, "little", signed=True))
 
 
+@pytest.mark.real_time
 def test_kickcat_takes_the_line_to_op_and_holds_a_loaded_joint_in_cst(link):
     started = time.monotonic()
     # KickCAT at the real-time master's priority, as a master runs: at normal priority on a

@@ -76,6 +76,7 @@ def wait_until(predicate, timeout: float) -> bool:
 
 
 @pytest.mark.parametrize("how", ["SIGKILL", "SIGSTOP"])
+@pytest.mark.real_time
 def test_the_drive_stops_the_joint_when_its_master_dies_and_a_new_master_starts_clean(how):
     bus = udp_bus_spec()
     with virtual_drive_process(bus, 2, *PAYLOAD):
@@ -129,6 +130,7 @@ def test_the_drive_stops_the_joint_when_its_master_dies_and_a_new_master_starts_
             observer.close()
 
 
+@pytest.mark.real_time
 def test_a_second_master_is_refused_naming_what_it_saw():
     bus = udp_bus_spec()
     with virtual_drive_process(bus, 2):

@@ -8,6 +8,7 @@ import time
 
 import can
 import canopen
+import pytest
 
 from driver import canopen_multicast
 from driver.canopen_multicast import MulticastNetwork
@@ -85,6 +86,7 @@ def test_other_interfaces_keep_python_cans_path():
         network.disconnect()
 
 
+@pytest.mark.real_time
 def test_the_cycle_reads_the_buses_itself_and_the_thread_takes_them_back_when_it_stops(
         monkeypatch):
     # the receive thread takes the buses back after STALL without the cycle reading: long

@@ -122,6 +122,7 @@ def drive_state_of_line(interface: str) -> tuple[State, float]:
         master.close()
 
 
+@pytest.mark.real_time
 def test_ethercat_every_lost_master_stops_the_drive_and_the_next_one_holds_the_load(link):
     with SlaveProcess(link, 1, MODEL, HEAVY) as line, link.entered():
         # a lock-step master switches the slave's watchdog off and ends as it should
@@ -150,6 +151,7 @@ def test_ethercat_every_lost_master_stops_the_drive_and_the_next_one_holds_the_l
     assert "watchdog" in report["master_loss"]
 
 
+@pytest.mark.real_time
 def test_ethercat_a_master_killed_in_lockstep_leaves_nothing_enabled_to_the_next(link):
     """No watchdog watches a lock-step line: the next master's scan (to INIT) is what the
     slave reacts to, as to a lost master, and the master disables whatever is left."""
@@ -182,6 +184,7 @@ def start_actuatord(bus: str, *extra: str) -> subprocess.Popen:
     return proc
 
 
+@pytest.mark.real_time
 def test_can_a_drive_whose_master_died_stops_on_its_own_and_the_next_master_takes_it():
     bus = udp_bus_spec()
     payload = ("--payload-mass", "20", "--payload-position", "0,0.05")
@@ -216,6 +219,7 @@ def test_can_a_drive_whose_master_died_stops_on_its_own_and_the_next_master_take
             drive.close()
 
 
+@pytest.mark.real_time
 def test_can_a_quick_stopping_drive_is_taken_over_not_refused():
     """A drive still in quick stop active (its master just died, the motor still turning)
     with no one cycling it is safe to take: the newcomer resets it rather than refusing."""
@@ -243,6 +247,7 @@ def test_can_a_quick_stopping_drive_is_taken_over_not_refused():
             other.close()
 
 
+@pytest.mark.real_time
 def test_can_a_second_master_is_refused_and_the_first_runs_on_untouched():
     bus = udp_bus_spec()
     with virtual_drive_process(bus, 2):

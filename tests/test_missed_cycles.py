@@ -6,6 +6,8 @@ phase is made twenty periods long so that it, not the host, is what the run meas
 import itertools
 import time
 
+import pytest
+
 from controller.loop import DECISION, LATE_SAMPLE, ControlLoop, LoopOptions
 from controller.policy import Decision
 from driver.drive_group import single_joint
@@ -42,6 +44,7 @@ class _Holding:
         return None
 
 
+@pytest.mark.real_time
 def test_a_slow_decision_is_named_as_the_cause_of_its_missed_cycles():
     # at the master's priority, as actuatord runs: at normal priority on a loaded host (load 3)
     # the host's own late wake-ups and samples outnumbered the stalls (230 and 221 vs 224)
@@ -72,6 +75,7 @@ def slow_sample(group):
     return group
 
 
+@pytest.mark.real_time
 def test_a_late_sample_is_named_as_the_cause_of_its_missed_cycles():
     with virtual_pair(lockstep=False) as (_, drive), as_a_real_time_master():
         drive.start()

@@ -72,6 +72,7 @@ def _expected(shares: list[float]) -> list[int]:
 
 
 @pytest.mark.root
+@pytest.mark.real_time
 def test_a_second_over_the_share_leaves_real_time_priority_and_a_quiet_one_takes_it_back():
     # cycling just under the share for a long while, busy until it is over, then idle (0.97,
     # not 1: no mean of the last second falls on a threshold, where rounding would decide)

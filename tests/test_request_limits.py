@@ -238,6 +238,7 @@ def extra_missed_cycles(blocked: BlockedTime, loop: ControlLoop, query) -> tuple
     return min(extras), replies
 
 
+@pytest.mark.real_time
 def test_a_4_mb_reference_request_is_refused_without_stalling_the_loop(service):
     request, blocked, audit, loop = service
     before = len(audit)
@@ -256,6 +257,7 @@ def test_a_4_mb_reference_request_is_refused_without_stalling_the_loop(service):
     assert loop.report.exit_code == 0 and loop.report.cycles > 100
 
 
+@pytest.mark.real_time
 def test_a_64_mb_parameters_query_does_not_stall_the_loop(service):
     request, blocked, _, loop = service
     extra, replies = extra_missed_cycles(blocked, loop, lambda: request(telemetry.PARAMETERS,

@@ -40,6 +40,7 @@ def _busy_loops() -> list[int]:
 
 @pytest.mark.parametrize("extra", [[], ["--sim", "--busy-loops", "1"]],
                          ids=["own-process", "embedded-beside-a-busy-loop"])
+@pytest.mark.real_time
 def test_one_joint_runs_in_real_time_and_reports_its_misses(tmp_path, extra):
     robot = tmp_path / "elbow.toml"
     robot.write_text(ELBOW)

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 import zenoh
 
 from controller.messages import JointStates
@@ -231,6 +232,7 @@ def test_robot_options_are_checked_in_one_line():
     assert with_model.returncode == 2 and "--model" in with_model.stderr
 
 
+@pytest.mark.real_time
 def test_sim_bus_serves_every_drive_of_a_robot_file_on_its_bus(tmp_path):
     """`sim-bus --robot`: each joint's drive on its bus at its node id, commissioned for its
     joint (rated current = the joint's current_max), answering a master's SDO."""

@@ -24,6 +24,7 @@ from sim_bus.rhythm import RHYTHM, Rhythm
 from tests.conftest import udp_bus_spec, udp_port
 
 
+@pytest.mark.real_time
 def test_a_drive_served_through_it_answers_sdo_and_sync_on_two_buses_from_one_thread():
     specs = [udp_bus_spec(), udp_bus_spec()]
     networks = [MulticastNetwork(parse_bus_spec(spec)) for spec in specs]

@@ -36,6 +36,7 @@ POSITION_VELOCITY_ONLY = DATA / "position_velocity_only.eds"
 MODEL = load_model()
 
 
+@pytest.mark.real_time
 def test_base_node_402_drives_a_fresh_sim_bus_in_cyclic_synchronous_torque():
     """canopen's BaseNode402 as its documentation shows, with SYNC from the master and
     nothing of ours: the joint moves the way the torque says."""
@@ -66,6 +67,7 @@ def test_base_node_402_drives_a_fresh_sim_bus_in_cyclic_synchronous_torque():
     assert moved < -0.2 * objects.INCREMENTS_PER_RAD
 
 
+@pytest.mark.real_time
 def test_a_standard_cst_drive_in_another_process_is_driven_with_standard_objects_only():
     """Target torque 0x6071 in per mille of 0x6076 through the model's drive gain, current
     actual 0x6078, position and velocity, freshness by the synchronous window: the joint
@@ -197,6 +199,7 @@ def test_a_fresh_drive_has_its_physics_compiled_before_it_boots():
     assert out.stdout.split() == ["1", "1"]
 
 
+@pytest.mark.real_time
 def test_without_an_echo_a_tpdo_from_before_the_sync_is_not_taken_for_its_answer():
     """A standard drive does not echo the SYNC counter: the synchronous window decides. A
     frame stamped before SYNC k (a late answer to k-1 crossing it) is refused."""
@@ -220,6 +223,7 @@ def test_without_an_echo_a_tpdo_from_before_the_sync_is_not_taken_for_its_answer
     assert any("outside the 100 ms synchronous window" in w for w in drive.warnings())
 
 
+@pytest.mark.real_time
 def test_actuatord_and_recorder_drive_a_standard_cst_sim_bus_from_its_eds(tmp_path):
     """The commands as a user runs them on a drive with standard objects only: `sim-bus --eds`
     serves it, `actuatord --eds` and `recorder --eds` drive it in cyclic synchronous torque."""

@@ -63,6 +63,7 @@ class ForcedCollection:
 
 
 @pytest.mark.parametrize("lockstep", [True, False], ids=["lockstep", "real_time"])
+@pytest.mark.real_time
 def test_a_cold_start_of_every_joint_and_a_full_collection_cost_no_watchdog(lockstep):
     robot = load_robot(robot_path("talos_arm"))
     connection = open_robot(robot, sim=True, clock=clock_for(lockstep), seed=0, period=1e-3,

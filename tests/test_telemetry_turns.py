@@ -66,6 +66,7 @@ def test_a_lockstep_loop_publishes_every_message_in_turns():
     assert times == sorted(times) and abs(times[-1] - CYCLES * 1e-3) < 1e-9
 
 
+@pytest.mark.real_time
 def test_a_real_time_loop_never_waits_on_the_publisher():
     called = []
     with virtual_pair(lockstep=False) as (_, drive):
@@ -88,6 +89,7 @@ def _publisher_in_turns(session) -> TelemetryPublisher:
     return publisher
 
 
+@pytest.mark.real_time
 def test_a_slow_loop_still_gets_a_turn_every_turn_period():
     """A robot's one message a cycle may take long to fill a turn: TURN_PERIOD after the
     last turn, what is queued goes out in a turn of its own."""
@@ -108,6 +110,7 @@ def test_a_slow_loop_still_gets_a_turn_every_turn_period():
     assert in_turns and queued == [0, 0] and publisher.turns == 2
 
 
+@pytest.mark.real_time
 def test_a_turn_publishes_in_the_loops_thread_up_to_a_fault_which_the_thread_publishes():
     """A turn's puts are the loop's own, but for a put that may block (a fault's, which
     waits out congestion): that one and what follows it go to the publisher thread, which

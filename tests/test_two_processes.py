@@ -20,6 +20,7 @@ from tests.test_drive_virtual_bus import HALF_COUNT, current_profile
 pytestmark = pytest.mark.subprocess  # runs the commands as processes
 
 
+@pytest.mark.real_time
 def test_master_drives_sim_bus_process_and_motion_matches_the_model():
     bus = udp_bus_spec()
     with sim_bus_process(bus, "--node-id", "3"):
@@ -44,6 +45,7 @@ def test_master_drives_sim_bus_process_and_motion_matches_the_model():
     assert np.ptp(measured) > 0.2
 
 
+@pytest.mark.real_time
 def test_generic_canopen_master_drives_sim_bus_in_cyclic_synchronous_torque_mode():
     """canopen's RemoteNode with the shipped EDS and nothing of ours: CiA 402 by the book."""
     bus = udp_bus_spec()
