@@ -1,9 +1,11 @@
 import contextlib
+import fcntl
 import os
 import random
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -204,14 +206,22 @@ def pytest_unconfigure(config) -> None:
         os._exit(_exit_status[-1] if _exit_status else 1)
 
 
-@pytest.hookimpl(tryfirst=True)
-def pytest_collection_modifyitems(config, items) -> None:
-    """The suite's groups for pytest-xdist's `--dist loadgroup` (pyproject.toml): the tests
-    marked real_time in one group, so that two of them never run at once (two real-time loops
-    at real-time priority on two cores would each miss the other's deadlines, and a second
-    holder of the CPU latency request hides the first's); every other test in the group of its
-    file, whose module and session fixtures are then made on one worker only."""
-    for item in items:
-        group = ("real_time" if item.get_closest_marker("real_time") is not None
-                 else item.nodeid.split("::", 1)[0])
-        item.add_marker(pytest.mark.xdist_group(group))
+# held by the test marked real_time that runs now, whichever process runs it
+REAL_TIME_LOCK = Path(tempfile.gettempdir()) / "actuator-link-tests-real-time.lock"
+
+
+@pytest.fixture(autouse=True)
+def one_real_time_test_at_a_time(request):
+    """A test marked real_time runs holding REAL_TIME_LOCK (an exclusive flock), so two never
+    run at once: not on the suite's two pytest-xdist workers (pyproject.toml), not in two test
+    runs on one host. Two real-time loops at real-time priority on two cores each miss the
+    other's deadlines, and a second holder of the CPU latency request hides the first's. A
+    lock, not xdist's groups: `--dist loadgroup` stopped grouping with pytest 9.2
+    (pytest-xdist issue 1386), silently. Autouse, so it is taken before the test's own
+    fixtures start any process; the other tests run beside it as beside any CPU-bound work."""
+    if request.node.get_closest_marker("real_time") is None:
+        yield
+        return
+    with REAL_TIME_LOCK.open("a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released as the file closes
+        yield
