@@ -48,7 +48,7 @@ from commands.zenoh_options import (
 from controller.loop import QUICK_STOPPED, ControlLoop, LoopOptions
 from controller.mpc import BatchMpc, JointProblem
 from controller.problem import MAX_HORIZON, OcpSettings, ResolutionError, Weights
-from controller.reference import ReferenceError, Sinusoid, reference_from_dict
+from controller.reference import ReferenceError, Sinusoid, check_reference, reference_from_dict
 from controller.requests import RequestHandler
 from driver import process_image
 from model.parameters import ActuatorModel, ModelFileError, Payload
@@ -211,6 +211,9 @@ def _joint_setup(args: argparse.Namespace) -> "_Setup | int":
         # built (and compiled) before the drive is opened: a reference the model's limits
         # refuse (a velocity_max below the default sinusoid's peak) is bad input, not a crash
         try:
+            # the default sinusoid too, before the compile: a first run's compile (half a
+            # minute) is not waited for, nor said, before bad input is refused
+            check_reference(reference, model.limits)
             with CompileNotice(PROG):  # a first run compiles the solver here
                 batch = BatchMpc([JointProblem(model, settings, payload, reference)])
                 process_image.compile_ahead()  # the bus's decode and encode, as the solver

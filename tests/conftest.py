@@ -213,8 +213,8 @@ REAL_TIME_LOCK = Path(tempfile.gettempdir()) / "actuator-link-tests-real-time.lo
 @pytest.fixture(autouse=True)
 def one_real_time_test_at_a_time(request):
     """A test marked real_time runs holding REAL_TIME_LOCK (an exclusive flock), so two never
-    run at once: not on the suite's two pytest-xdist workers (pyproject.toml), not in two test
-    runs on one host. Two real-time loops at real-time priority on two cores each miss the
+    run at once: not on pytest-xdist workers (`-n 2`, pyproject.toml), not in two test runs on
+    one host. Two real-time loops at real-time priority on two cores each miss the
     other's deadlines, and a second holder of the CPU latency request hides the first's. A
     lock, not xdist's groups: `--dist loadgroup` stopped grouping with pytest 9.2
     (pytest-xdist issue 1386), silently. Autouse, so it is taken before the test's own
