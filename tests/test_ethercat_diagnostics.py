@@ -39,7 +39,6 @@ from sim_bus.ethercat.netns import SlaveProcess
 from sim_bus.ethercat.segment import Segment
 from sim_bus.faults import Fault
 from sim_bus.plant import SensorNoise
-from tests.conftest import as_a_real_time_master
 
 MODEL = load_model()
 ESI = load_esi(esi_path())
@@ -442,10 +441,7 @@ def test_soem_browses_the_drives_dictionary_by_sdo_information(link):
     it offers the service."""
     assert ESI.coe_details & ec.COE_DETAILS_SDO_INFO  # what the SII's general category says
     dictionary = ethercat_dictionary(load_dictionary(eds_path()), ESI)
-    # SOEM at the real-time master's priority, as a master runs: beside the suite's other
-    # worker one entry's description came back empty (its mailbox exchange timed out), 1 run
-    # of 3 on two xdist workers
-    with SlaveProcess(link, 1, MODEL), link.entered(), as_a_real_time_master():
+    with SlaveProcess(link, 1, MODEL), link.entered():
         master = pysoem.Master()
         master.open(link.master_port)
         try:
