@@ -45,6 +45,7 @@ FALL_CYCLES = 200  # drive periods released (no torque) at the end: the joint fa
 LINK_TIMEOUT = 0.010  # s
 WATCHDOG = 0.1  # s, the sync manager watchdog KickCAT sets at init
 STATE_TIMEOUT = 2.0  # s for the line to reach a requested state
+PERIOD = 0.001  # s, the drives' cycle period (0x1006 left unconfigured: 1 ms)
 
 # the sample (TxPDO 0x1A00) and command (RxPDO 0x1600) as the ESI lays them out
 STATUSWORD_AT, POSITION_AT, VELOCITY_AT, TORQUE_AT = 0, 2, 6, 10
@@ -147,8 +148,14 @@ def test_kickcat_takes_the_line_to_op_and_holds_a_loaded_joint_in_cst(link):
 
         # cyclic synchronous torque: enable (6, 7, 15), lift the joint from where it hangs to
         # HOLD_AT and hold it there against gravity, then command no torque and let it fall
+        # at the drive's period, as a master cycles: back to back, the master (real-time,
+        # polling its socket) and the slaves' process kept both cores busy, and one run in
+        # about ten lost a datagram mid-run on a quiet host
         states, trace = [], []
+        due = time.perf_counter()
         for cycle in range(HOLD_CYCLES + FALL_CYCLES):
+            due += PERIOD
+            time.sleep(max(0.0, due - time.perf_counter()))
             bus.process_data()  # raises on a wrong working counter
             word, position, velocity, torque_actual = sample_of(first)
             state = state_from_statusword(word)
