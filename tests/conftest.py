@@ -179,6 +179,42 @@ def link():
         yield virtual
 
 
+# what the controller runs before the workers start (`pytest_configure`), each in a process of
+# its own, side by side: between them they compile (a first run) or load every numba function
+# a command compiles before its drives run (solver, loop, bus and line kernels, physics,
+# tracking law)
+WARM_UP = (
+    ("commands.actuatord", "--sim", "--lockstep", "--duration", "0.01",
+     "--no-multicast-scouting"),
+    ("commands.actuatord", "--sim", "--lockstep", "--robot", "talos_32", "--duration", "0.01",
+     "--no-multicast-scouting"),
+    ("commands.recorder", "--sinusoid", "--sim", "--lockstep", "--duration", "0.5",
+     "--no-progress", "-o", "{folder}/warm-up.mcap"),
+)
+
+
+def pytest_configure(config) -> None:
+    """On pytest-xdist workers (`-n 2`, the default in pyproject.toml) the controller compiles
+    first, once, before any worker starts. Otherwise the first test on each worker to run a
+    command compiles it (30-60 s, both at once), and a test that counts a command's stderr lines
+    finds the first run's notice among them, or not, by which worker got which file first.
+    A warm-up that fails says why here and the tests then fail on their own."""
+    if not getattr(config.option, "numprocesses", None) or hasattr(config, "workerinput"):
+        return
+    started = time.monotonic()
+    with tempfile.TemporaryDirectory() as folder:
+        runs = [subprocess.Popen([sys.executable, "-m", *(arg.format(folder=folder)
+                                                          for arg in command)],
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                for command in WARM_UP]
+        for command, run in zip(WARM_UP, runs, strict=True):
+            _, err = run.communicate(timeout=900)
+            if run.returncode != 0:
+                sys.stderr.write(f"warm-up {' '.join(command)} failed:\n{err}\n")
+    sys.stderr.write(f"compiled code warmed in {time.monotonic() - started:.1f} s before the "
+                     "workers started\n")
+
+
 _exit_status: list[int] = []
 
 
