@@ -193,8 +193,15 @@ WARM_UP = (
 )
 
 
+def pytest_xdist_auto_num_workers(config) -> int:
+    """`-n auto` (pyproject.toml's default): two workers, one on a single CPU. Two is what the
+    suite's figures were measured with on a 2-core host; the real-time tests and those that
+    start processes of their own assume a core to spare beside each worker."""
+    return min(2, os.cpu_count() or 1)
+
+
 def pytest_configure(config) -> None:
-    """On pytest-xdist workers (`-n 2`, the default in pyproject.toml) the controller compiles
+    """On pytest-xdist workers (`-n auto`, the default in pyproject.toml) the controller compiles
     first, once, before any worker starts. Otherwise the first test on each worker to run a
     command compiles it (30-60 s, both at once), and a test that counts a command's stderr lines
     finds the first run's notice among them, or not, by which worker got which file first.
@@ -249,7 +256,7 @@ REAL_TIME_LOCK = Path(tempfile.gettempdir()) / "actuator-link-tests-real-time.lo
 @pytest.fixture(autouse=True)
 def one_real_time_test_at_a_time(request):
     """A test marked real_time runs holding REAL_TIME_LOCK (an exclusive flock), so two never
-    run at once: not on pytest-xdist workers (`-n 2`, pyproject.toml), not in two test runs on
+    run at once: not on pytest-xdist workers (`-n auto`, pyproject.toml), not in two test runs on
     one host. Two real-time loops at real-time priority on two cores each miss the
     other's deadlines, and a second holder of the CPU latency request hides the first's. A
     lock, not xdist's groups: `--dist loadgroup` stopped grouping with pytest 9.2
