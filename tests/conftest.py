@@ -192,6 +192,9 @@ WARM_UP = (
      "--no-progress", "-o", "{folder}/warm-up.mcap"),
 )
 
+# s: the warm-up's limit (a first run's compile took 50 s here, 95 s beside two busy loops)
+WARM_UP_TIMEOUT = 600.0
+
 
 def pytest_xdist_auto_num_workers(config) -> int:
     """`-n auto` (pyproject.toml's default): two workers, one on a single CPU. Two is what the
@@ -205,8 +208,10 @@ def pytest_configure(config) -> None:
     first, once, before any worker starts. Otherwise the first test on each worker to run a
     command compiles it (30-60 s, both at once), and a test that counts a command's stderr lines
     finds the first run's notice among them, or not, by which worker got which file first.
-    A warm-up that fails says why here and the tests then fail on their own."""
-    if not getattr(config.option, "numprocesses", None) or hasattr(config, "workerinput"):
+    A warm-up that fails or outlasts WARM_UP_TIMEOUT says why here (stopped, in the second
+    case) and the tests then fail on their own."""
+    if (not getattr(config.option, "numprocesses", None) or hasattr(config, "workerinput")
+            or config.option.collectonly):
         return
     started = time.monotonic()
     with tempfile.TemporaryDirectory() as folder:
@@ -215,11 +220,17 @@ def pytest_configure(config) -> None:
                                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
                 for command in WARM_UP]
         for command, run in zip(WARM_UP, runs, strict=True):
-            _, err = run.communicate(timeout=900)
+            try:
+                _, err = run.communicate(timeout=max(1.0, started + WARM_UP_TIMEOUT
+                                                     - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                run.kill()
+                _, err = run.communicate()
+                err += f"(stopped: still running after {WARM_UP_TIMEOUT:.0f} s)"
             if run.returncode != 0:
                 sys.stderr.write(f"warm-up {' '.join(command)} failed:\n{err}\n")
-    sys.stderr.write(f"compiled code warmed in {time.monotonic() - started:.1f} s before the "
-                     "workers started\n")
+    sys.stderr.write(f"warm-up: {time.monotonic() - started:.1f} s before the workers "
+                     "started\n")
 
 
 _exit_status: list[int] = []
