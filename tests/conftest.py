@@ -260,22 +260,34 @@ def pytest_unconfigure(config) -> None:
         os._exit(_exit_status[-1] if _exit_status else 1)
 
 
-# held by the test marked real_time that runs now, whichever process runs it
+# taken exclusively by a test marked real_time while it runs, shared by every other test,
+# whichever process runs them; the turnstile: held by a real_time test waiting for the lock,
+# so that no other test starts meanwhile
 REAL_TIME_LOCK = Path(tempfile.gettempdir()) / "actuator-link-tests-real-time.lock"
+TURNSTILE = Path(tempfile.gettempdir()) / "actuator-link-tests-turnstile.lock"
 
 
 @pytest.fixture(autouse=True)
-def one_real_time_test_at_a_time(request):
-    """A test marked real_time runs holding REAL_TIME_LOCK (an exclusive flock), so two never
-    run at once: not on pytest-xdist workers (`-n auto`, pyproject.toml), not in two test runs on
-    one host. Two real-time loops at real-time priority on two cores each miss the
-    other's deadlines, and a second holder of the CPU latency request hides the first's. A
-    lock, not xdist's groups: `--dist loadgroup` stopped grouping with pytest 9.2
-    (pytest-xdist issue 1386), silently. Autouse, so it is taken before the test's own
-    fixtures start any process; the other tests run beside it as beside any CPU-bound work."""
-    if request.node.get_closest_marker("real_time") is None:
-        yield
-        return
-    with REAL_TIME_LOCK.open("a") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # released as the file closes
-        yield
+def real_time_tests_alone(request):
+    """A test marked real_time runs alone: holding REAL_TIME_LOCK exclusively, while every
+    other test holds it shared. So none runs beside it, on another pytest-xdist worker
+    (`-n auto`, pyproject.toml) or in another test run on this host. What runs beside one
+    breaks it: many tests start `sim-bus` or a virtual line, which serve at real-time
+    priority (`sim_bus.priority`) and, serving a lock-step master, keep a core busy. Beside
+    such a test, the KickCAT test's master lost a frame for 10 ms, in a clean clone's
+    two-worker run; two real-time loops at real-time priority on two cores each miss the
+    other's deadlines; and a second holder of the CPU latency request hides the first's. A
+    real_time test waiting takes TURNSTILE first, so that tests on the other worker cannot
+    keep the lock shared without end. Locks, not xdist's groups: `--dist loadgroup` stopped
+    grouping with pytest 9.2 (pytest-xdist issue 1386), silently. Autouse, so it is taken
+    before the test's own fixtures start any process."""
+    real_time = request.node.get_closest_marker("real_time") is not None
+    with REAL_TIME_LOCK.open("a") as lock, TURNSTILE.open("a") as turnstile:
+        fcntl.flock(turnstile, fcntl.LOCK_EX)
+        if real_time:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            fcntl.flock(turnstile, fcntl.LOCK_UN)
+        else:
+            fcntl.flock(turnstile, fcntl.LOCK_UN)
+            fcntl.flock(lock, fcntl.LOCK_SH)
+        yield  # both released as the files close
