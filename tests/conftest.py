@@ -267,27 +267,38 @@ REAL_TIME_LOCK = Path(tempfile.gettempdir()) / "actuator-link-tests-real-time.lo
 TURNSTILE = Path(tempfile.gettempdir()) / "actuator-link-tests-turnstile.lock"
 
 
-@pytest.fixture(autouse=True)
-def real_time_tests_alone(request):
-    """A test marked real_time runs alone: holding REAL_TIME_LOCK exclusively, while every
-    other test holds it shared. So none runs beside it, on another pytest-xdist worker
-    (`-n auto`, pyproject.toml) or in another test run on this host. What runs beside one
-    breaks it: many tests start `sim-bus` or a virtual line, which serve at real-time
-    priority (`sim_bus.priority`) and, serving a lock-step master, keep a core busy. Beside
-    such a test, the KickCAT test's master lost a frame for 10 ms, in a clean clone's
-    two-worker run; two real-time loops at real-time priority on two cores each miss the
-    other's deadlines; and a second holder of the CPU latency request hides the first's. A
-    real_time test waiting takes TURNSTILE first, so that tests on the other worker cannot
-    keep the lock shared without end. Locks, not xdist's groups: `--dist loadgroup` stopped
-    grouping with pytest 9.2 (pytest-xdist issue 1386), silently. Autouse, so it is taken
-    before the test's own fixtures start any process."""
-    real_time = request.node.get_closest_marker("real_time") is not None
+@contextmanager
+def holding_the_test_lock(alone: bool):
+    """REAL_TIME_LOCK held while the block runs: exclusively (`alone`: a real_time test) or
+    shared (any other work of the suite), taking TURNSTILE first, so that a real_time test
+    waiting is not kept out for ever by the others taking turns with the lock shared. Not
+    nested: a holder that asks again waits behind a real_time test that waits for it."""
     with REAL_TIME_LOCK.open("a") as lock, TURNSTILE.open("a") as turnstile:
         fcntl.flock(turnstile, fcntl.LOCK_EX)
-        if real_time:
+        if alone:
             fcntl.flock(lock, fcntl.LOCK_EX)
             fcntl.flock(turnstile, fcntl.LOCK_UN)
         else:
             fcntl.flock(turnstile, fcntl.LOCK_UN)
             fcntl.flock(lock, fcntl.LOCK_SH)
         yield  # both released as the files close
+
+
+@pytest.fixture(autouse=True)
+def real_time_tests_alone(request):
+    """A test marked real_time runs alone (`holding_the_test_lock`): holding REAL_TIME_LOCK
+    exclusively, while every other test, and every module or session fixture that keeps the
+    CPUs busy while it sets up (those set up before this one), holds it shared. So none
+    runs beside it, on another pytest-xdist worker (`-n auto`, pyproject.toml) or in another
+    test run on this host. What runs beside one breaks it: many tests start `sim-bus` or a
+    virtual line, which serve at real-time priority (`sim_bus.priority`) and, serving a
+    lock-step master, keep a core busy. Beside such a test, the KickCAT test's master lost a
+    frame for 10 ms, in a clean clone's two-worker run; beside a fixture's two lock-step
+    recorders, a drive's 0.5 s master-silence watch ended a refused-master test's drive
+    before it was looked at; two real-time loops at real-time priority on two cores each
+    miss the other's deadlines; and a second holder of the CPU latency request hides the
+    first's. Locks, not xdist's groups: `--dist loadgroup` stopped grouping with pytest 9.2
+    (pytest-xdist issue 1386), silently. Autouse, so it is taken before the test's own
+    function fixtures start any process."""
+    with holding_the_test_lock(alone=request.node.get_closest_marker("real_time") is not None):
+        yield

@@ -16,7 +16,7 @@ from driver.drive_group import single_joint
 from model.parameters import load_model
 from recorder.csv_io import write_csv
 from recorder.reader import load_recording
-from tests.conftest import virtual_pair
+from tests.conftest import holding_the_test_lock, virtual_pair
 
 pytestmark = pytest.mark.subprocess  # runs the commands as processes
 
@@ -38,13 +38,16 @@ def identify(*args: str) -> subprocess.CompletedProcess:
 def recordings(tmp_path_factory) -> tuple[Path, Path]:
     folder = tmp_path_factory.mktemp("recordings")
     no_load, load = folder / "noload.mcap", folder / "load.mcap"
-    jobs = [recorder("--exciting-trajectory", "--sim", "--lockstep", *SHORT, "-o", str(no_load)),
-            recorder("--exciting-trajectory", "--sim", "--lockstep", *SHORT, "--seed", "1",
-                     "--payload-mass", "5", "--payload-position", "0,0.1", "-o", str(load))]
-    for job in jobs:
-        out, err = job.communicate(timeout=300)
-        assert job.returncode == 0, err
-        assert "real-time factor" in out
+    # two recorders on two cores: no real_time test beside them (`holding_the_test_lock`)
+    with holding_the_test_lock(alone=False):
+        jobs = [recorder("--exciting-trajectory", "--sim", "--lockstep", *SHORT, "-o",
+                         str(no_load)),
+                recorder("--exciting-trajectory", "--sim", "--lockstep", *SHORT, "--seed", "1",
+                         "--payload-mass", "5", "--payload-position", "0,0.1", "-o", str(load))]
+        for job in jobs:
+            out, err = job.communicate(timeout=300)
+            assert job.returncode == 0, err
+            assert "real-time factor" in out
     return no_load, load
 
 
