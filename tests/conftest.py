@@ -180,9 +180,9 @@ def link():
 
 
 # what the controller runs before the workers start (`pytest_configure`), each in a process of
-# its own, side by side: between them they compile (a first run) or load every numba function
-# a command compiles before its drives run (solver, loop, bus and line kernels, physics,
-# tracking law)
+# its own, side by side: between them they compile (a first run) or load what these commands
+# compile before their drives run (solver, loop, bus and line kernels, physics, tracking law);
+# the veth line's own kernels are left to the tests that start one
 WARM_UP = (
     ("commands.actuatord", "--sim", "--lockstep", "--duration", "0.01",
      "--no-multicast-scouting"),

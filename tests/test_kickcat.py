@@ -42,8 +42,9 @@ FALL_CYCLES = 200  # drive periods released (no torque) at the end: the joint fa
 # each broadcast write too (for an answer on the absent redundant port), so a scan costs about
 # a hundred of them. Its default, 2 ms, is shorter than a slave in a Python process answers on
 # a loaded 2-core host: a datagram lost 1 run in 3 at load 8, both sides at real-time priority.
-# 10 ms still lost one mid-run in 2 of 3 clean-clone suite runs on 2026-12-04, the test alone on
-# a quiet host: below the sync manager watchdog (WATCHDOG), a late frame is not a lost drive.
+# 10 ms still lost one mid-run in 2 of 4 quiet clean-clone suite runs on 2026-12-04 (in the
+# second, the test ran alone under the suite's lock): below the sync manager watchdog
+# (WATCHDOG), a late frame is not a lost drive.
 LINK_TIMEOUT = 0.030  # s
 WATCHDOG = 0.1  # s, the sync manager watchdog KickCAT sets at init
 STATE_TIMEOUT = 2.0  # s for the line to reach a requested state
