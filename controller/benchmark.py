@@ -19,11 +19,17 @@ from controller.mpc import BatchMpc, JointProblem, Mpc
 from controller.problem import OcpSettings, pack_cost
 from controller.reference import Sinusoid, reference_at
 from driver import Sample
+from driver.host_floor import host_steal_s
 from model import dynamics
 from model.dynamics import SUBSTEPS
 from model.parameters import Payload, load_model
 
 PAPER_TICK_US = 200.0  # paper: 100 steps of 1 ms on an i7-8850H laptop
+# consecutive blocks of the tick run whose medians `measure` gives beside the run's: on a
+# virtual machine the host's neighbours move a CPU's speed within seconds (three `bench` runs
+# in a row here: tick medians 18.9, 12.6 and 18.9 us), and the run's median alone hides
+# whether the figure came from a steady host
+TICK_BLOCKS = 10
 JOINT_COUNTS = (1, 7, 32)  # one joint, one TALOS arm, the whole robot
 THREAD_COUNTS = (1, 2)
 
@@ -44,6 +50,13 @@ def _closed_loop_ticks(mpc: Mpc, ticks: int, dt: float) -> np.ndarray:
         decision = mpc.tick(sample)
         times[k] = time.perf_counter() - start
     return times * 1e6
+
+
+def block_medians(times: np.ndarray, blocks: int = TICK_BLOCKS) -> list[float]:
+    """The medians of `blocks` consecutive blocks of `times` (as equal as they split; one a
+    value when there are fewer), rounded to 0.01: the host's speed along the run."""
+    return [round(float(np.median(block)), 2)
+            for block in np.array_split(times, min(blocks, len(times)))]
 
 
 def _numpy_ticks(settings: OcpSettings, ticks: int) -> np.ndarray:
@@ -86,13 +99,15 @@ def _cold_solve_ms(settings: OcpSettings, repeats: int) -> float:
 
 
 def measure(settings: OcpSettings, ticks: int, numpy_ticks: int) -> dict:
-    """One joint: tick median/p99/max, cold solve, and the numpy iLQR's tick for scale."""
+    """One joint: tick median/p99/max, the medians of TICK_BLOCKS consecutive blocks of the
+    ticks (fewer with fewer ticks), cold solve, and the numpy iLQR's tick for scale."""
     compiled = _closed_loop_ticks(Mpc(load_model(), settings), ticks, settings.dt)
     plain = _numpy_ticks(settings, numpy_ticks)
     median = float(np.median(compiled))
     return {
         "horizon": settings.horizon, "dt_ms": settings.dt * 1e3, "ticks": ticks,
         "tick_median_us": round(median, 2),
+        "tick_block_medians_us": block_medians(compiled),
         "tick_p99_us": round(float(np.percentile(compiled, 99)), 2),
         "tick_max_us": round(float(np.max(compiled)), 2),
         "cold_solve_ms": round(_cold_solve_ms(settings, 20), 3),
@@ -223,11 +238,13 @@ def run(ticks: int = 20_000, numpy_ticks: int = 300, joint_ticks: int = 5_000,
     (N = 5 at 3.3 ms) under `paper_robot`, and the batched MPC under `joints`: for each joint
     count, and for a robot's own problem when `robot` gives it (its name, its problems and
     start positions), one and two threads, the vectorised and the scalar kernel side by side.
-    The host's load average, core count and numba's threading layer come with the figures
-    (they move them).
+    The host's load average, core count, numba's threading layer and the time the hypervisor
+    took the CPUs during the run (/proc/stat's steal, summed over CPUs; None where the host
+    has no such count) come with the figures (they move them).
     `progress` is told each stage as it starts (the whole run takes a quarter of a minute or
     more)."""
     stages = 2 + len(JOINT_COUNTS) + (robot is not None)
+    steal_before = host_steal_s()
     progress(f"[1/{stages}] MPC N = 100 at 1 ms: {ticks} ticks, {numpy_ticks} of numpy iLQR")
     result = measure(OcpSettings(), ticks, numpy_ticks)
     result["paper_tick_us"] = PAPER_TICK_US
@@ -251,4 +268,7 @@ def run(ticks: int = 20_000, numpy_ticks: int = 300, joint_ticks: int = 5_000,
     result["threading_layer"] = numba.threading_layer()
     result["cores"] = os.cpu_count()
     result["load_average"] = [round(load, 2) for load in os.getloadavg()]
+    steal_after = host_steal_s()
+    result["host_steal_s"] = (round(sum(steal_after.values()) - sum(steal_before.values()), 2)
+                              if steal_before else None)
     return result

@@ -10,7 +10,13 @@ import pytest
 
 from controller import ilqr_reference, lane_math, lanes
 from controller import workspace as ws
-from controller.benchmark import measure_joints, measure_threads
+from controller.benchmark import (
+    TICK_BLOCKS,
+    block_medians,
+    measure,
+    measure_joints,
+    measure_threads,
+)
 from controller.ilqr import WARM_TRIALS
 from controller.mpc import BatchMpc, JointProblem, Mpc, _lane_plan
 from controller.problem import OcpSettings, pack_cost
@@ -332,3 +338,13 @@ def test_the_bench_reports_both_kernels_on_one_and_two_threads():
         assert result["ticks"] == 4
         assert 0 < result["vectorised_median_us"] <= result["vectorised_p99_us"]
         assert 0 < result["scalar_median_us"] <= result["scalar_p99_us"]
+
+
+def test_the_benchmark_gives_the_tick_along_the_run_so_a_host_that_moved_shows():
+    # a host whose CPU slowed half-way through: the run's median alone would hide it
+    steady_then_slow = np.concatenate((np.full(1000, 12.6), np.full(1000, 18.9)))
+    assert block_medians(steady_then_slow) == [12.6] * 5 + [18.9] * 5
+    assert block_medians(np.array([3.0, 1.0, 2.0])) == [3.0, 1.0, 2.0]  # fewer than blocks
+    figures = measure(OcpSettings(horizon=20), 40, 2)
+    assert len(figures["tick_block_medians_us"]) == TICK_BLOCKS
+    assert all(0 < tick <= figures["tick_max_us"] for tick in figures["tick_block_medians_us"])
