@@ -442,10 +442,11 @@ def test_actuatord_exits_2_for_a_bad_start_up_parameter_and_1_for_a_refused_one(
 def soem_waiting_us(timeout_us: int) -> Iterator[None]:
     """SOEM waiting `timeout_us` for each frame while the block runs (its return timeout,
     process-wide), as this project's master does while configuring a line
-    (`CONFIGURING_RETURN_TIMEOUT_US`): with SOEM's default 2 ms a frame late behind a stall of
-    this host (5-10 ms a few times a minute, both CPUs at once: the KickCAT test's
-    LINK_TIMEOUT) leaves a stale mailbox answer that the next read takes for its own. An
-    entry's name came back empty so in a clean clone's run, this test alone on a quiet host."""
+    (`CONFIGURING_RETURN_TIMEOUT_US`). SOEM's default, 2 ms, is below this host's own stalls
+    (5-10 ms a few times a minute, both CPUs at once: the KickCAT test's LINK_TIMEOUT), and a
+    frame late behind one breaks a mailbox exchange (the master's measured case: a stale
+    answer that the next read takes for its own). An entry's name came back empty in a clean
+    clone's run, this test alone on a quiet host; how exactly was not traced."""
     returning = pysoem.settings.timeouts.ret
     pysoem.settings.timeouts.ret = timeout_us
     try:
