@@ -99,6 +99,29 @@ def sim_bus_process(bus: str | None, *extra: str):
 
 
 @contextmanager
+def soem_waiting_us(timeout_us: int):
+    """SOEM waiting `timeout_us` for each frame while the block runs (its return timeout,
+    process-wide), as this project's master does while configuring a line
+    (`driver.ethercat_master.CONFIGURING_RETURN_TIMEOUT_US`), for a test that drives bare
+    pysoem. SOEM's default, 2 ms, is below this host's own stalls (5-10 ms a few times a
+    minute, both CPUs at once: the KickCAT test's LINK_TIMEOUT) and below what a master at
+    normal priority waits for the CPU beside two busy loops, and a frame late behind one
+    breaks an exchange: an entry's name came back empty in an SDO Information browse (the
+    test alone on a quiet host), a slave's SII identity read as 0 beside two busy loops (the
+    master's own measured case: a stale mailbox answer the next read takes for its own).
+    Beside two busy loops it is not enough for a master at normal priority: with it, one
+    configuration in six still summed a PDO entry short (config_map 42 bytes for 44)."""
+    import pysoem
+
+    returning = pysoem.settings.timeouts.ret
+    pysoem.settings.timeouts.ret = timeout_us
+    try:
+        yield
+    finally:
+        pysoem.settings.timeouts.ret = returning
+
+
+@contextmanager
 def as_a_real_time_master():
     """This test process's threads at the real-time master's priority (SCHED_RR, as
     `actuatord` takes it) while a test plays a real-time master itself, then back to normal:

@@ -9,13 +9,11 @@ SOEM browses the dictionary by SDO Information.
 In lock-step the line is linked in this process (`sim_bus.ethercat.linked`); over a veth
 (root) the slaves run in their own process and SOEM (pysoem) is the master."""
 
-import contextlib
 import os
 import shutil
 import struct
 import subprocess
 import sys
-from collections.abc import Iterator
 
 import numpy as np
 import pysoem
@@ -46,6 +44,7 @@ from sim_bus.ethercat.netns import SlaveProcess
 from sim_bus.ethercat.segment import Segment
 from sim_bus.faults import Fault
 from sim_bus.plant import SensorNoise
+from tests.conftest import soem_waiting_us
 
 MODEL = load_model()
 ESI = load_esi(esi_path())
@@ -437,22 +436,6 @@ def test_actuatord_exits_2_for_a_bad_start_up_parameter_and_1_for_a_refused_one(
 
 
 # --- the dictionary over EtherCAT (SDO Information) --------------------------------------------
-
-@contextlib.contextmanager
-def soem_waiting_us(timeout_us: int) -> Iterator[None]:
-    """SOEM waiting `timeout_us` for each frame while the block runs (its return timeout,
-    process-wide), as this project's master does while configuring a line
-    (`CONFIGURING_RETURN_TIMEOUT_US`). SOEM's default, 2 ms, is below this host's own stalls
-    (5-10 ms a few times a minute, both CPUs at once: the KickCAT test's LINK_TIMEOUT), and a
-    frame late behind one breaks a mailbox exchange (the master's measured case: a stale
-    answer that the next read takes for its own). An entry's name came back empty in a clean
-    clone's run, this test alone on a quiet host; how exactly was not traced."""
-    returning = pysoem.settings.timeouts.ret
-    pysoem.settings.timeouts.ret = timeout_us
-    try:
-        yield
-    finally:
-        pysoem.settings.timeouts.ret = returning
 
 
 @pytest.mark.root

@@ -13,6 +13,7 @@ import pytest
 from driver.clock import clock_for
 from driver.drive_group import DriveGroup, EthercatLine
 from driver.ethercat_drive import JointOnLine, open_ethercat_drives
+from driver.ethercat_master import CONFIGURING_RETURN_TIMEOUT_US
 from driver.ethercat_transport import open_ethercat_transports
 from driver.interface import (
     SAMPLE_MOTOR_CURRENT,
@@ -27,6 +28,7 @@ from protocol import ethercat as ec
 from protocol.dictionary import mapped_object, variable
 from protocol.esi import load_esi
 from sim_bus.ethercat.netns import SlaveProcess
+from tests.conftest import soem_waiting_us
 
 ESI = load_esi(esi_path())
 MODEL = load_model()
@@ -69,7 +71,8 @@ def close(transports):
 
 @pytest.mark.real_time
 def test_soem_finds_the_slaves_reads_their_sii_and_maps_the_cst_layout(link):
-    with slaves(link, 2), link.entered():
+    with (soem_waiting_us(CONFIGURING_RETURN_TIMEOUT_US), slaves(link, 2),
+          link.entered()):
         master = pysoem.Master()
         master.open(link.master_port)
         try:
