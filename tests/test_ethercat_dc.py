@@ -15,6 +15,7 @@ from driver.clock import clock_for
 from driver.drive_group import DriveGroup, EthercatLine
 from driver.ethercat_dc import DcLine
 from driver.ethercat_drive import JointOnLine, open_ethercat_drives
+from driver.ethercat_master import CONFIGURING_RETURN_TIMEOUT_US
 from driver.ethercat_transport import open_ethercat_transports
 from driver.interface import DriveError, DriveLost
 from model.parameters import load_model
@@ -29,6 +30,7 @@ from sim_bus.ethercat.linked_dc import LinkedClock
 from sim_bus.ethercat.mailbox import SdoAbort
 from sim_bus.ethercat.netns import SlaveProcess
 from sim_bus.ethercat.segment import Segment, pass_frame
+from tests.conftest import as_a_real_time_master, soem_waiting_us
 from tests.segment_frames import FrameMaster, enable_sequence
 
 Cmd = ec.Command
@@ -511,8 +513,14 @@ def test_a_sync0_cycle_other_than_the_drives_period_is_refused():
 def test_pysoem_config_dc_against_the_virtual_slaves_over_a_veth(link):
     """SOEM's own ecx_configdc and ecx_dcsync0 (pysoem) on a line in another process: the
     delays it measured are the line's, every slave takes OP on SYNC0, the reference clock's
-    time comes back in every frame."""
-    with SlaveProcess(link, 3, MODEL) as slaves, link.entered():
+    time comes back in every frame. SOEM waits for each frame as this project's master does
+    until OP (`soem_waiting_us`: at SOEM's 2 ms, state_check(SAFE_OP) once found a slave left
+    in PRE-OP, 2 runs in 15), and the cycle runs at the real-time master's priority, as a DC
+    master's does (`as_a_real_time_master`: at normal priority, in a clean clone's run beside
+    two busy loops, its frames missed three SYNC0 windows in a row and the slaves rightly
+    refused OP)."""
+    with (soem_waiting_us(CONFIGURING_RETURN_TIMEOUT_US), SlaveProcess(link, 3, MODEL) as slaves,
+          link.entered()):
         master = pysoem.Master()
         master.open(link.master_port)
         try:
@@ -531,20 +539,22 @@ def test_pysoem_config_dc_against_the_virtual_slaves_over_a_veth(link):
             master.state = pysoem.OP_STATE
             master.write_state()
             wake, operational = time.perf_counter(), False
-            for _ in range(400):  # the first SYNC0 comes 100 ms after dc_sync
-                sent_at = time.monotonic()
-                master.send_processdata()
-                # each slave's inputs count 1, its outputs 2 more once it is in OP: 3 before
-                # the SYNC0 that takes them to OP, 9 after it; 5 or 7 in a frame that passes
-                # while some have taken OP and others not yet (each takes it at its own SYNC0
-                # event, as a real slave does; seen once, on a host under heavy steal)
-                assert master.receive_processdata(10_000) in (3, 5, 7, 9)
-                clock.observe(master.dc_time, sent_at)
-                if master.read_state() == pysoem.OP_STATE:
-                    operational = True  # every slave took OP at a SYNC0 with outputs
-                    break
-                wake += 1e-3 + clock.take_trim()
-                time.sleep(max(0.0, wake - time.perf_counter()))
+            with as_a_real_time_master():
+                for _ in range(400):  # the first SYNC0 comes 100 ms after dc_sync
+                    sent_at = time.monotonic()
+                    master.send_processdata()
+                    # each slave's inputs count 1, its outputs 2 more once it is in OP: 3
+                    # before the SYNC0 that takes them to OP, 9 after it; 5 or 7 in a frame
+                    # that passes while some have taken OP and others not yet (each takes it
+                    # at its own SYNC0 event, as a real slave does; seen once, on a host under
+                    # heavy steal)
+                    assert master.receive_processdata(10_000) in (3, 5, 7, 9)
+                    clock.observe(master.dc_time, sent_at)
+                    if master.read_state() == pysoem.OP_STATE:
+                        operational = True  # every slave took OP at a SYNC0 with outputs
+                        break
+                    wake += 1e-3 + clock.take_trim()
+                    time.sleep(max(0.0, wake - time.perf_counter()))
             assert operational
             assert abs(clock.last_offset_ns) < 500_000  # in the reference clock's cycle
             time.sleep(0.002)
