@@ -26,6 +26,7 @@ reaction (EMCY 0xA000) is taken for the cause. Slaves carry their joint's name w
 robot gives one (`names`).
 """
 
+import contextlib
 import logging
 import math
 import os
@@ -144,6 +145,7 @@ class EthercatMaster:
         # whole (`release`, `close_line`)
         self._leaving: set[int] = set()
         self._expected_wkc = 0
+        self._frame_sockets: list[int] = []  # SOEM's raw sockets (file descriptors)
         self._last_frame = 0.0  # time.monotonic() of the last process data frame
         # position -> (ready for OP, stage its outputs)
         self._claimed: dict[int, tuple[Callable[[], bool], Callable[[], None]]] = {}
@@ -201,6 +203,7 @@ class EthercatMaster:
             raise DriveLost(f"EtherCAT {self.interface}: cannot open the interface "
                             f"({_why_not_open(self.interface, exc)})") from None
         self.master = master
+        self._frame_sockets = _packet_sockets(self.interface)
         if master.config_init() <= 0:
             return DriveLost(f"EtherCAT {self.interface}: no slave answers (line unplugged or "
                              "powered off?)")
@@ -270,10 +273,7 @@ class EthercatMaster:
             master.send_processdata()
             master.receive_processdata(self.response_timeout_us)
             if master.state_check(pysoem.OP_STATE, 1000) == pysoem.OP_STATE:
-                self.operational = True
-                pysoem.settings.timeouts.ret = OPERATIONAL_RETURN_TIMEOUT_US
-                self._last_frame = time.monotonic()
-                self._start_keeper()
+                self._operational()
                 return
         self._require_state(pysoem.OP_STATE, "OP")
 
@@ -295,16 +295,23 @@ class EthercatMaster:
             # SYNC0 needs)
             frames += 1
             if frames % DC_OP_CHECK_FRAMES == 0 and master.read_state() == pysoem.OP_STATE:
-                self.operational = True
-                pysoem.settings.timeouts.ret = OPERATIONAL_RETURN_TIMEOUT_US
-                self._last_frame = time.monotonic()
-                self._start_keeper()
+                self._operational()
                 return
             if clock.now() > deadline:
                 break
             wake += period + self.dc.take_trim()
             clock.sleep_until(wake)
         self._require_state(pysoem.OP_STATE, "OP")
+
+    def _operational(self) -> None:
+        """Every slave in OP: SOEM's operational wait, frames polled for in real time
+        (`_poll_for_frames`), and the keeper."""
+        self.operational = True
+        pysoem.settings.timeouts.ret = OPERATIONAL_RETURN_TIMEOUT_US
+        if self.clock.runs_alone:
+            _poll_for_frames(self._frame_sockets)
+        self._last_frame = time.monotonic()
+        self._start_keeper()
 
     def settle(self) -> None:
         """Before the first cycle, once the drives are enabled. DC: the slaves take outputs
@@ -663,6 +670,47 @@ def _above_the_cycle() -> None:
                 os.sched_setscheduler(0, policy, os.sched_param(priority))
     except (OSError, AttributeError):
         pass
+
+
+def _packet_sockets(interface: str) -> list[int]:
+    """This process's raw packet sockets bound to `interface` (SOEM's for this line; another
+    line's, or any other file, stay as they are), by file descriptor. None where there is no
+    /proc: SOEM's sockets are then left as it opened them."""
+    try:
+        descriptors = sorted(int(fd) for fd in os.listdir("/proc/self/fd"))
+    except FileNotFoundError:
+        return []
+    found = []
+    for fd in descriptors:
+        try:
+            probe = socket.socket(fileno=fd)
+        except OSError:  # not a socket, or closed meanwhile (the listing's own among them)
+            continue
+        try:
+            if probe.family == socket.AF_PACKET and probe.getsockname()[0] == interface:
+                found.append(fd)
+        except OSError:
+            pass
+        finally:
+            probe.detach()  # the descriptor stays open, its owner's
+    return found
+
+
+def _poll_for_frames(descriptors: list[int]) -> None:
+    """SOEM's raw sockets non-blocking, so that its wait for a frame polls instead of
+    sleeping: SOEM's receive loop calls recv until the frame is in or its timeout passes,
+    and on a socket it opened with a 1 us SO_RCVTIMEO the kernel sleeps the thread in recv
+    for up to a jiffy, and wakes it when the frame arrives, 40-50 us later on this host than
+    a poll sees it. Measured with bare pysoem at SCHED_RR 40 on a virtual line over a veth,
+    a frame a millisecond, 3000 frames each, two rounds: the round trip's median 134-139 us
+    sleeping against 90-100 us polling with one slave, 172-208 against 157-162 with 32
+    (p99 262-598 against 230-233). Only in OP and on the wall clock: the cycle's round
+    trip is then short and bounded by the response timeout, while during configuration
+    a thread polling for SOEM's 20 ms waits would spend the kernel's real-time bandwidth
+    (`sim_bus.priority`)."""
+    for fd in descriptors:
+        with contextlib.suppress(OSError):  # closed meanwhile: nothing to wait on
+            os.set_blocking(fd, False)
 
 
 def _read_state_of(slave) -> tuple[int, int] | None:

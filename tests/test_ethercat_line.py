@@ -3,6 +3,7 @@ namespace: bring-up as SOEM does it, CST process data, lock-step cycles, and the
 (slave killed, state refused, master lost, emergencies, malformed frames)."""
 
 import dataclasses
+import os
 import socket
 import struct
 import time
@@ -115,6 +116,9 @@ def test_lockstep_drives_move_each_joint_the_commanded_way_one_frame_per_cycle(l
                 drives[1].command_current(-0.5)
                 samples = [drive.sync() for drive in drives]
             assert drives[0].transport.line.frames == frames + 201  # both joints, one frame
+            # on drive time SOEM's sockets stay as it opened them: a wait for a frame sleeps
+            sockets = drives[0].transport.line._frame_sockets
+            assert sockets and all(os.get_blocking(fd) for fd in sockets)
         finally:
             for drive in drives:
                 drive.close()
@@ -233,6 +237,9 @@ def test_master_loss_trips_the_watchdog_and_the_drive_stops_on_its_brake(link):
         for _ in range(50):
             drive.sync()
             drive.command_current(0.2)
+        # in OP on the wall clock SOEM polls for its frames (`_poll_for_frames`)
+        sockets = drive.transport.line._frame_sockets
+        assert sockets and not any(os.get_blocking(fd) for fd in sockets)
         # the master dies: no close, no more frames (its socket goes with its process)
         drive.transport.line.master.close()
         time.sleep(0.5)
