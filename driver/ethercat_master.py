@@ -674,8 +674,8 @@ def _above_the_cycle() -> None:
 
 def _packet_sockets(interface: str) -> list[int]:
     """This process's raw packet sockets bound to `interface` (SOEM's for this line; another
-    line's, or any other file, stay as they are), by file descriptor. None where there is no
-    /proc: SOEM's sockets are then left as it opened them."""
+    line's, or any other file, stay as they are), by file descriptor; none found where there
+    is no /proc, and SOEM's sockets are then left as it opened them."""
     try:
         descriptors = sorted(int(fd) for fd in os.listdir("/proc/self/fd"))
     except FileNotFoundError:
