@@ -111,11 +111,11 @@ def soem_waiting_us(timeout_us: int):
     master's own measured case: a stale mailbox answer the next read takes for its own).
     Beside busy loops it is not enough: with it, one configuration in six still summed a
     PDO entry short (config_map 42 bytes for 44) beside two, and the SII/mapping and SDO
-    Information tests failed 2 runs in 24 beside three (a slave's name read as 'Virtua', an
+    Information tests failed 2 runs in 24 beside four (a slave's name read as 'Virtua', an
     entry's name empty), at the real-time master's priority as well (2 in 24: not kept). The
     stalls there are the virtual machine's, not this process's: a SCHED_RR 49 loop on each
-    CPU (`driver.host_floor.FloorBeside`) woke 5-84 ms late 9 times in a minute beside two
-    busy loops, against once quiet (a second pair of minutes: 2 against 0), and SOEM's
+    CPU (`driver.host_floor.FloorBeside`) woke 5-84 ms late 9 times in a minute beside three
+    busy loops, against once beside one (a second pair of minutes: 2 against 0), and SOEM's
     timers (this wait, its 20 ms EEPROM and mailbox waits) run on the wall clock."""
     import pysoem
 
