@@ -145,7 +145,6 @@ class EthercatMaster:
         # whole (`release`, `close_line`)
         self._leaving: set[int] = set()
         self._expected_wkc = 0
-        self._frame_sockets: list[int] = []  # SOEM's raw sockets (file descriptors)
         self._last_frame = 0.0  # time.monotonic() of the last process data frame
         # position -> (ready for OP, stage its outputs)
         self._claimed: dict[int, tuple[Callable[[], bool], Callable[[], None]]] = {}
@@ -203,7 +202,6 @@ class EthercatMaster:
             raise DriveLost(f"EtherCAT {self.interface}: cannot open the interface "
                             f"({_why_not_open(self.interface, exc)})") from None
         self.master = master
-        self._frame_sockets = _packet_sockets(self.interface)
         if master.config_init() <= 0:
             return DriveLost(f"EtherCAT {self.interface}: no slave answers (line unplugged or "
                              "powered off?)")
@@ -309,7 +307,7 @@ class EthercatMaster:
         self.operational = True
         pysoem.settings.timeouts.ret = OPERATIONAL_RETURN_TIMEOUT_US
         if self.clock.runs_alone:
-            _poll_for_frames(self._frame_sockets)
+            _poll_for_frames(_packet_sockets(self.interface))
         self._last_frame = time.monotonic()
         self._start_keeper()
 

@@ -14,7 +14,7 @@ import pytest
 from driver.clock import clock_for
 from driver.drive_group import DriveGroup, EthercatLine
 from driver.ethercat_drive import JointOnLine, open_ethercat_drives
-from driver.ethercat_master import CONFIGURING_RETURN_TIMEOUT_US
+from driver.ethercat_master import CONFIGURING_RETURN_TIMEOUT_US, _packet_sockets
 from driver.ethercat_transport import open_ethercat_transports
 from driver.interface import (
     SAMPLE_MOTOR_CURRENT,
@@ -117,7 +117,7 @@ def test_lockstep_drives_move_each_joint_the_commanded_way_one_frame_per_cycle(l
                 samples = [drive.sync() for drive in drives]
             assert drives[0].transport.line.frames == frames + 201  # both joints, one frame
             # on drive time SOEM's sockets stay as it opened them: a wait for a frame sleeps
-            sockets = drives[0].transport.line._frame_sockets
+            sockets = _packet_sockets(link.master_port)
             assert sockets and all(os.get_blocking(fd) for fd in sockets)
         finally:
             for drive in drives:
@@ -238,7 +238,7 @@ def test_master_loss_trips_the_watchdog_and_the_drive_stops_on_its_brake(link):
             drive.sync()
             drive.command_current(0.2)
         # in OP on the wall clock SOEM polls for its frames (`_poll_for_frames`)
-        sockets = drive.transport.line._frame_sockets
+        sockets = _packet_sockets(link.master_port)
         assert sockets and not any(os.get_blocking(fd) for fd in sockets)
         # the master dies: no close, no more frames (its socket goes with its process)
         drive.transport.line.master.close()

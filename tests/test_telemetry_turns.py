@@ -148,14 +148,11 @@ def test_closing_wakes_a_thread_that_waits_for_a_turn(monkeypatch: pytest.Monkey
     monkeypatch.setattr(publishing, "TURN_LAPSE", 3600.0)
     session = _session()
     try:
-        publisher = TelemetryPublisher(session, PREFIX)
+        publisher = _publisher_in_turns(session)  # the thread now waits for turns
         received: list[bytes] = []
         subscriber = session.declare_subscriber(telemetry.key_expr(PREFIX, "fault"),
                                                 lambda sample: received.append(
                                                     sample.payload.to_bytes()))
-        publisher.take_turn()  # the loop's first look: the thread now waits for turns
-        while not publisher.in_turns:
-            time.sleep(1e-3)
         publisher.publish(messages.fault(0.5, "test", "last words", "none"))
         publisher.close()
         alive = publisher._thread.is_alive()
