@@ -7,6 +7,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -55,6 +56,19 @@ def free_port() -> int:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         return probe.getsockname()[1]
+
+
+def wait_for(condition: Callable[[], object], timeout: float, poll: float = 0.005) -> bool:
+    """Whether `condition()` came true within `timeout` s of the wall clock, looked at every
+    `poll` s and once more at the end: the bound for what another thread or process does
+    (a frame delivered, a file grown), which no drive time paces. A test asserts the result,
+    so a timeout fails it where it waited, not later on a value never set."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(poll)
+    return bool(condition())
 
 
 def _ephemeral_floor() -> int:

@@ -10,7 +10,7 @@ import pytest
 import zenoh
 
 from protocol import telemetry
-from tests.conftest import free_port
+from tests.conftest import free_port, wait_for
 
 pytestmark = pytest.mark.subprocess  # runs the commands as processes
 
@@ -43,9 +43,7 @@ def test_dashboard_session_decodes_state_and_talks_to_the_queryables():
             for topic in telemetry.topics(1)]
         # the first test of a fresh clone waits for numba to compile the solver and the
         # physics (34 s on a quiet host, over 60 s at load 7)
-        deadline = time.monotonic() + 240
-        while len(received["state"]) < 200 and time.monotonic() < deadline:
-            time.sleep(0.05)
+        wait_for(lambda: len(received["state"]) >= 200, 240, 0.05)
         assert len(received["state"]) >= 200, proc.stderr.read() if proc.poll() else "no state"
 
         replies = list(session.get(telemetry.key_expr(PREFIX, telemetry.PARAMETERS)))

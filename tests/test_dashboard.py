@@ -22,7 +22,7 @@ import pytest
 import websockets
 
 from protocol import telemetry
-from tests.conftest import free_port
+from tests.conftest import free_port, wait_for
 from tests.test_actuatord_zenoh import PREFIX, dashboard_session, start_actuatord
 from tests.test_robot_loop import ARM
 
@@ -658,10 +658,8 @@ def test_refused_change_leaves_the_controller_unchanged_and_says_why():
         # the session reaches actuatord only once its listener is up (Zenoh retries a refused
         # connect after a back-off): a query answered proves the link before anything is
         # watched, or the first audit lines can be sent before the subscription arrives
-        deadline = time.monotonic() + 30
-        while not list(session.get(telemetry.key_expr(PREFIX, "parameters"))):
-            assert time.monotonic() < deadline, "the session never reached actuatord"
-            time.sleep(0.1)
+        assert wait_for(lambda: list(session.get(telemetry.key_expr(PREFIX, "parameters"))),
+                        30, 0.1), "the session never reached actuatord"
         session.declare_subscriber(telemetry.key_expr(PREFIX, telemetry.AUDIT),
                                    lambda s: audit.append(json.loads(s.payload.to_bytes())))
         time.sleep(0.5)

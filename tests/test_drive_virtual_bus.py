@@ -13,7 +13,7 @@ from model.parameters import Payload
 from protocol import cia301, cia402, objects
 from protocol import pdo as pdo_layout
 from protocol.cia402 import State
-from tests.conftest import virtual_pair
+from tests.conftest import virtual_pair, wait_for
 
 HALF_COUNT = 0.5 / objects.INCREMENTS_PER_RAD  # encoder quantisation bound (rad)
 
@@ -142,13 +142,6 @@ def send_raw_command(master, controlword, milliamps):
     master.network.send_message(pdo_layout.RPDO_COMMAND.cob_id(master.node_id), payload)
 
 
-def wait_for(predicate, timeout=1.0):
-    deadline = time.monotonic() + timeout
-    while not predicate() and time.monotonic() < deadline:
-        time.sleep(0.002)
-    return predicate()
-
-
 def test_overcurrent_trips_with_emcy_and_reset_recovers(pair):
     sim, master = pair
     master.start()
@@ -156,7 +149,7 @@ def test_overcurrent_trips_with_emcy_and_reset_recovers(pair):
     send_raw_command(master, 0x0F, 9000)  # past the 8 A trip level, bypassing our checks
     sample = master.sync()
     assert cia402.state_from_statusword(sample.statusword) is State.FAULT
-    assert wait_for(lambda: master.last_emergency is not None)
+    assert wait_for(lambda: master.last_emergency is not None, 1.0)
     assert master.last_emergency.code == cia301.EMCY_OVERCURRENT
     assert isinstance(master.fault, DriveFault)
     assert sim.device.applied_current == 0.0
@@ -190,5 +183,5 @@ def test_position_limit_fault_sends_emcy(pair):
         master.command_current(-3.0)  # drives the arm down through -2.45 rad
     assert cia402.state_from_statusword(sample.statusword) is State.FAULT
     assert sample.position < -2.44
-    assert wait_for(lambda: master.last_emergency is not None)
+    assert wait_for(lambda: master.last_emergency is not None, 1.0)
     assert master.last_emergency.code == cia301.EMCY_POSITION_LIMIT

@@ -38,6 +38,10 @@ MODEL = load_model()
 PERIOD_NS = 1_000_000
 SHIFT_NS = 500_000
 SYNC_DELAY_NS = 100_000_000  # SOEM's SyncDelay
+NO_FRAME = -1  # SOEM's EC_NOFRAME: receive_processdata's answer when no frame came back
+# frames of the DC test's cycle that may go unanswered within 10 ms: a lost frame or two is
+# the host's (a stall of its virtual machine), three in a row would already cost OP
+LOST_FRAMES_TOLERATED = 2
 
 
 def line(count: int) -> Segment:
@@ -518,7 +522,10 @@ def test_pysoem_config_dc_against_the_virtual_slaves_over_a_veth(link):
     in PRE-OP, 2 runs in 15), and the cycle runs at the real-time master's priority, as a DC
     master's does (`as_a_real_time_master`: at normal priority, in a clean clone's run beside
     two busy loops, its frames missed three SYNC0 windows in a row and the slaves rightly
-    refused OP)."""
+    refused OP). A frame that does not come back within 10 ms is counted as lost, as a DC
+    master counts one, not taken for a failure (twice in clean clones' runs beside busy
+    loops, on a host whose whole virtual machine stalls for 5-84 ms there); a line that
+    loses frames steadily still fails, at LOST_FRAMES_TOLERATED or at OP refused."""
     with (soem_waiting_us(CONFIGURING_RETURN_TIMEOUT_US), SlaveProcess(link, 3, MODEL) as slaves,
           link.entered()):
         master = pysoem.Master()
@@ -538,24 +545,29 @@ def test_pysoem_config_dc_against_the_virtual_slaves_over_a_veth(link):
                 slave.dc_sync(True, PERIOD_NS, SHIFT_NS)
             master.state = pysoem.OP_STATE
             master.write_state()
-            wake, operational = time.perf_counter(), False
+            wake, operational, lost = time.perf_counter(), False, 0
             with as_a_real_time_master():
                 for _ in range(400):  # the first SYNC0 comes 100 ms after dc_sync
                     sent_at = time.monotonic()
                     master.send_processdata()
-                    # each slave's inputs count 1, its outputs 2 more once it is in OP: 3
-                    # before the SYNC0 that takes them to OP, 9 after it; 5 or 7 in a frame
-                    # that passes while some have taken OP and others not yet (each takes it
-                    # at its own SYNC0 event, as a real slave does; seen once, on a host under
-                    # heavy steal)
-                    assert master.receive_processdata(10_000) in (3, 5, 7, 9)
-                    clock.observe(master.dc_time, sent_at)
+                    working_counter = master.receive_processdata(10_000)
+                    if working_counter == NO_FRAME:
+                        lost += 1  # nothing came back: no reference time to observe
+                    else:
+                        # each slave's inputs count 1, its outputs 2 more once it is in OP:
+                        # 3 before the SYNC0 that takes them to OP, 9 after it; 5 or 7 in a
+                        # frame that passes while some have taken OP and others not yet
+                        # (each takes it at its own SYNC0 event, as a real slave does; seen
+                        # once, on a host under heavy steal)
+                        assert working_counter in (3, 5, 7, 9)
+                        clock.observe(master.dc_time, sent_at)
                     if master.read_state() == pysoem.OP_STATE:
                         operational = True  # every slave took OP at a SYNC0 with outputs
                         break
                     wake += 1e-3 + clock.take_trim()
                     time.sleep(max(0.0, wake - time.perf_counter()))
             assert operational
+            assert lost <= LOST_FRAMES_TOLERATED
             assert abs(clock.last_offset_ns) < 500_000  # in the reference clock's cycle
             time.sleep(0.002)
             for slave in master.slaves:  # SYNC0 on and firing

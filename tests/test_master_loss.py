@@ -18,7 +18,7 @@ from driver.canopen_drive import CanOpenDrive
 from model.parameters import load_model
 from protocol import cia301, eds_path, objects
 from protocol.cia402 import State, state_from_statusword
-from tests.conftest import can_semantics_network, udp_bus_spec, virtual_drive_process
+from tests.conftest import can_semantics_network, udp_bus_spec, virtual_drive_process, wait_for
 
 pytestmark = pytest.mark.subprocess  # runs the commands as processes
 
@@ -66,15 +66,6 @@ def start_actuatord(bus: str) -> subprocess.Popen:
     return proc
 
 
-def wait_until(predicate, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.005)
-    return predicate()
-
-
 @pytest.mark.parametrize("how", ["SIGKILL", "SIGSTOP"])
 @pytest.mark.real_time
 def test_the_drive_stops_the_joint_when_its_master_dies_and_a_new_master_starts_clean(how):
@@ -84,7 +75,7 @@ def test_the_drive_stops_the_joint_when_its_master_dies_and_a_new_master_starts_
         master = start_actuatord(bus)
         try:
             # the loop brings the loaded arm to -1 rad and holds it there
-            assert wait_until(lambda: len(observer.samples) > 200 and abs(
+            assert wait_for(lambda: len(observer.samples) > 200 and abs(
                 observer.samples[-1][1] - observer.samples[-200][1]) < 0.002 * (
                     objects.INCREMENTS_PER_RAD), 10.0)
             statusword, increments = observer.samples[-1]
@@ -93,9 +84,9 @@ def test_the_drive_stops_the_joint_when_its_master_dies_and_a_new_master_starts_
             os.kill(master.pid, getattr(signal, how))
             lost_at = time.monotonic()
             # within 1 s the drive has left operation enabled and said why
-            assert wait_until(lambda: observer.state() is not State.OPERATION_ENABLED, 1.0)
+            assert wait_for(lambda: observer.state() is not State.OPERATION_ENABLED, 1.0)
             assert time.monotonic() - lost_at < 1.0
-            assert wait_until(lambda: any(code == cia301.EMCY_HEARTBEAT
+            assert wait_for(lambda: any(code == cia301.EMCY_HEARTBEAT
                                           for _, code in observer.emcys), 1.0)
             assert next(t for t, code in observer.emcys if code == cia301.EMCY_HEARTBEAT) - (
                 lost_at) < 1.0

@@ -27,8 +27,8 @@ from protocol import cia301, objects
 from protocol import ethercat as ec
 from protocol.cia402 import State, state_from_statusword
 from sim_bus.ethercat.netns import SlaveProcess
-from tests.conftest import as_a_real_time_master, udp_bus_spec, virtual_drive_process
-from tests.test_master_loss import Observer, wait_until
+from tests.conftest import as_a_real_time_master, udp_bus_spec, virtual_drive_process, wait_for
+from tests.test_master_loss import Observer
 
 MODEL = load_model()
 HEAVY = Payload(20.0, 0.0, 0.05)  # the adversarial run's payload: 4x the elbow's own gravity
@@ -193,13 +193,13 @@ def test_can_a_drive_whose_master_died_stops_on_its_own_and_the_next_master_take
         try:
             master = start_actuatord(bus, *payload)
             try:
-                assert wait_until(lambda: len(observer.samples) > 300, 10.0)
+                assert wait_for(lambda: len(observer.samples) > 300, 10.0)
                 master.send_signal(signal.SIGKILL)
                 dead_at = time.monotonic()
             finally:
                 master.wait(10)
             # nobody sends a SYNC from here on: the drive's own time ends its quick stop
-            assert wait_until(lambda: observer.state() is State.SWITCH_ON_DISABLED,
+            assert wait_for(lambda: observer.state() is State.SWITCH_ON_DISABLED,
                               STOPPED_WITHIN), observer.state()
             assert time.monotonic() - dead_at < STOPPED_WITHIN + 0.5
             assert any(code == cia301.EMCY_HEARTBEAT for _, code in observer.emcys)

@@ -14,6 +14,7 @@ from protocol import telemetry
 from recorder.reader import load_recording
 from recorder.recording import RecordingError
 from recorder.repair import repair_recording
+from tests.conftest import wait_for
 
 pytestmark = pytest.mark.subprocess  # runs the commands as processes
 
@@ -22,9 +23,8 @@ def start(path) -> subprocess.Popen:
     proc = subprocess.Popen([sys.executable, "-m", "commands.recorder", "--exciting-trajectory",
                              "--sim", "--lockstep", "--no-progress", "-o", str(path)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 60  # 120 kB: about 1200 samples (State + Command)
-    while time.monotonic() < deadline and (not path.exists() or path.stat().st_size < 120_000):
-        time.sleep(0.05)
+    # 120 kB: about 1200 samples (State + Command)
+    wait_for(lambda: path.exists() and path.stat().st_size >= 120_000, 60, 0.05)
     assert proc.poll() is None, proc.stderr.read()
     return proc
 
@@ -74,10 +74,8 @@ def test_twenty_kills_at_random_moments_leave_twenty_readable_files(tmp_path):
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         # 2 kB: past the header, metadata and provisional end (about 460 bytes), so the first
         # chunk is in the file. A recorder that fails before that leaves no file at all.
-        deadline = time.monotonic() + 60
-        while proc.poll() is None and time.monotonic() < deadline and (
-                not path.exists() or path.stat().st_size < 2_000):
-            time.sleep(0.01)
+        wait_for(lambda: proc.poll() is not None or (
+            path.exists() and path.stat().st_size >= 2_000), 60, 0.01)
         time.sleep(rng.uniform(0.0, 1.5))
         proc.kill()
         _, err = proc.communicate(timeout=30)

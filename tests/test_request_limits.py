@@ -25,7 +25,7 @@ from model.parameters import Payload, load_model
 from protocol import telemetry
 from sim_bus.embedded import EmbeddedDrive
 from sim_bus.plant import SensorNoise
-from tests.conftest import free_port, virtual_pair
+from tests.conftest import free_port, virtual_pair, wait_for
 
 MODEL = load_model()
 PREFIX = "test/limits"
@@ -248,9 +248,7 @@ def test_a_4_mb_reference_request_is_refused_without_stalling_the_loop(service):
     assert all(r["answer"]["ok"] is False and "refused unread" in r["answer"]["reason"]
                for r in replies)
     assert extra <= 2
-    deadline = time.monotonic() + 5
-    while len(audit) < before + 3 and time.monotonic() < deadline:
-        time.sleep(0.05)
+    wait_for(lambda: len(audit) >= before + 3, 5.0, 0.05)
     lines = audit[before:]
     assert len(lines) == 3 and all(len(line) <= AUDIT_LINE_MAX for line in lines)
     assert json.loads(lines[0])["payload_bytes"] == replies[0]["bytes"] > 4_000_000

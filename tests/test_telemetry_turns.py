@@ -18,7 +18,7 @@ from driver.clock import DriveClock, WallClock
 from driver.drive_group import single_joint
 from model.parameters import load_model
 from protocol import telemetry
-from tests.conftest import virtual_pair
+from tests.conftest import virtual_pair, wait_for
 
 MODEL = load_model()
 PREFIX = "test/turns"
@@ -83,9 +83,7 @@ def _publisher_in_turns(session) -> TelemetryPublisher:
     """A publisher after a loop's first look: its thread publishes in turns from then on."""
     publisher = TelemetryPublisher(session, PREFIX)
     publisher.take_turn()
-    deadline = time.monotonic() + 5.0
-    while not publisher.in_turns and time.monotonic() < deadline:
-        time.sleep(1e-3)
+    wait_for(lambda: publisher.in_turns, 5.0, 1e-3)
     return publisher
 
 
@@ -159,9 +157,7 @@ def test_closing_wakes_a_thread_that_waits_for_a_turn(monkeypatch: pytest.Monkey
         # Zenoh hands a put to a subscriber from a thread of its own: in 8 runs of 10 here
         # it came 0.01-0.03 ms after close returned, and the assertion without this wait
         # failed 2 runs in 5 (beside a suite) and once in a clean clone's busy run
-        deadline = time.monotonic() + 5.0
-        while not received and time.monotonic() < deadline:
-            time.sleep(1e-3)
+        wait_for(lambda: received, 5.0, 1e-3)
         subscriber.undeclare()
     finally:
         session.close()

@@ -7,17 +7,9 @@ import threading
 import time
 
 from driver.clock import WallTimers
+from tests.conftest import wait_for
 
 INTERVAL = 0.01  # s
-
-
-def wait_for(condition, seconds: float = 5.0) -> bool:
-    end = time.monotonic() + seconds
-    while not condition():
-        if time.monotonic() > end:
-            return False
-        time.sleep(0.005)
-    return True
 
 
 def test_jobs_of_many_parties_run_in_one_thread_on_their_interval_grid():
@@ -25,7 +17,7 @@ def test_jobs_of_many_parties_run_in_one_thread_on_their_interval_grid():
     stops = [WallTimers().every(INTERVAL, lambda now, k=k: runs[k].append(
         (now, threading.current_thread().name))) for k in runs]
     try:
-        assert wait_for(lambda: all(len(r) >= 5 for r in runs.values()))
+        assert wait_for(lambda: all(len(r) >= 5 for r in runs.values()), 5.0)
     finally:
         for stop in stops:
             stop()
@@ -49,7 +41,7 @@ def test_a_failing_job_is_dropped_and_the_others_run_on():
     stop_fails = WallTimers().every(INTERVAL, fails)
     stop_ok = WallTimers().every(INTERVAL, ran.append)
     try:
-        assert wait_for(lambda: len(ran) >= 5)
+        assert wait_for(lambda: len(ran) >= 5, 5.0)
     finally:
         stop_fails()
         stop_ok()
@@ -59,7 +51,7 @@ def test_a_failing_job_is_dropped_and_the_others_run_on():
 def test_a_stopped_job_runs_no_more():
     ran: list[float] = []
     stop = WallTimers().every(INTERVAL, ran.append)
-    assert wait_for(lambda: len(ran) >= 2)
+    assert wait_for(lambda: len(ran) >= 2, 5.0)
     stop()
     time.sleep(2 * INTERVAL)  # a run already under way when it stopped ends
     count = len(ran)
