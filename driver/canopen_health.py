@@ -235,6 +235,9 @@ class Health:
         self.heartbeat_ms = 0
         self.period = 1e-3  # s, the cycle's (set by `watch`), for reports in cycles
         self.last_heartbeat: float | None = None  # the clock's time of the last beat
+        # the last beat's receive stamp (the interface's: the kernel's on SocketCAN and
+        # udp_multicast), held against the bus's `last_stamp` in `check`
+        self.beat_stamp = 0.0
         self.booted = threading.Event()  # set by the boot-up message (heartbeat state 0)
         self._timeout = math.inf
         self._in_use = False
@@ -268,6 +271,7 @@ class Health:
         self._timeout = (self.timeout_factor * heartbeat_ms * 1e-3 + SAME_TIME
                          if heartbeat_ms > 0 else math.inf)
         self.last_heartbeat = self.clock.now()
+        self.beat_stamp = self.bus.last_stamp  # silence counts from the frames handled now
         self._in_use = True
         self.bus.look_soon()
         self.bus.restart_count()  # bring-up traffic is not load
@@ -279,16 +283,24 @@ class Health:
             if self._in_use:
                 self._on_failure(DriveLost(f"{self.name}: drive rebooted (boot-up message) "
                                            "while in use"))
+        self.beat_stamp = timestamp
         self.last_heartbeat = self.clock.now()
 
     def check(self, now: float) -> float:
-        """Lost when silent past the timeout at `now` (on the bus's clock). Returns when
-        this drive is next due to be judged (inf: not watched)."""
+        """Lost when silent past the timeout at `now` (on the bus's clock), once the bus's
+        receive path has handled a frame received more than the timeout after the last beat
+        (frames are handled in order: a beat before it would have been seen), or, where it
+        has not (a bus silent but for this drive, or a receive thread still catching up
+        with what queued while the host held it), the clock's `receive_grace` later.
+        Returns when this drive is next due to be judged (inf: not watched)."""
         last = self.last_heartbeat
         if last is None or not self._in_use:
             return math.inf
         if now - last <= self._timeout:
             return last + self._timeout
+        overdue = last + self._timeout + self.clock.receive_grace
+        if now < overdue and self.bus.last_stamp - self.beat_stamp <= self._timeout:
+            return overdue
         self._in_use = False  # one verdict per loss
         error = DriveLost(f"{self.name}: heartbeat missing for "
                           f"{self.clock.span(now - last, self.period)} (producer period "

@@ -179,6 +179,12 @@ class WallClock:
     # s a master waits for a drive's answer (a cycle's samples, a frame back): a sample
     # 100 ms late is a dead drive, the drives' own default process data watchdog
     response_timeout = 0.1
+    # s a watchdog on received frames waits past its timeout for a receive path that has not
+    # yet handled a frame received after the deadline (`driver.canopen_health.Health.check`):
+    # a receive thread held up with the rest of the process (a stall of the host) resumes
+    # with the frames queued meanwhile, and a watchdog thread that resumes before it would
+    # judge a silence that is only in its queue. Time to catch up, far below a heartbeat
+    receive_grace = 0.02
 
     @staticmethod
     def advance(seconds: float) -> None:
@@ -222,6 +228,9 @@ class DriveClock:
     # s a master waits for a drive's answer: on drive time a late answer is no failure (the
     # drive is computed on the same, perhaps busy, host), only none is
     response_timeout = 1.0
+    # on drive time the frames of a cycle are handled before the cycle's watchdogs look:
+    # no receive path to wait for
+    receive_grace = 0.0
 
     def __init__(self) -> None:
         self._now = 0.0
