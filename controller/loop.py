@@ -38,15 +38,22 @@ from controller.reference import reference_at
 from controller.safety import NOT_FINITE, BatchSafety, SafetyNet
 from driver import DriveError, Sample
 from driver.clock import CycleClock, DriveClock, RingStats, WallClock
-from driver.interface import SAMPLE_POSITION, SAMPLE_STATUSWORD, SAMPLE_T, SAMPLE_VELOCITY
+from driver.interface import (
+    SAMPLE_POSITION,
+    SAMPLE_STATUSWORD,
+    SAMPLE_T,
+    SAMPLE_VELOCITY,
+    SampleLost,
+)
 from model.parameters import ActuatorParameters, Limits
 from protocol import cia402
 
 STALL_CYCLES = 10  # missed in a row: worth a message on the fault topic
 MISSES_KEPT = 20_000  # times cycles were missed, kept for the report
 # why a cycle missed its deadline: woken late by the host; the drive's sample late (the
-# exchange, SYNC to the last TPDO or the frame's round trip); the decision (safety and MPC)
-# over the period; the telemetry's hand-off and the loop's own messages
+# exchange, SYNC to the last TPDO or the frame's round trip) or lost (a frame that did not
+# come back); the decision (safety and MPC) over the period; the telemetry's hand-off and the
+# loop's own messages
 LATE_WAKE_UP, LATE_SAMPLE, DECISION, PUBLISH = ("late wake-up", "late sample",
                                                 "decision over budget", "publish back-pressure")
 MISSED_CAUSES = (LATE_WAKE_UP, LATE_SAMPLE, DECISION, PUBLISH)
@@ -98,6 +105,9 @@ class LoopReport:
     # (s on the loop's clock, cycles): each time cycles were found missed, the first
     # MISSES_KEPT times
     missed_at: list[tuple[float, int]] = field(default_factory=list)
+    # cycles without a sample (a frame lost on the line, ridden through): among the missed,
+    # as late samples
+    lost_samples: int = 0
 
     @property
     def missed_cycles(self) -> int:
@@ -125,7 +135,7 @@ class LoopReport:
                 f"{self.master.percentile(99):.1f} us; wall time a cycle "
                 f"{self.wall_per_cycle_us:.1f} us; missed by cause: "
                 + ", ".join(f"{cause} {n}" for cause, n in self.missed_by_cause.items())
-                + f"; {self.reason}")
+                + f" ({self.lost_samples} samples lost); {self.reason}")
 
     def figures(self) -> dict:
         """The run's figures as plain data (what `actuatord --report` writes as JSON): times
@@ -135,7 +145,8 @@ class LoopReport:
                     "max_us": ring.max}
 
         return {"cycles": self.cycles, "missed": self.missed_cycles,
-                "missed_by_cause": dict(self.missed_by_cause), "fallbacks": self.fallbacks,
+                "missed_by_cause": dict(self.missed_by_cause),
+                "lost_samples": self.lost_samples, "fallbacks": self.fallbacks,
                 "cold_solve_us": self.cold_solve_us,
                 "jitter": {"p99_us": self.jitter.percentile(99), "max_us": self.jitter.max},
                 "mpc_tick": stats(self.solve), "master": stats(self.master),
@@ -157,6 +168,14 @@ class LoopReport:
             self.missed_by_cause[MISSED_CAUSES[longest]] += cycles
             if len(self.missed_at) < MISSES_KEPT:
                 self.missed_at.append((at, cycles))
+
+    def count_lost(self, at: float) -> None:
+        """A cycle whose sample never came (seen at `at`, s on the loop's clock): missed, a
+        late sample's."""
+        self.lost_samples += 1
+        self.missed_by_cause[LATE_SAMPLE] += 1
+        if len(self.missed_at) < MISSES_KEPT:
+            self.missed_at.append((at, 1))
 
 
 # The cycle's array work in two compiled calls whatever the number of joints: as numpy
@@ -567,6 +586,10 @@ class ControlLoop:
             decide_time = self._cycle()
             if decide_time.__class__ is LoopReport:
                 return decide_time
+            if decide_time is None:  # no sample came back: nothing decided, nothing sent
+                clock.miss()
+                report.count_lost(clock.clock.now())
+                continue
             master_time = perf_counter() - started - self._mpc_time
             if report.cycles:
                 overrun = clock.check_overrun()
@@ -600,14 +623,19 @@ class ControlLoop:
                 return self._finish(0, "the policy finished", t=t)
         return self._finish(0, "stop requested", t=self.time)
 
-    def _cycle(self) -> "float | LoopReport":
-        """Sample, decide and command: the decision's wall time (s), or the report when the
-        run ends here."""
+    def _cycle(self) -> "float | LoopReport | None":
+        """Sample, decide and command: the decision's wall time (s), the report when the run
+        ends here, or None when no sample came back (a lost frame the line rides through:
+        the drives hold their last command, said on the fault topic)."""
         joints, safety = self._joints, self._safety
         exchange = time.perf_counter()
         try:
             table = self.latest = joints.sync()
             self._exchange_time = time.perf_counter() - exchange
+        except SampleLost as exc:
+            self.fault(self.time + self.options.period, "drive", str(exc),
+                       "cycle skipped: no decision, the drives hold their last command")
+            return None
         except DriveError as exc:
             return self._fail(exc, self.time + self.options.period)
         t = self._t = float(table[0, SAMPLE_T])

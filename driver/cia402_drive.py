@@ -24,6 +24,7 @@ from driver.interface import (
     EncoderGlitch,
     ProfileError,
     Sample,
+    SampleLost,
     SdoRefused,
 )
 from driver.profile import Profile, Scaling, read_scaling, select_profile
@@ -90,6 +91,7 @@ class Cia402Drive(Drive):
         # looks at its drives once, instead of asking every drive every cycle
         self.on_fault: Callable[[], None] = _nothing
         self._latest: Sample | None = None
+        self._periods_since_latest = 1  # more after cycles whose sample was lost
         self._warnings: list[str] = []
         self._lock = threading.Lock()  # emergencies arrive in the transport's receive thread
         self._closed = False
@@ -209,6 +211,10 @@ class Cia402Drive(Drive):
         drive's process data after it."""
         try:
             values = inputs()
+        except SampleLost:
+            self.cycle += 1  # its period passed without a sample
+            self._periods_since_latest += 1
+            raise
         except DriveTimeout:
             if self._fault is not None:
                 raise self._fault from None  # the drive faulted and stopped answering
@@ -227,9 +233,10 @@ class Cia402Drive(Drive):
                         values[2] * scaling.rad_per_increment,
                         values[3] * scaling.amps_per_feedback_unit, joint_torque, values[0])
         previous, self._latest = self._latest, sample
+        periods, self._periods_since_latest = self._periods_since_latest, 1
         if previous is not None:
             try:
-                self.guard.check_step(previous.position, sample.position, self.name)
+                self.guard.check_step(previous.position, sample.position, self.name, periods)
             except EncoderGlitch as error:
                 self.fail(error)
                 raise

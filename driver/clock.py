@@ -474,6 +474,10 @@ class CycleClock:
         self._last_wake = wake
         return late
 
+    def miss(self) -> None:
+        """This cycle woke in time but could not run (its sample never came): missed."""
+        self.missed_cycles += 1
+
     def check_overrun(self) -> bool:
         """Call when the cycle's work is done: counts it as missed if it overran its period."""
         if self.clock.now() > self._deadline + self.period:

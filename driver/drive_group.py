@@ -33,6 +33,7 @@ from driver.interface import (
     DriveTimeout,
     EncoderGlitch,
     Sample,
+    SampleLost,
 )
 from driver.process_image import FAULT_BITS, FAULT_MASK, decode, encode
 from protocol import cia402
@@ -79,6 +80,8 @@ class Segment:
         for joint, drive in self.joints:
             try:
                 samples.append(drive.sync())
+            except SampleLost:
+                raise  # the segment's, not the joint's: no joint failed
             except DriveError as exc:
                 raise JointFailure(joint, exc) from exc
         return np.array(samples, dtype=float)
@@ -304,6 +307,7 @@ class EthercatLine(Segment):
         self._period = drives[0].period
         self._cycle = drives[0].cycle
         self._previous = np.full(len(drives), np.nan)  # NaN: no step to judge yet
+        self._periods_since_sample = 1  # more after cycles whose frame was lost
         self._warnings: list[str] = []
         self._warning_lists = [lst for drive in drives for lst in drive.warning_lists]
         # a drive faulted since the line last looked (or the first cycle): one look a cycle
@@ -361,13 +365,21 @@ class EthercatLine(Segment):
             self._look_at_drives()
         try:
             self._transports[0].exchange()  # this cycle's frame, for every slave on the line
+        except SampleLost:
+            self._cycle += 1  # its period passed without a sample
+            self._periods_since_sample += 1
+            raise
         except DriveError as exc:
             raise self.failed(self.joints[0][0], exc) from exc
         with self._line.lock:  # the line's keeper may be sending a frame
             data = b"".join([slave.input for slave in self._slaves])
         self._cycle += 1
-        # on distributed clocks the drives move on at SYNC0 while the master is late
-        cycles = 1 if self._line.dc is None else self._line.dc.elapsed_periods
+        # on distributed clocks the drives move on at SYNC0 while the master is late (or its
+        # frames were lost); free-running, a lost frame may have run them (lost on its way
+        # back), so each counts as a period
+        cycles = (self._periods_since_sample if self._line.dc is None
+                  else self._line.dc.elapsed_periods)
+        self._periods_since_sample = 1
         table = np.empty((len(self._drives), len(SAMPLE_COLUMNS)))
         glitch, faulted, saturated = decode(np.frombuffer(data, np.uint8), self._in_layout,
                                             self._scale, self._cycle * self._period,
@@ -510,7 +522,14 @@ class DriveGroup:
             return segment.collect()
         for segment in self.segments:
             segment.trigger()
-        tables = [segment.collect() for segment in self.segments]
+        tables, lost = [], None
+        for segment in self.segments:  # every segment's cycle is collected, lost or not
+            try:
+                tables.append(segment.collect())
+            except SampleLost as exc:
+                lost = lost or exc
+        if lost is not None:
+            raise lost
         placed = tables[0] if len(tables) == 1 else np.concatenate(tables)
         return placed if self._in_order else placed[self._order]
 

@@ -41,7 +41,7 @@ import pysoem
 
 from driver.clock import DriveClock, WallClock
 from driver.ethercat_dc import DcLine
-from driver.interface import DriveError, DriveLost, ProfileError
+from driver.interface import DriveError, DriveLost, ProfileError, SampleLost
 from protocol import ethercat as ec
 from protocol.esi import EsiDevice
 
@@ -80,6 +80,22 @@ REG_AL_STATUS_SPAN = 6  # AL status (0x0130), reserved, AL status code (0x0134):
 # in OP its default again, so a cycle's state read never waits longer than two periods.
 CONFIGURING_RETURN_TIMEOUT_US = 20_000
 OPERATIONAL_RETURN_TIMEOUT_US = 2_000
+# In OP on the wall clock, a cycle's frame not back within this many periods is lost: the
+# cycle goes on without its sample, as SOEM's simple_test does (it waits EC_TIMEOUTRET, 2 ms,
+# for a 1 ms cycle's frame and counts the working counter; its check thread recovers
+# slaves). Waiting the drives' response timeout instead (100 ms, their process data
+# watchdog) held a line whose frame a bit error had eaten for as long as its drives forgive
+# a silent master, and then failed it. On drive time a frame is never late, only missing.
+LOST_AFTER_PERIODS = 2
+# Frames in a row that may be lost (none came back) before the line fails: the drives hold
+# the outputs they had meanwhile. In real time each costs at most LOST_AFTER_PERIODS periods,
+# so a line whose frames stay lost stops within about six periods of its last whole one: far
+# inside a free-running drive's process data watchdog (100 ms), about where a DC drive gives
+# up on its own (it counts each SYNC0 window without outputs and leaves OP past its sync
+# error limit: talos_32.toml's 9 at the fourth empty window in a row), which the state check
+# then names. A frame that comes back short of its working counter is no lost frame: a slave
+# in it did not take its part (left OP, gone), and the line fails at once, naming it.
+LOST_FRAMES_IN_A_ROW = 2
 
 
 class LineFailure(DriveError):
@@ -132,6 +148,12 @@ class EthercatMaster:
         if response_timeout is None:
             response_timeout = self.clock.response_timeout
         self.response_timeout_us = int(response_timeout * 1e6)
+        # us the cycle's frame is waited for (`_operational`: LOST_AFTER_PERIODS in real time)
+        self.frame_timeout_us = self.response_timeout_us
+        self.lost_frames = 0  # cyclic frames that did not come back (ridden through)
+        self.last_loss: SampleLost | None = None  # the last, raised for cycle `last_loss_at`
+        self.last_loss_at = 0
+        self._lost_in_a_row = 0
         self.watchdog = watchdog
         self.master: pysoem.Master | None = None
         self.slaves: list = []
@@ -308,6 +330,10 @@ class EthercatMaster:
         pysoem.settings.timeouts.ret = OPERATIONAL_RETURN_TIMEOUT_US
         if self.clock.runs_alone:
             _poll_for_frames(_packet_sockets(self.interface))
+            period = self.dc.period_ns * 1e-9 if self.dc is not None else self.period
+            if period:
+                self.frame_timeout_us = min(self.response_timeout_us,
+                                            round(LOST_AFTER_PERIODS * period * 1e6))
         self._last_frame = time.monotonic()
         self._start_keeper()
 
@@ -415,13 +441,24 @@ class EthercatMaster:
     def cycle(self) -> None:
         """Send the one frame of this cycle and check its working counter (DC: and the
         master's offset from the reference clock); every STATE_CHECK_FRAMES cycles, every
-        slave's AL status too."""
+        slave's AL status too. A frame that did not come back raises SampleLost while the
+        line rides through it (`LOST_FRAMES_IN_A_ROW`)."""
         asked = time.monotonic()
         with self.lock:
             self.frames += 1
-            self._frame()
+            whole = self._frame()
             if self.period is not None:
                 self.clock.advance(self.period)  # drive time: frames x period
+            if not whole:  # no reference time read, no states: the next frame's
+                self._cycle_sent_at = self._sent_at
+                self.last_loss_at = self.frames
+                self.last_loss = SampleLost(
+                    f"EtherCAT {self.interface}: the frame of cycle {self.frames} did not come "
+                    f"back within {self.frame_timeout_us / 1e3:g} ms ({self._lost_in_a_row} "
+                    f"in a row; the line fails at {LOST_FRAMES_IN_A_ROW + 1}): the drives "
+                    "hold their last command")
+                log.warning("%s", self.last_loss)
+                raise self.last_loss
             if self.dc is not None:
                 self.dc.observe(self.master.dc_time, self._sent_at)
                 self._cycle_sent_at = self._sent_at
@@ -550,18 +587,27 @@ class EthercatMaster:
             return
         self._frame()
 
-    def _frame(self) -> None:
+    def _frame(self) -> bool:
+        """One process data frame; whether it came back whole. One that did not come back
+        in OP is lost, and ridden through up to LOST_FRAMES_IN_A_ROW in a row; past that, or
+        short of its working counter, the line fails (sticky, raised)."""
         if self.failure is not None:
             raise self.failure
         master = self.master
         self._sent_at = time.monotonic()
         master.send_processdata()
-        wkc = master.receive_processdata(self.response_timeout_us)
+        wkc = master.receive_processdata(self.frame_timeout_us)
         self._last_frame = time.monotonic()
-        if wkc != self._expected_wkc:
-            self.failure = self._diagnose(wkc)
-            log.error("%s", self.failure)
-            raise self.failure
+        if wkc == self._expected_wkc:
+            self._lost_in_a_row = 0
+            return True
+        if wkc < 0 and self.operational and self._lost_in_a_row < LOST_FRAMES_IN_A_ROW:
+            self._lost_in_a_row += 1
+            self.lost_frames += 1
+            return False
+        self.failure = self._diagnose(wkc)
+        log.error("%s", self.failure)
+        raise self.failure
 
     def _diagnose(self, wkc: int) -> LineLost:
         """The failed frame's report: the slaves in the cycle not in OP (or not answering)
@@ -571,7 +617,8 @@ class EthercatMaster:
             # nothing answers, so no state can be read: every slave in the cycle is lost
             return LineLost(
                 f"EtherCAT {self.interface}: no frame came back within "
-                f"{self.response_timeout_us / 1e3:.0f} ms (cycle {self.frames}): "
+                f"{self.frame_timeout_us / 1e3:g} ms (cycle {self.frames}, "
+                f"{self._lost_in_a_row + 1} in a row): "
                 f"{', '.join(self.label(p) for p in in_cycle)} lost, the line is broken or "
                 "its slaves are off", tuple(in_cycle))
         text = (f"EtherCAT {self.interface}: working counter {wkc}, expected "

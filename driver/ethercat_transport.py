@@ -256,10 +256,16 @@ class EthercatTransport(Transport):
                                  "has no process data mapped yet")
             line.go_operational()
         if self._seen == line.frames:
-            line.cycle()  # this cycle's frame, for every slave on the line
+            try:
+                line.cycle()  # this cycle's frame, for every slave on the line
+            finally:
+                self._seen = line.frames  # lost or not, the next exchange sends the next
         elif line.failure is not None:
             raise line.failure
-        self._seen = line.frames
+        else:
+            self._seen = line.frames
+            if line.last_loss is not None and line.last_loss_at == line.frames:
+                raise line.last_loss  # this cycle's frame, sent for another joint, was lost
         values = self._in_codec.struct.unpack(self.slave.input)
         at = self._statusword_at
         if at is not None and values[at] & STATUSWORD_FAULT:

@@ -471,6 +471,9 @@ class CanOpenNode:
         elif fault is Fault.LEAVES_OP:
             log.warning("fault %s is EtherCAT's: a CANopen drive has no OP to leave",
                         fault.name.lower())
+        elif fault is Fault.FRAME_LOST:
+            log.warning("fault %s is EtherCAT's: a CANopen bus has no line-wide frame to lose",
+                        fault.name.lower())
 
     def _flood(self) -> None:
         end = time.monotonic() + FLOOD_SECONDS

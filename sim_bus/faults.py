@@ -18,6 +18,9 @@ class Fault(IntEnum):
     BUS_FLOOD = 8  # another node floods the bus with high-priority frames for 0.5 s
     REBOOT = 9  # the drive resets and sends its boot-up message mid-run
     LEAVES_OP = 10  # EtherCAT: the slave drops from OP to SAFE-OP + ERROR (sync error 0x001A)
+    # EtherCAT: the frame that runs this cycle is lost on its way back to the master (a bit
+    # error on the return path): every slave took it, the master gets nothing
+    FRAME_LOST = 11
 
 
 TPDO_DELAY = 0.2  # s

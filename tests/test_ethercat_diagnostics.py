@@ -9,6 +9,7 @@ SOEM browses the dictionary by SDO Information.
 In lock-step the line is linked in this process (`sim_bus.ethercat.linked`); over a veth
 (root) the slaves run in their own process and SOEM (pysoem) is the master."""
 
+import json
 import os
 import shutil
 import struct
@@ -24,11 +25,12 @@ from driver.drive_group import DriveGroup, EthercatLine, JointFailure
 from driver.ethercat_drive import JointOnLine, open_ethercat_drives
 from driver.ethercat_master import (
     CONFIGURING_RETURN_TIMEOUT_US,
+    LOST_FRAMES_IN_A_ROW,
     STATE_CHECK_FRAMES,
     STATE_READ_TRIES,
     LineLost,
 )
-from driver.interface import DriveError
+from driver.interface import SAMPLE_MOTOR_CURRENT, SAMPLE_T, DriveError, SampleLost
 from model.parameters import Payload, load_model
 from protocol import eds_path, esi_path, objects
 from protocol import ethercat as ec
@@ -237,6 +239,73 @@ def test_a_slave_that_answers_no_read_of_its_own_is_named_as_not_answering(robot
     assert "slave 0" not in text and "slave 1" not in text
 
 
+@pytest.mark.parametrize("sync", ["free_run", "dc"])
+def test_a_lost_frame_is_ridden_through_the_drives_holding_their_command(sync):
+    """A frame lost on its way back to the master (fault frame_lost: every slave took it):
+    that cycle has no sample, SampleLost and no joint's failure; the next frame's sample is
+    two periods on, the drives still enabled and running the command they held. Lost frames
+    apart, each with good frames between, never add up to a failure."""
+    robot = LinkedRobot(sync=sync)
+    try:
+        robot.group.start()
+        line = robot.group.segments[0]._line
+        assert robot.run(3) == (3, None)
+        robot.group.command_currents(np.array([0.2, 0.0, -0.2]))
+        before = robot.group.sync()
+        robot.devices[1].inject(Fault.FRAME_LOST)
+        with pytest.raises(SampleLost, match=r"frame of cycle \d+ did not come back within "
+                                             r"1000 ms \(1 in a row"):
+            robot.group.sync()
+        after = robot.group.sync()
+        assert after[0, SAMPLE_T] - before[0, SAMPLE_T] == pytest.approx(2e-3)
+        assert [round(c, 1) for c in after[:, SAMPLE_MOTOR_CURRENT]] == [0.2, 0.0, -0.2]
+        assert all(device.state is State.OPERATION_ENABLED for device in robot.devices)
+        for _ in range(4):
+            robot.devices[0].inject(Fault.FRAME_LOST)
+            with pytest.raises(SampleLost, match=r"\(1 in a row"):
+                robot.group.sync()
+            assert robot.run(2) == (2, None)
+        assert line.lost_frames == 5 and line.failure is None
+    finally:
+        robot.close()
+
+
+def test_a_lost_frame_has_no_sample_for_any_joint_of_the_line(robot):
+    """Joints on one line exchanged one by one (the path of a line whose slaves do not share
+    a layout): the joint whose exchange sent the lost frame and every other joint of that
+    cycle get SampleLost, none a stale sample; the next cycle's frame serves them all."""
+    robot.group.start()
+    first, second = (drive.transport for drive in robot.group.drives[:2])
+    line = first.line
+    frames = line.frames
+    robot.devices[0].inject(Fault.FRAME_LOST)
+    for transport in (first, second):
+        with pytest.raises(SampleLost):
+            transport.exchange()
+    first.exchange()
+    second.exchange()
+    assert line.frames == frames + 2 and line.lost_frames == 1
+
+
+def test_frames_lost_past_what_the_drives_forgive_fail_the_line(robot):
+    """LOST_FRAMES_IN_A_ROW frames lost in a row are ridden through; the next lost fails the
+    line (no frame came back, every slave in the cycle named as lost), a failure of the
+    joint on the first slave, as any broken line is."""
+    robot.group.start()
+    assert robot.run(3) == (3, None)
+    for lost in range(1, LOST_FRAMES_IN_A_ROW + 1):
+        robot.devices[2].inject(Fault.FRAME_LOST)
+        with pytest.raises(SampleLost, match=rf"\({lost} in a row"):
+            robot.group.sync()
+    robot.devices[2].inject(Fault.FRAME_LOST)
+    completed, failure = robot.run(1)
+    assert completed == 0 and failure is not None and failure.joint == "hip_joint"
+    assert isinstance(failure.cause, LineLost)
+    assert (f"no frame came back within 1000 ms (cycle 6, {LOST_FRAMES_IN_A_ROW + 1} in a "
+            "row): slave 0 (hip_joint), slave 1 (knee_joint), slave 2 (ankle_joint) lost"
+            ) in str(failure)
+
+
 def _robot_file(tmp_path, names=NAMES) -> str:
     text = '[robot]\nname = "leg"\nperiod_us = 1000\n'
     for position, name in enumerate(names):
@@ -263,6 +332,27 @@ def test_actuatord_quick_stops_the_robot_and_names_the_joint_that_left_op(tmp_pa
     stop_line = next(line for line in result.stdout.splitlines() if "quick stop:" in line)
     assert all(name in stop_line for name in NAMES)
     assert "operation enabled" not in stop_line
+
+
+@pytest.mark.subprocess
+def test_actuatord_rides_through_a_lost_frame(tmp_path):
+    """A frame lost mid-run (lock-step, the line linked in the process): the run goes on to
+    its end, the cycle without a sample missed as a late sample and counted lost, said in
+    one warning line; no joint failed."""
+    report = tmp_path / "report.json"
+    result = subprocess.run(
+        [sys.executable, "-m", "commands.actuatord", "--sim", "--lockstep",
+         "--no-multicast-scouting", "--robot", _robot_file(tmp_path), "--duration", "1",
+         "--inject-fault", "knee_joint:frame_lost@0.5", "--report", str(report)],
+        capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    figures = json.loads(report.read_text())
+    assert figures["lost_samples"] == 1 and figures["missed"] == 1
+    assert figures["missed_by_cause"]["late sample"] == 1
+    assert figures["cycles"] == 999 and figures["fallbacks"] == 0
+    [warning] = [line for line in result.stderr.splitlines() if "did not come back" in line]
+    assert "EtherCAT eth9: the frame of cycle" in warning and "(1 in a row" in warning
+    assert "(1 samples lost); ran 1.0 s" in result.stdout
 
 
 @pytest.mark.root
@@ -302,6 +392,42 @@ def test_soem_names_the_slave_that_vanished_and_the_one_that_left_op(link):
                 assert "slave 0" not in str(failed.value)
             finally:
                 group.close()
+
+
+@pytest.mark.root
+@pytest.mark.subprocess
+@pytest.mark.real_time
+def test_soem_rides_through_a_frame_the_line_lost(link):
+    """Over a veth with SOEM: the slaves' process drops its answer to one process data frame
+    (fault 11 written to 0x2010; the SDO write's own frames pass): SOEM's receive gives
+    EC_NOFRAME after the response timeout, that cycle raises SampleLost, and the cycles after
+    it run on SOEM's next frames (their answers matched by index, the late one never taken),
+    no joint failed."""
+    joints = [JointOnLine(k, MODEL.limits.velocity_max, MODEL.parameters.drive_gain,
+                          name=name) for k, name in enumerate(NAMES[:2])]
+    with SlaveProcess(link, 2, MODEL), link.entered():
+        drives = open_ethercat_drives(link.master_port, joints, clock=clock_for(True),
+                                      response_timeout=0.2)
+        group = DriveGroup(list(NAMES[:2]),
+                           [EthercatLine("ethercat:veth", list(zip(NAMES[:2], drives,
+                                                                   strict=True)))])
+        try:
+            group.start()
+            for _ in range(3):
+                group.sync()
+                group.command_currents(np.zeros(2))
+            drives[1].transport.write(objects.FAULT_INJECTION, 0, Fault.FRAME_LOST.value)
+            with pytest.raises(SampleLost, match=r"did not come back within 200 ms"):
+                group.sync()
+            times = []
+            for _ in range(5):
+                times.append(group.sync()[0, SAMPLE_T])
+                group.command_currents(np.zeros(2))
+            assert np.diff(times) == pytest.approx(1e-3)
+            line = drives[0].transport.line
+            assert line.lost_frames == 1 and line.failure is None
+        finally:
+            group.close()
 
 
 # --- start-up parameters ------------------------------------------------------------------------

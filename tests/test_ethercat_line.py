@@ -2,6 +2,7 @@
 namespace: bring-up as SOEM does it, CST process data, lock-step cycles, and the faults
 (slave killed, state refused, master lost, emergencies, malformed frames)."""
 
+import contextlib
 import dataclasses
 import os
 import socket
@@ -14,7 +15,11 @@ import pytest
 from driver.clock import clock_for
 from driver.drive_group import DriveGroup, EthercatLine
 from driver.ethercat_drive import JointOnLine, open_ethercat_drives
-from driver.ethercat_master import CONFIGURING_RETURN_TIMEOUT_US, _packet_sockets
+from driver.ethercat_master import (
+    CONFIGURING_RETURN_TIMEOUT_US,
+    LOST_FRAMES_IN_A_ROW,
+    _packet_sockets,
+)
 from driver.ethercat_transport import open_ethercat_transports
 from driver.interface import (
     SAMPLE_MOTOR_CURRENT,
@@ -22,6 +27,7 @@ from driver.interface import (
     DriveFault,
     DriveLost,
     ProfileError,
+    SampleLost,
 )
 from model.parameters import load_model
 from protocol import esi_path, objects
@@ -173,7 +179,9 @@ def test_identity_other_than_the_esi_is_refused(link):
 
 
 @pytest.mark.real_time
-def test_killed_slave_process_is_lost_within_one_cycle(link):
+def test_killed_slave_process_is_lost_once_its_frames_stay_lost(link):
+    """The slaves' process killed: its first LOST_FRAMES_IN_A_ROW frames are ridden through
+    as lost ones (a bit error looks the same to a master), the next fails the line."""
     with slaves(link, 1) as line, link.entered():
         [transport] = open_ethercat_transports(link.master_port, [0], clock=clock_for(True),
                                                response_timeout=0.2)
@@ -182,9 +190,13 @@ def test_killed_slave_process_is_lost_within_one_cycle(link):
             for _ in range(10):
                 transport.exchange()
             line.kill()
+            for _ in range(LOST_FRAMES_IN_A_ROW):
+                with pytest.raises(SampleLost):
+                    transport.exchange()
             with pytest.raises(DriveLost, match="no frame came back"):
                 transport.exchange()
-            assert transport.line.frames == 11  # the first frame after the kill
+            # the first frames after the kill
+            assert transport.line.frames == 11 + LOST_FRAMES_IN_A_ROW
             assert isinstance(transport.failure, DriveLost)
         finally:
             close([transport])
@@ -235,7 +247,8 @@ def test_master_loss_trips_the_watchdog_and_the_drive_stops_on_its_brake(link):
         [drive] = open_ethercat_drives(link.master_port, [joint(0)], clock=clock_for(False))
         drive.start()
         for _ in range(50):
-            drive.sync()
+            with contextlib.suppress(SampleLost):  # a cycle skipped, as the loop skips it
+                drive.sync()
             drive.command_current(0.2)
         # in OP on the wall clock SOEM polls for its frames (`_poll_for_frames`)
         sockets = _packet_sockets(link.master_port)
@@ -313,12 +326,14 @@ def test_a_stalled_controller_holds_the_command_instead_of_tripping_the_watchdog
         try:
             group.start()
             for _ in range(20):
-                group.sync()
+                with contextlib.suppress(SampleLost):  # a cycle skipped, as the loop skips it
+                    group.sync()
                 group.command_currents([0.1, -0.1])
                 time.sleep(0.001)
             time.sleep(0.5)  # five watchdog times without a cycle
             for _ in range(20):
-                table = group.sync()
+                with contextlib.suppress(SampleLost):
+                    table = group.sync()
                 group.command_currents([0.1, -0.1])
                 time.sleep(0.001)
             assert [round(c, 1) for c in table[:, SAMPLE_MOTOR_CURRENT]] == [0.1, -0.1]

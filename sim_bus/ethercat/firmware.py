@@ -195,6 +195,7 @@ class SlaveFirmware:
         self.refused_outputs = 0  # output values the device refused (out of its range)
         self.delay_next_frame = 0.0  # s, fault injection: hold the frame this long
         self.repeat_next_frame = False  # fault injection: send the frame twice
+        self.lose_next_frame = False  # fault injection: the frame lost on its way back
         device.add_emergency_handler(self._emergency)
         device.add_fault_handler(self._communication_fault)
 
@@ -584,6 +585,8 @@ class SlaveFirmware:
             self.repeat_next_frame = True
         elif fault is Fault.LEAVES_OP:
             self.leave_op_on_error(ec.AL_SYNCHRONIZATION_ERROR)
+        elif fault is Fault.FRAME_LOST:
+            self.lose_next_frame = True
         else:
             log.warning("fault %s has no EtherCAT equivalent here", fault.name.lower())
 

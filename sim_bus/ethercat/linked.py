@@ -43,6 +43,7 @@ _U16 = struct.Struct("<H")
 _PRESENT = attrgetter("present")
 FIRST_STATION_ADDRESS = 0x1001  # SOEM's: position 0 gets 0x1001
 WORKING_COUNTER_PER_SLAVE = 3  # an output write counts 2, an input read 1 (LRW)
+NO_FRAME = -1  # SOEM's EC_NOFRAME: receive_processdata's answer when no frame came back
 
 
 class LinkedSlave:
@@ -278,6 +279,10 @@ class LinkedMaster:
             image = self._image
             self._wkc = (image.exchange() if image is not None
                          else sum(slave._exchange() for slave in self.slaves))
+            if self._segment.frame_lost():
+                # SOEM's answer for a frame that did not come back; what the slaves wrote
+                # stands in `input`, which a master reads only for a frame that came back
+                self._wkc = NO_FRAME
             self._segment.frames += 1
             self._clock.after_frame()
             self._segment.drives.renew_draws()  # a few a cycle, not all in one

@@ -57,6 +57,9 @@ _TIMESPEC = struct.Struct("@qq")
 _MASTER_LOSS = attrgetter("master_loss")
 _DELAYED = attrgetter("delay_next_frame")
 _REPEATED = attrgetter("repeat_next_frame")
+_LOST = attrgetter("lose_next_frame")
+# the datagrams that carry process data, through the FMMUs
+_LOGICAL = frozenset((ec.Command.LRD, ec.Command.LWR, ec.Command.LRW))
 
 
 class Segment:
@@ -240,6 +243,21 @@ class Segment:
             firmware.repeat_next_frame = False
         return delay, twice
 
+    def frame_lost(self, frame: bytearray | None = None, length: int = 0) -> bool:
+        """Fault injection: whether the process data frame just processed (`frame`, its
+        first `length` bytes; None: one known to carry process data) is lost on its way back
+        (every slave took it; the master gets nothing). Another frame (a mailbox access, the
+        SDO write that injected the fault) passes: the fault is the cycle's."""
+        firmwares = self.firmwares
+        if not any(map(_LOST, firmwares)):
+            return False
+        if frame is not None and not any(
+                span[0] in _LOGICAL for span in ec.datagram_spans(frame, length) or ()):
+            return False
+        for firmware in firmwares:
+            firmware.lose_next_frame = False
+        return True
+
 
 def pass_frame(escs: Sequence[Esc], frame: bytearray, length: int, now: float,
                batch: FrameBatch | None = None) -> bool:
@@ -368,6 +386,8 @@ def run(sock: socket.socket, segment: Segment, stop: threading.Event) -> None:
         except Exception:  # a slave's bug must not take the whole line down
             log.exception("frame of %d bytes dropped", length)
             continue
+        if answer and segment.frame_lost(buffer, length):
+            answer = False  # its slaves ran it; the master waits for it in vain
         if answer:
             delay, twice = segment.injected_timing()
             if delay:
