@@ -9,9 +9,11 @@ second process: lock-step frames per second and the frame round trip at 1 kHz
 figures, which mean little without them.
 """
 
+import argparse
 import json
 import os
 import random
+import signal
 import subprocess
 import sys
 import time
@@ -129,6 +131,18 @@ def _ethercat(cycles: int, sync: str, lines: tuple[int, ...] = ETHERCAT_LINES,
     return results
 
 
+class _Stopped(BaseException):
+    """A signal stopped the bench: raised where the main thread is, so every process,
+    busy loop and network namespace it made is ended by the `with` and `finally` that made
+    it (the default SIGTERM left them running: a `sim-bus` serving nobody, busy loops,
+    namespaces). Not an Exception: nothing on the way treats it as a failed measurement."""
+
+
+def _stop_on(signum: int, _frame) -> None:
+    signal.signal(signum, signal.SIG_DFL)  # a second one ends the bench at once
+    raise _Stopped(signal.Signals(signum).name)
+
+
 def _velocity_limit() -> float:
     from model.parameters import load_model
 
@@ -174,6 +188,20 @@ def main(argv: list[str] | None = None) -> int:
     configure_logging(parser.prog, args.log_level)
     if args.robot is None and (args.sim or args.busy_loops):
         return usage_error(parser.prog, "--sim and --busy-loops go with --robot FILE")
+    previous = {signum: signal.signal(signum, _stop_on)
+                for signum in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return _measure(parser.prog, args)
+    except _Stopped as stopped:
+        return job_error(parser.prog, f"stopped by {stopped}: no figures (what it started "
+                                      "has ended)")
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+
+def _measure(prog: str, args: argparse.Namespace) -> int:
+    """What `main` measures, once its arguments are checked; its exit code."""
     from driver import DriveError
 
     result: dict = {"cpus": os.cpu_count(),
@@ -187,9 +215,9 @@ def main(argv: list[str] | None = None) -> int:
             result.update(robot_real_time(args.robot, args.duration, args.starts, args.sync,
                                           sim=args.sim, busy_loops=args.busy_loops))
         except RobotFileError as exc:
-            return usage_error(parser.prog, str(exc))
+            return usage_error(prog, str(exc))
         except LinkUnavailable as exc:
-            return job_error(parser.prog, f"{args.robot}: its EtherCAT lines need a veth "
+            return job_error(prog, f"{args.robot}: its EtherCAT lines need a veth "
                                           f"between two network namespaces: {exc}")
         print(json.dumps(result))
         return 0
@@ -211,7 +239,7 @@ def main(argv: list[str] | None = None) -> int:
             if lines is not None:
                 result["ethercat_veth_two_processes"] = lines
     except (DriveError, RuntimeError, OSError) as exc:
-        return job_error(parser.prog, f"measurement failed: {exc}")
+        return job_error(prog, f"measurement failed: {exc}")
     print(json.dumps(result))
     return 0
 

@@ -206,7 +206,7 @@ def _master(inside: Callable[[str, list[str]], list[str]], path: Path, duration:
     _place(master, cpus)
     try:
         stdout, stderr = master.communicate(timeout=duration * 20 + START_TIMEOUT)
-    except subprocess.TimeoutExpired:
+    except BaseException:  # timed out, or the bench itself was stopped
         master.kill()
         master.communicate()
         raise

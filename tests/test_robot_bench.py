@@ -6,10 +6,14 @@ the busy loops are gone afterwards."""
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 
 import pytest
+
+from tests.conftest import wait_for
 
 pytestmark = [pytest.mark.subprocess, pytest.mark.slow]
 
@@ -98,3 +102,58 @@ def test_the_drives_get_the_last_cpu_and_the_master_the_others():
     robot_bench._place(child, drives)
     out, _ = child.communicate("\n", timeout=60)
     assert out.strip() == str(sorted(drives))
+
+
+def _descendants(pid: int) -> set[int]:
+    """Every process below `pid` now (children, theirs, ...), by /proc's parent ids."""
+    parents = {}
+    for entry in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                parents[int(entry)] = int(f.read().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            continue
+    found, frontier = set(), {pid}
+    while frontier:
+        frontier = {child for child, parent in parents.items() if parent in frontier}
+        found |= frontier
+    return found
+
+
+def _running(pid: int) -> bool:
+    """Whether `pid` is a process that has not ended (a zombie has)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.real_time
+def test_a_stopped_bench_ends_everything_it_started(tmp_path):
+    """SIGTERM in the middle of a start: exit 1 with one line, and the drives' process, the
+    master and the busy loop the bench started are gone (the default SIGTERM left them all
+    running: a sim-bus serving nobody, a loop spinning for ever, namespaces on EtherCAT)."""
+    robot = tmp_path / "elbow.toml"
+    robot.write_text(ELBOW)
+    bench = subprocess.Popen([sys.executable, "-m", "commands.bus_bench", "--robot", str(robot),
+                              "--duration", "5", "--starts", "1", "--busy-loops", "1"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        for line in bench.stderr:
+            if "start 1/1" in line:
+                break
+        assert wait_for(lambda: len(_descendants(bench.pid)) >= 3, 60)  # loop, drives, master
+        time.sleep(0.5)
+        started = _descendants(bench.pid)
+        bench.send_signal(signal.SIGTERM)
+        stdout, stderr = bench.communicate(timeout=120)
+    finally:
+        if bench.poll() is None:
+            bench.kill()
+            bench.wait()
+    assert bench.returncode == 1, stderr[-2000:]
+    assert "bus-bench: error: stopped by SIGTERM: no figures" in stderr
+    assert stdout == ""
+    assert wait_for(lambda: not any(map(_running, started)), 10), [
+        pid for pid in started if _running(pid)]
