@@ -188,16 +188,13 @@ def main(argv: list[str] | None = None) -> int:
     configure_logging(parser.prog, args.log_level)
     if args.robot is None and (args.sim or args.busy_loops):
         return usage_error(parser.prog, "--sim and --busy-loops go with --robot FILE")
-    previous = {signum: signal.signal(signum, _stop_on)
-                for signum in (signal.SIGINT, signal.SIGTERM)}
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, _stop_on)  # given back on return (`reports_failures`)
     try:
         return _measure(parser.prog, args)
     except _Stopped as stopped:
         return job_error(parser.prog, f"stopped by {stopped}: no figures (what it started "
                                       "has ended)")
-    finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
 
 
 def _measure(prog: str, args: argparse.Namespace) -> int:

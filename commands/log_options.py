@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import functools
 import logging
+import signal
 import sys
 import threading
 from collections.abc import Callable
@@ -99,18 +100,30 @@ class ThreadFailures:
         threading.excepthook = self._previous
 
 
+_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
 def reports_failures(prog: str) -> Callable[[Callable[..., int]], Callable[..., int]]:
     """The last net of a command's `main`: an exception nothing else caught (a bug, or an
     input no check foresaw) is one line, `PROG: error: internal error: TYPE: message`, and
     exit code 1, never a traceback (it goes to --log-level debug). Usage errors and signals
-    pass through (SystemExit, KeyboardInterrupt are not Exceptions)."""
+    pass through (SystemExit, KeyboardInterrupt are not Exceptions). The SIGINT and SIGTERM
+    handlers a `main` sets (to end its run) are given back when it returns: a program that
+    calls it (tests/gap_case.py records, then identifies, in one process) otherwise went on
+    with a handler that set a stale stop event, and ignored SIGTERM."""
     def wrap(main: Callable[..., int]) -> Callable[..., int]:
         @functools.wraps(main)
         def run(argv: list[str] | None = None) -> int:
+            previous = [(signum, signal.getsignal(signum)) for signum in _STOP_SIGNALS]
             try:
                 return main(argv)
             except Exception as exc:
                 print(f"{prog}: error: {internal_error(exc)}", file=sys.stderr, flush=True)
                 return 1
+            finally:
+                if threading.current_thread() is threading.main_thread():
+                    for signum, handler in previous:
+                        if handler is not None:  # None: set outside Python, left as it is
+                            signal.signal(signum, handler)
         return run
     return wrap
