@@ -215,7 +215,7 @@ def _measure(prog: str, args: argparse.Namespace) -> int:
             return usage_error(prog, str(exc))
         except LinkUnavailable as exc:
             return job_error(prog, f"{args.robot}: its EtherCAT lines need a veth "
-                                          f"between two network namespaces: {exc}")
+                                   f"between two network namespaces: {exc}")
         print(json.dumps(result))
         return 0
     try:
