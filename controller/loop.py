@@ -165,17 +165,18 @@ class LoopReport:
         against the host's own stalls (`driver.host_floor`)."""
         if cycles:
             longest = max(range(len(MISSED_CAUSES)), key=phases.__getitem__)
-            self.missed_by_cause[MISSED_CAUSES[longest]] += cycles
-            if len(self.missed_at) < MISSES_KEPT:
-                self.missed_at.append((at, cycles))
+            self._count(MISSED_CAUSES[longest], cycles, at)
 
     def count_lost(self, at: float) -> None:
         """A cycle whose sample never came (seen at `at`, s on the loop's clock): missed, a
         late sample's."""
         self.lost_samples += 1
-        self.missed_by_cause[LATE_SAMPLE] += 1
+        self._count(LATE_SAMPLE, 1, at)
+
+    def _count(self, cause: str, cycles: int, at: float) -> None:
+        self.missed_by_cause[cause] += cycles
         if len(self.missed_at) < MISSES_KEPT:
-            self.missed_at.append((at, 1))
+            self.missed_at.append((at, cycles))
 
 
 # The cycle's array work in two compiled calls whatever the number of joints: as numpy
