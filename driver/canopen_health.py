@@ -85,7 +85,8 @@ class BusWatch:
         self._due = -math.inf
         self._thread_stop: threading.Event | None = None
         # what counts the frames received (`frames`, `last_stamp`): the network itself where
-        # it does (`counts_frames`, the in-process link), else this watch, through one wrap
+        # it does (`counts_frames`: the in-process link, the lean udp_multicast network of
+        # `driver.canopen_multicast`), else this watch, through one wrap
         # of the network's entry point for received frames
         self._counts: BusWatch | canopen.Network = self
         if getattr(network, "counts_frames", False):

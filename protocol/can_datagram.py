@@ -9,6 +9,7 @@ import ctypes
 import ipaddress
 import socket
 import struct
+from collections.abc import Sequence
 
 import msgpack
 
@@ -84,6 +85,23 @@ def encode(can_id: int, data: bytes, timestamp: float, remote: bool = False) -> 
     return b"".join((_HEAD, _DOUBLE.pack(timestamp),
                      _id_part(can_id) if extended else _STANDARD_IDS[can_id],
                      _MIDDLE[(extended, bool(remote), size)], data, _TAIL))
+
+
+def encode_slices(data: bytes, frames: Sequence[tuple[int, int, int]],
+                  timestamp: float) -> list[bytes]:
+    """The datagrams of several classic data frames sent together at `timestamp`, each
+    `(can_id, start, stop)` a slice of `data` (a drive's TPDOs cut from one packed buffer, a
+    master's RPDOs from its output image): `encode`'s, the stamp packed once."""
+    stamp = _HEAD + _DOUBLE.pack(timestamp)
+    out = []
+    for can_id, start, stop in frames:
+        size = stop - start
+        if size > 0x7F or not 0 <= can_id <= 0x7FF:
+            out.append(encode(can_id, data[start:stop], timestamp))
+            continue
+        out.append(b"".join((stamp, _STANDARD_IDS[can_id], _MIDDLE[(False, False, size)],
+                             data[start:stop], _TAIL)))
+    return out
 
 
 # where `decode`'s fast path finds the parts of a classic data frame's map

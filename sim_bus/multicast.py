@@ -31,6 +31,7 @@ import select
 import socket
 import threading
 import time
+from collections.abc import Sequence
 
 import can
 import canopen
@@ -42,6 +43,7 @@ from protocol.can_datagram import (
     SO_ATTACH_FILTER,
     decode,
     encode,
+    encode_slices,
     own_frames_fprog,
     receiver_options,
     sender_options,
@@ -86,6 +88,16 @@ class MulticastNetwork(canopen.Network):
         datagram = encode(can_id, bytes(data), time.time(), remote)
         with self._send_lock:  # nodes send from their own threads (heartbeats)
             self._sender.send(datagram)
+
+    def send_slices(self, data: bytes, frames: Sequence[tuple[int, int, int]]) -> None:
+        """Several frames, each `(can_id, start, stop)` a slice of `data` (a drive's TPDOs cut
+        from its bus's packed bytes, `sim_bus.canopen_node`), packed together and sent in
+        order, with one stamp and one hold of the lock: the frames of one answer leave
+        together."""
+        send = self._sender.send
+        with self._send_lock:
+            for datagram in encode_slices(data, frames, time.time()):
+                send(datagram)
 
     def receive_ready(self) -> bool:
         """Dispatch every datagram waiting on the socket to this network's subscribers, as

@@ -1,7 +1,8 @@
-"""The udp_multicast datagram joined from its parts (`protocol.can_datagram.encode`) is, byte
-for byte, what python-can's own `pack_message` writes for the same frame: standard and
-extended ids at every msgpack integer width, 0 to 8 data bytes, data and remote frames (the
-length of a remote frame is its data's, as canopen sends it: none)."""
+"""The udp_multicast datagram joined from its parts (`protocol.can_datagram.encode`, and
+`encode_slices` for several frames cut from one buffer) is, byte for byte, what python-can's
+own `pack_message` writes for the same frame: standard and extended ids at every msgpack
+integer width, 0 to 8 data bytes, data and remote frames (the length of a remote frame is its
+data's, as canopen sends it: none)."""
 
 import itertools
 
@@ -9,7 +10,7 @@ import can
 import pytest
 from can.interfaces.udp_multicast.utils import pack_message
 
-from protocol.can_datagram import decode, encode
+from protocol.can_datagram import decode, encode, encode_slices
 
 IDS = (0x000, 0x001, 0x07F, 0x080, 0x0FF, 0x100, 0x182, 0x7FF,  # 11-bit
        0x800, 0xFFFF, 0x10000, 0x1FFFFFFF)  # 29-bit
@@ -26,6 +27,17 @@ def test_encode_writes_python_cans_datagram():
         assert encode(can_id, data, stamp, remote) == pack_message(message), (can_id, size)
         if not remote:
             assert decode(encode(can_id, data, stamp)) == (can_id, data)
+
+
+def test_frames_cut_from_one_buffer_are_python_cans_datagrams_with_one_stamp():
+    data = bytes(range(1, 40))
+    cuts = [(can_id, k, k + size) for k, (can_id, size) in
+            enumerate(zip(IDS, itertools.cycle((8, 0, 3, 6))))]
+    stamp = 1_764_000_000.25
+    assert encode_slices(data, cuts, stamp) == [
+        pack_message(can.Message(timestamp=stamp, arbitration_id=can_id,
+                                 data=data[start:stop], is_extended_id=can_id > 0x7FF))
+        for can_id, start, stop in cuts]
 
 
 def test_decode_reads_python_cans_datagrams_in_place_and_anything_else_through_msgpack():

@@ -31,14 +31,12 @@ def test_own_frames_are_dropped_and_another_sockets_arrive_with_the_kernels_stam
         assert isinstance(network, MulticastNetwork)
         delivered: list[tuple[int, bytes, float]] = []
         arrived = threading.Event()
-        deliver = network.notify
 
-        def notify(can_id: int, data: bytes, timestamp: float) -> None:  # as BusWatch wraps it
+        def record(can_id: int, data: bytes, timestamp: float) -> None:
             delivered.append((can_id, bytes(data), timestamp))
-            deliver(can_id, data, timestamp)
+            arrived.set()
 
-        network.notify = notify
-        network.subscribe(TPDO1, lambda can_id, data, timestamp: arrived.set())
+        network.subscribe(TPDO1, record)
         before = time.time()
         network.send_message(TPDO1, b"\x01\x02")  # ours: looped back by the host, dropped
         other.send(can.Message(arbitration_id=TPDO1, data=b"\x07", is_extended_id=False))
@@ -47,6 +45,8 @@ def test_own_frames_are_dropped_and_another_sockets_arrive_with_the_kernels_stam
         time.sleep(0.05)  # anything still on its way (nothing should be) gets its chance
         assert [(can_id, data) for can_id, data, _ in delivered] == [(TPDO1, b"\x07")]
         assert before <= delivered[0][2] <= after
+        # counted by the network itself, as BusWatch reads it: the one frame, its stamp
+        assert (network.frames, network.last_stamp) == (1, delivered[0][2])
         # python-can reads the master's datagram as its own kind
         seen = other.recv(1)
         while seen is not None and bytes(seen.data) == b"\x07":  # its own, looped back
