@@ -87,14 +87,20 @@ OPERATIONAL_RETURN_TIMEOUT_US = 2_000
 # watchdog) held a line whose frame a bit error had eaten for as long as its drives forgive
 # a silent master, and then failed it. On drive time a frame is never late, only missing.
 LOST_AFTER_PERIODS = 2
-# Frames in a row that may be lost (none came back) before the line fails: the drives hold
-# the outputs they had meanwhile. In real time each costs at most LOST_AFTER_PERIODS periods,
-# so a line whose frames stay lost stops within about six periods of its last whole one: far
-# inside a free-running drive's process data watchdog (100 ms), about where a DC drive gives
-# up on its own (it counts each SYNC0 window without outputs and leaves OP past its sync
-# error limit: talos_32.toml's 9 at the fourth empty window in a row), which the state check
-# then names. A frame that comes back short of its working counter is no lost frame: a slave
-# in it did not take its part (left OP, gone), and the line fails at once, naming it.
+# How long frames may stay lost (none came back) before the line fails; the drives hold the
+# outputs they had meanwhile. In real time: as long as the drives themselves hold without a
+# frame, their process data watchdog (`watchdog`, the ESC's 100 ms unless given) since the
+# last whole frame; past it a free-running drive has stopped itself, and the line fails
+# naming every slave. Failing sooner stops a robot whose drives still hold: at the third
+# frame lost in a row (6 ms at 1 kHz, the rule before) 3 of 10 one-minute starts of
+# talos_32 over a veth (free run) failed on a host that held the virtual line's process for
+# a few ms, a stall its drives forgave. A DC drive gives up sooner on its own (it counts each
+# SYNC0 window without outputs and leaves OP past its sync error limit: talos_32.toml's 9 at
+# the fourth empty window in a row), and the first frame back says so. On drive time a frame
+# is never late: one that does not come back within the response timeout is missing, and
+# the line fails at the (LOST_FRAMES_IN_A_ROW + 1)th in a row. A frame that comes back short
+# of its working counter is no lost frame: a slave in it did not take its part (left OP,
+# gone), and the line fails at once, naming it.
 LOST_FRAMES_IN_A_ROW = 2
 
 
@@ -154,6 +160,9 @@ class EthercatMaster:
         self.last_loss: SampleLost | None = None  # the last, raised for cycle `last_loss_at`
         self.last_loss_at = 0
         self._lost_in_a_row = 0
+        # time.monotonic() of the last whole process data frame: in real time the line rides
+        # through lost frames until the drives' watchdog has passed since (`_rides_through`)
+        self._whole_at = 0.0
         self.watchdog = watchdog
         self.master: pysoem.Master | None = None
         self.slaves: list = []
@@ -334,7 +343,7 @@ class EthercatMaster:
             if period:
                 self.frame_timeout_us = min(self.response_timeout_us,
                                             round(LOST_AFTER_PERIODS * period * 1e6))
-        self._last_frame = time.monotonic()
+        self._last_frame = self._whole_at = time.monotonic()
         self._start_keeper()
 
     def settle(self) -> None:
@@ -442,7 +451,8 @@ class EthercatMaster:
         """Send the one frame of this cycle and check its working counter (DC: and the
         master's offset from the reference clock); every STATE_CHECK_FRAMES cycles, every
         slave's AL status too. A frame that did not come back raises SampleLost while the
-        line rides through it (`LOST_FRAMES_IN_A_ROW`)."""
+        line rides through it (`LOST_FRAMES_IN_A_ROW`: in real time up to the drives'
+        watchdog)."""
         asked = time.monotonic()
         with self.lock:
             self.frames += 1
@@ -455,9 +465,9 @@ class EthercatMaster:
                 self.last_loss = SampleLost(
                     f"EtherCAT {self.interface}: the frame of cycle {self.frames} did not come "
                     f"back within {self.frame_timeout_us / 1e3:g} ms ({self._lost_in_a_row} "
-                    f"in a row; the line fails at {LOST_FRAMES_IN_A_ROW + 1}): the drives "
-                    "hold their last command")
-                log.warning("%s", self.last_loss)
+                    f"in a row; {self._fails_at()}): the drives hold their last command")
+                if self._lost_in_a_row == 1:  # once for a run of lost frames, not each
+                    log.warning("%s", self.last_loss)
                 raise self.last_loss
             if self.dc is not None:
                 self.dc.observe(self.master.dc_time, self._sent_at)
@@ -589,8 +599,8 @@ class EthercatMaster:
 
     def _frame(self) -> bool:
         """One process data frame; whether it came back whole. One that did not come back
-        in OP is lost, and ridden through up to LOST_FRAMES_IN_A_ROW in a row; past that, or
-        short of its working counter, the line fails (sticky, raised)."""
+        in OP is lost, and ridden through (`_rides_through`); past that, or short of its
+        working counter, the line fails (sticky, raised)."""
         if self.failure is not None:
             raise self.failure
         master = self.master
@@ -599,9 +609,15 @@ class EthercatMaster:
         wkc = master.receive_processdata(self.frame_timeout_us)
         self._last_frame = time.monotonic()
         if wkc == self._expected_wkc:
-            self._lost_in_a_row = 0
+            if self._lost_in_a_row:
+                log.warning("EtherCAT %s: frames back after %d lost in a row%s", self.interface,
+                            self._lost_in_a_row,
+                            f" ({(self._last_frame - self._whole_at) * 1e3:.0f} ms without one)"
+                            if self.clock.runs_alone else "")
+                self._lost_in_a_row = 0
+            self._whole_at = self._last_frame
             return True
-        if wkc < 0 and self.operational and self._lost_in_a_row < LOST_FRAMES_IN_A_ROW:
+        if wkc < 0 and self.operational and self._rides_through():
             self._lost_in_a_row += 1
             self.lost_frames += 1
             return False
@@ -609,16 +625,38 @@ class EthercatMaster:
         log.error("%s", self.failure)
         raise self.failure
 
+    def _drives_hold(self) -> float:
+        """s the drives hold their outputs without a frame: their process data watchdog."""
+        return self.watchdog if self.watchdog is not None else DEFAULT_WATCHDOG
+
+    def _rides_through(self) -> bool:
+        """Whether the frame just lost is ridden through (`LOST_FRAMES_IN_A_ROW`): in real
+        time while the drives' watchdog has not passed since the last whole frame, on drive
+        time up to LOST_FRAMES_IN_A_ROW in a row."""
+        if self.clock.runs_alone:
+            return self._last_frame - self._whole_at < self._drives_hold()
+        return self._lost_in_a_row < LOST_FRAMES_IN_A_ROW
+
+    def _fails_at(self) -> str:
+        """When frames that stay lost fail the line, in words."""
+        if self.clock.runs_alone:
+            return (f"{(self._last_frame - self._whole_at) * 1e3:.0f} ms without a whole frame; "
+                    f"the line fails at the drives' watchdog, {self._drives_hold() * 1e3:g} ms")
+        return f"the line fails at {LOST_FRAMES_IN_A_ROW + 1}"
+
     def _diagnose(self, wkc: int) -> LineLost:
         """The failed frame's report: the slaves in the cycle not in OP (or not answering)
         as read right after it, each with its AL status code in words."""
         in_cycle = [p for p in range(len(self.slaves)) if p not in self._released]
         if wkc < 0:
             # nothing answers, so no state can be read: every slave in the cycle is lost
+            silence = (f", {(self._last_frame - self._whole_at) * 1e3:.0f} ms without a whole "
+                       "frame, past the drives' watchdog"
+                       if self.operational and self.clock.runs_alone else "")
             return LineLost(
                 f"EtherCAT {self.interface}: no frame came back within "
                 f"{self.frame_timeout_us / 1e3:g} ms (cycle {self.frames}, "
-                f"{self._lost_in_a_row + 1} in a row): "
+                f"{self._lost_in_a_row + 1} in a row{silence}): "
                 f"{', '.join(self.label(p) for p in in_cycle)} lost, the line is broken or "
                 "its slaves are off", tuple(in_cycle))
         text = (f"EtherCAT {self.interface}: working counter {wkc}, expected "

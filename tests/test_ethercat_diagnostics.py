@@ -11,10 +11,12 @@ In lock-step the line is linked in this process (`sim_bus.ethercat.linked`); ove
 
 import json
 import os
+import re
 import shutil
 import struct
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pysoem
@@ -54,17 +56,19 @@ NAMES = ("hip_joint", "knee_joint", "ankle_joint")
 
 
 class LinkedRobot:
-    """Three joints on one linked EtherCAT line in lock-step, as `--sim` builds them."""
+    """Three joints on one linked EtherCAT line in lock-step, as `--sim` builds them (with
+    `real_time`, the master on the wall clock, the slaves' watchdog `watchdog` s)."""
 
-    def __init__(self, names=NAMES, sync: str = "free_run"):
+    def __init__(self, names=NAMES, sync: str = "free_run", real_time: bool = False,
+                 watchdog: float | None = None):
         self.devices = [make_device(MODEL, Payload(), SensorNoise(seed=k), commissioned=True)
                         for k in range(len(names))]
         self.segment = Segment(self.devices)
         joints = [JointOnLine(k, MODEL.limits.velocity_max, MODEL.parameters.drive_gain,
                               current_max=MODEL.limits.current_max, name=name)
                   for k, name in enumerate(names)]
-        drives = open_ethercat_drives("sim", joints, clock=clock_for(True), response_timeout=1.0,
-                                      sync=sync,
+        drives = open_ethercat_drives("sim", joints, clock=clock_for(not real_time),
+                                      response_timeout=1.0, watchdog=watchdog, sync=sync,
                                       open_master=lambda: LinkedMaster(
                                           self.segment, clock_for(sync == "dc")))
         for drive in drives:
@@ -304,6 +308,53 @@ def test_frames_lost_past_what_the_drives_forgive_fail_the_line(robot):
     assert (f"no frame came back within 1000 ms (cycle 6, {LOST_FRAMES_IN_A_ROW + 1} in a "
             "row): slave 0 (hip_joint), slave 1 (knee_joint), slave 2 (ankle_joint) lost"
             ) in str(failure)
+
+
+@pytest.mark.real_time
+def test_in_real_time_frames_lost_are_ridden_through_until_the_drives_watchdog(caplog):
+    """On the wall clock the line rides through frames lost in a row for as long as its
+    drives hold without one (their process data watchdog since the last whole frame, here
+    300 ms), more than the drive-time rule's LOST_FRAMES_IN_A_ROW: a host that holds the
+    line's process for a few ms costs cycles, not the robot. One warning for a run of lost
+    frames and one when they come back. Frames that stay lost fail the line once the
+    watchdog has passed, every slave named."""
+    robot = LinkedRobot(real_time=True, watchdog=0.3)
+    try:
+        robot.group.start()
+        assert robot.run(3) == (3, None)
+        line = robot.group.segments[0]._line
+        caplog.set_level("WARNING", logger="driver.ethercat_master")
+        in_a_row = LOST_FRAMES_IN_A_ROW + 3
+        for lost in range(1, in_a_row + 1):
+            robot.devices[0].inject(Fault.FRAME_LOST)
+            with pytest.raises(SampleLost, match=rf"\({lost} in a row; \d+ ms without a whole "
+                                                 r"frame; the line fails at the drives' "
+                                                 r"watchdog, 300 ms\)"):
+                robot.group.sync()
+            time.sleep(1e-3)
+        assert robot.run(2) == (2, None)
+        assert line.lost_frames == in_a_row and line.failure is None
+        warnings = [r.getMessage() for r in caplog.records]
+        assert len(warnings) == 2 and "(1 in a row" in warnings[0]
+        assert f"frames back after {in_a_row} lost in a row" in warnings[1]
+        while True:  # now they stay lost
+            robot.devices[0].inject(Fault.FRAME_LOST)
+            try:
+                robot.group.sync()
+            except SampleLost:
+                time.sleep(1e-3)
+                continue
+            except JointFailure as exc:
+                failure = exc
+            break
+        assert isinstance(failure.cause, LineLost)
+        silence = re.search(r"in a row, (\d+) ms without a whole frame, past the drives' "
+                            r"watchdog\): slave 0 \(hip_joint\), slave 1 \(knee_joint\), "
+                            r"slave 2 \(ankle_joint\) lost", str(failure))
+        assert silence is not None, str(failure)
+        assert int(silence.group(1)) >= 300
+    finally:
+        robot.close()
 
 
 def _robot_file(tmp_path, names=NAMES) -> str:
