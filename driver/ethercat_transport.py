@@ -18,7 +18,7 @@ from typing import Any
 import pysoem
 
 from driver.clock import DriveClock, WallClock
-from driver.ethercat_master import EthercatMaster
+from driver.ethercat_master import EthercatMaster, LineSilent
 from driver.interface import DriveError, DriveLost, ProfileError, SdoRefused
 from driver.transport import Transport
 from protocol import cia301, cia402, objects
@@ -146,7 +146,11 @@ class EthercatTransport(Transport):
     def _mailbox(self, access, index: int, subindex: int, *data: bytes):
         """One CoE SDO access, tried again when the mailbox exchange itself got no answer (a
         register access SOEM gave up on after its few ms): an SDO abort is the drive's
-        answer and is not retried."""
+        answer and is not retried. On a line where nothing answers any more (`LineSilent`)
+        it fails at once."""
+        if isinstance(self.line.failure, LineSilent):
+            raise DriveError(f"{self.name}: CoE access 0x{index:04X}:{subindex:02X} not tried: "
+                             "nothing on the line answers") from self.line.failure
         for attempt in range(MAILBOX_ATTEMPTS):
             try:
                 with self.line.lock:

@@ -317,7 +317,7 @@ def test_in_real_time_frames_lost_are_ridden_through_until_the_drives_watchdog(c
     300 ms), more than the drive-time rule's LOST_FRAMES_IN_A_ROW: a host that holds the
     line's process for a few ms costs cycles, not the robot. One warning for a run of lost
     frames and one when they come back. Frames that stay lost fail the line once the
-    watchdog has passed, every slave named."""
+    watchdog has passed, every slave named, and then no CoE access waits for an answer."""
     robot = LinkedRobot(real_time=True, watchdog=0.3)
     try:
         robot.group.start()
@@ -353,6 +353,13 @@ def test_in_real_time_frames_lost_are_ridden_through_until_the_drives_watchdog(c
                             r"slave 2 \(ankle_joint\) lost", str(failure))
         assert silence is not None, str(failure)
         assert int(silence.group(1)) >= 300
+        # nothing answers: a CoE access (the quick stop's, the close's) fails at once, not
+        # after its mailbox timeouts slave by slave (these slaves would still answer one)
+        transport = robot.group.drives[2].transport
+        with pytest.raises(DriveError, match="not tried: nothing on the line answers"):
+            transport.write(objects.CONTROLWORD, 0, 6)
+        with pytest.raises(DriveError, match="not tried: nothing on the line answers"):
+            transport.read(objects.MAX_CURRENT)
     finally:
         robot.close()
 
