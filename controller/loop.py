@@ -473,6 +473,10 @@ class ControlLoop:
         self._t: float | None = None  # drive time of the last sample (None before the first)
         self._mpc_time = 0.0  # s the last cycle spent in the policy's own call
         self._exchange_time = 0.0  # s the last cycle waited for its samples
+        # cycles in a row without a sample (lost frames the line rides through): the fault
+        # topic hears of a run of them twice, when it starts and when samples come back, not
+        # once a cycle (a line whose frames stay lost rides through up to the drives' 100 ms)
+        self._lost_in_a_row = 0
         self._joints = joints
         self._nets = [SafetyNet(policies.joint(j)) for j in range(count)]
         self._safety = BatchSafety(policies.parameters, policies.limits)
@@ -634,12 +638,19 @@ class ControlLoop:
             table = self.latest = joints.sync()
             self._exchange_time = time.perf_counter() - exchange
         except SampleLost as exc:
-            self.fault(self.time + self.options.period, "drive", str(exc),
-                       "cycle skipped: no decision, the drives hold their last command")
+            self._lost_in_a_row += 1
+            if self._lost_in_a_row == 1:
+                self.fault(self.time + self.options.period, "drive", str(exc),
+                           "cycle skipped: no decision, the drives hold their last command")
             return None
         except DriveError as exc:
             return self._fail(exc, self.time + self.options.period)
         t = self._t = float(table[0, SAMPLE_T])
+        if self._lost_in_a_row:
+            if self._lost_in_a_row > 1:
+                self.fault(t, "drive", f"{self._lost_in_a_row} cycles in a row without a "
+                           "sample", "samples back: continuing")
+            self._lost_in_a_row = 0
         for warning in joints.warnings():
             self.fault(t, "drive", warning, "continuing: the command does not use it")
         believed = self._believed
