@@ -144,10 +144,21 @@ def test_the_rhythm_expects_the_next_cycle_from_the_median_interval_of_the_last_
     t += 0.4 * period
     rhythm.sync(t)
     assert rhythm.due == pytest.approx(t + period)
-    rhythm.missed()
+    # a cycle that does not come (the master skipped a period) is expected on the same grid
+    for k in range(1, RHYTHM + 1):
+        rhythm.missed()
+        assert rhythm.due == pytest.approx(t + (k + 1) * period), k
+    rhythm.missed()  # RHYTHM periods without one: nothing is expected until a frame comes
     assert rhythm.due == math.inf
-    rhythm.sync(t + period)  # the next cycle's SYNC: expected again
+    t += (RHYTHM + 2) * period
+    rhythm.sync(t)  # the next cycle's SYNC: expected again
+    assert rhythm.due == pytest.approx(t + period)
+    rhythm.missed()
     assert rhythm.due == pytest.approx(t + 2 * period)
+    rhythm.sync(t + 2 * period)  # the one after a skipped period: the count starts again
+    for _ in range(RHYTHM):
+        rhythm.missed()
+    assert rhythm.due < math.inf
 
 
 def test_a_bus_on_a_descriptor_select_cannot_take_is_still_served():
