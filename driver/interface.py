@@ -63,9 +63,9 @@ class SampleLost(DriveError):
     """This cycle's frame did not come back (an EtherCAT frame lost on the line), and the
     line rides through it: no sample this cycle, the drives hold the outputs they had. A loop
     skips the cycle and counts it missed; the line fails with an error of its own once
-    frames stay lost past what the drives forgive (`driver.ethercat_master.
-    LOST_FRAMES_IN_A_ROW`). A caller that knows
-    nothing of it meets a DriveError, as for any other failure."""
+    frames stay lost past what the drives forgive (`driver.ethercat_master`'s
+    LOST_FRAMES_IN_A_ROW). A caller that knows nothing of it meets a DriveError, as for any
+    other failure."""
 
 
 class EncoderGlitch(DriveError):
