@@ -619,7 +619,7 @@ class EthercatMaster:
             if self._lost_in_a_row:
                 log.warning("EtherCAT %s: frames back after %d lost in a row%s", self.interface,
                             self._lost_in_a_row,
-                            f" ({(self._last_frame - self._whole_at) * 1e3:.0f} ms without one)"
+                            f" ({self._silence() * 1e3:.0f} ms without one)"
                             if self.clock.runs_alone else "")
                 self._lost_in_a_row = 0
             self._whole_at = self._last_frame
@@ -632,6 +632,11 @@ class EthercatMaster:
         log.error("%s", self.failure)
         raise self.failure
 
+    def _silence(self) -> float:
+        """s from the last whole frame to the end of the last exchange: what the drives went
+        without."""
+        return self._last_frame - self._whole_at
+
     def _drives_hold(self) -> float:
         """s the drives hold their outputs without a frame: their process data watchdog."""
         return self.watchdog if self.watchdog is not None else DEFAULT_WATCHDOG
@@ -641,13 +646,13 @@ class EthercatMaster:
         time while the drives' watchdog has not passed since the last whole frame, on drive
         time up to LOST_FRAMES_IN_A_ROW in a row."""
         if self.clock.runs_alone:
-            return self._last_frame - self._whole_at < self._drives_hold()
+            return self._silence() < self._drives_hold()
         return self._lost_in_a_row < LOST_FRAMES_IN_A_ROW
 
     def _fails_at(self) -> str:
         """When frames that stay lost fail the line, in words."""
         if self.clock.runs_alone:
-            return (f"{(self._last_frame - self._whole_at) * 1e3:.0f} ms without a whole frame; "
+            return (f"{self._silence() * 1e3:.0f} ms without a whole frame; "
                     f"the line fails at the drives' watchdog, {self._drives_hold() * 1e3:g} ms")
         return f"the line fails at {LOST_FRAMES_IN_A_ROW + 1}"
 
@@ -657,7 +662,7 @@ class EthercatMaster:
         in_cycle = [p for p in range(len(self.slaves)) if p not in self._released]
         if wkc < 0:
             # nothing answers, so no state can be read: every slave in the cycle is lost
-            silence = (f", {(self._last_frame - self._whole_at) * 1e3:.0f} ms without a whole "
+            silence = (f", {self._silence() * 1e3:.0f} ms without a whole "
                        "frame, past the drives' watchdog"
                        if self.operational and self.clock.runs_alone else "")
             return LineSilent(
