@@ -34,7 +34,7 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import pysoem
@@ -188,6 +188,10 @@ class EthercatMaster:
         self._claimed: dict[int, tuple[Callable[[], bool], Callable[[], None]]] = {}
         # one user of SOEM at a time: the cycle, CoE accesses and the keeper
         self.lock = threading.RLock()
+        # SOEM's sockets, polled for frames in OP (`_poll_for_frames`), and how deep the
+        # accesses that wait for theirs asleep are nested (`acyclic`)
+        self._polled: list[int] = []
+        self._asleep_depth = 0
         self._keeper_stop: threading.Event | None = None
         self._sent_at = 0.0  # time.monotonic() the last process data frame went out
         self._cycle_sent_at = 0.0  # ... the last cycle's own frame (DC: the keeper's look)
@@ -345,7 +349,8 @@ class EthercatMaster:
         self.operational = True
         pysoem.settings.timeouts.ret = OPERATIONAL_RETURN_TIMEOUT_US
         if self.clock.runs_alone:
-            _poll_for_frames(_packet_sockets(self.interface))
+            self._polled = _packet_sockets(self.interface)
+            _poll_for_frames(self._polled)
             period = self.dc.period_ns * 1e-9 if self.dc is not None else self.period
             if period:
                 self.frame_timeout_us = min(self.response_timeout_us,
@@ -539,8 +544,9 @@ class EthercatMaster:
 
     def _keep_once(self, stop: threading.Event,
                    window: tuple[float, float] | None = None) -> bool:
-        """One look of the keeper (DC: at `window`), under the line's lock; False: it ends."""
-        with self.lock:
+        """One look of the keeper (DC: at `window`), as an access outside the cycle
+        (`acyclic`); False: it ends."""
+        with self.acyclic():
             if stop.is_set():
                 return False
             try:
@@ -550,6 +556,28 @@ class EthercatMaster:
             except pysoem.NetworkInterfaceNotOpenError:
                 return False  # the interface went away under it: the next cycle says so
         return True
+
+    @contextlib.contextmanager
+    def acyclic(self) -> Iterator[None]:
+        """The line for an access outside the cycle (a CoE access, the keeper's frame): its
+        lock held, and the frames it sends waited for asleep where the cycle's own are
+        polled for (from OP on, on the wall clock: `_poll_for_frames`). Such an access has
+        milliseconds to spare; a thread polling at real-time priority holds its CPU until
+        the answer comes, and the answer may need that CPU: talos_32 over a veth, the
+        virtual line's thread out of real time after the configuration's burst
+        (`sim_bus.priority`), the keeper polled 2 ms on one core for a frame while the cold
+        solve held the other, and the line's thread, ready to answer it, waited those 2 ms
+        (`perf sched`): the frame was lost, and 40-50 ms went without a whole frame, at each
+        start. On a robot the NIC's and the bus's own threads want that CPU the same way."""
+        with self.lock:
+            sockets = self._polled if self._asleep_depth == 0 else ()
+            self._asleep_depth += 1
+            _poll_for_frames(sockets, poll=False)
+            try:
+                yield
+            finally:
+                self._asleep_depth -= 1
+                _poll_for_frames(sockets)
 
     def _keep_windows(self, stop: threading.Event) -> None:
         """DC: SYNC0 wants outputs in every window, also while the cycle is busy elsewhere
@@ -744,6 +772,7 @@ class EthercatMaster:
         finally:
             self.master.close()
             self.master = None
+            self._polled = []  # closed with it: the numbers may name other files now
             self.slaves = []
             self.operational = self.mapped = False
             self.dc = None
@@ -791,7 +820,7 @@ def _packet_sockets(interface: str) -> list[int]:
     return found
 
 
-def _poll_for_frames(descriptors: list[int]) -> None:
+def _poll_for_frames(descriptors: list[int] | tuple, poll: bool = True) -> None:
     """SOEM's raw sockets non-blocking, so that its wait for a frame polls instead of
     sleeping: SOEM's receive loop calls recv until the frame is in or its timeout passes,
     and on a socket it opened with a 1 us SO_RCVTIMEO the kernel sleeps the thread in recv
@@ -802,10 +831,11 @@ def _poll_for_frames(descriptors: list[int]) -> None:
     (p99 262-598 against 230-233). Only in OP and on the wall clock: the cycle's round
     trip is then short and bounded by the response timeout, while during configuration
     a thread polling for SOEM's 20 ms waits would spend the kernel's real-time bandwidth
-    (`sim_bus.priority`)."""
+    (`sim_bus.priority`). Not `poll`: blocking again, as SOEM opened them, for an access
+    outside the cycle (`EthercatMaster.acyclic`)."""
     for fd in descriptors:
         with contextlib.suppress(OSError):  # closed meanwhile: nothing to wait on
-            os.set_blocking(fd, False)
+            os.set_blocking(fd, not poll)
 
 
 def _read_state_of(slave) -> tuple[int, int] | None:

@@ -153,7 +153,7 @@ class EthercatTransport(Transport):
                              "nothing on the line answers") from self.line.failure
         for attempt in range(MAILBOX_ATTEMPTS):
             try:
-                with self.line.lock:
+                with self.line.acyclic():  # its frames waited for asleep
                     self.line.keep_alive()
                     return access(index, subindex, *data)
             except (pysoem.WkcError, pysoem.MailboxError, pysoem.PacketError) as exc:

@@ -250,9 +250,20 @@ def test_master_loss_trips_the_watchdog_and_the_drive_stops_on_its_brake(link):
             with contextlib.suppress(SampleLost):  # a cycle skipped, as the loop skips it
                 drive.sync()
             drive.command_current(0.2)
-        # in OP on the wall clock SOEM polls for its frames (`_poll_for_frames`)
+        # in OP on the wall clock SOEM polls for its frames (`_poll_for_frames`), but an
+        # access outside the cycle (CoE, the keeper's frame) waits for its own asleep,
+        # nested ones too, and the cycle polls again after it (`acyclic`)
         sockets = _packet_sockets(link.master_port)
         assert sockets and not any(os.get_blocking(fd) for fd in sockets)
+        transport = drive.transport
+        seen = transport._mailbox(lambda *_: [os.get_blocking(fd) for fd in sockets],
+                                  objects.MAX_CURRENT, 0)
+        assert seen == [True] * len(sockets)
+        with transport.line.acyclic():
+            with transport.line.acyclic():
+                assert transport.read(objects.MAX_CURRENT) > 0  # answered, waited asleep
+            assert all(os.get_blocking(fd) for fd in sockets)
+        assert not any(os.get_blocking(fd) for fd in sockets)
         # the master dies: no close, no more frames (its socket goes with its process)
         drive.transport.line.master.close()
         time.sleep(0.5)
