@@ -310,6 +310,33 @@ def test_frames_lost_past_what_the_drives_forgive_fail_the_line(robot):
             ) in str(failure)
 
 
+def test_each_fault_on_a_frames_answer_acts_on_one_answer_and_then_none():
+    """A slave's fault on the line's answer (TPDO_LATE: held, TPDO_TWICE: sent twice,
+    FRAME_LOST: lost) acts on the next answer it can act on and on no other; a line none of
+    whose slaves has one looks at them only through the flag they share (`FrameFaults`)."""
+    devices = [make_device(load_model(), Payload(), SensorNoise()) for _ in range(3)]
+    segment = Segment(devices)
+    assert not segment.frame_faults.pending
+    assert segment.injected_timing() == (0.0, False) and not segment.frame_lost()
+    devices[2].inject(Fault.TPDO_TWICE)
+    devices[0].inject(Fault.TPDO_LATE)
+    assert segment.frame_faults.pending
+    delay, twice = segment.injected_timing()
+    assert delay > 0 and twice
+    assert segment.injected_timing() == (0.0, False) and not segment.frame_faults.pending
+    # a loss waits for a frame with process data: another frame's answer (no logical
+    # datagram in it) passes
+    devices[1].inject(Fault.FRAME_LOST)
+    other = bytearray(64)
+    assert not segment.frame_lost(other, len(other))
+    assert segment.injected_timing() == (0.0, False) and segment.frame_faults.pending
+    devices[1].inject(Fault.TPDO_TWICE)
+    assert segment.frame_lost()  # the cycle's frame, lost: its twice waits for the next
+    assert segment.frame_faults.pending and not segment.frame_lost()
+    assert segment.injected_timing() == (0.0, True)
+    assert not segment.frame_faults.pending
+
+
 @pytest.mark.real_time
 def test_in_real_time_frames_lost_are_ridden_through_until_the_drives_watchdog(caplog):
     """On the wall clock the line rides through frames lost in a row for as long as its

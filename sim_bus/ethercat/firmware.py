@@ -142,6 +142,17 @@ def _sync_field(name: str, kind: type) -> property:
     return property(get, put)
 
 
+class FrameFaults:
+    """Whether a fault on a frame's answer (held, sent twice, lost: `SlaveFirmware`'s
+    `delay_next_frame`, `repeat_next_frame`, `lose_next_frame`) waits on some slave of a
+    line: set by the slave that takes one, cleared by the line once none waits."""
+
+    __slots__ = ("pending",)
+
+    def __init__(self) -> None:
+        self.pending = False
+
+
 class SlaveFirmware:
     """One slave's application; `attach` it to its ESC before the first frame."""
 
@@ -196,6 +207,8 @@ class SlaveFirmware:
         self.delay_next_frame = 0.0  # s, fault injection: hold the frame this long
         self.repeat_next_frame = False  # fault injection: send the frame twice
         self.lose_next_frame = False  # fault injection: the frame lost on its way back
+        # set with any of the three (its own until its line shares one among its slaves)
+        self.frame_faults = FrameFaults()
         device.add_emergency_handler(self._emergency)
         device.add_fault_handler(self._communication_fault)
 
@@ -581,12 +594,15 @@ class SlaveFirmware:
             self.reboot()
         elif fault is Fault.TPDO_LATE:
             self.delay_next_frame = TPDO_DELAY
+            self.frame_faults.pending = True
         elif fault is Fault.TPDO_TWICE:
             self.repeat_next_frame = True
+            self.frame_faults.pending = True
         elif fault is Fault.LEAVES_OP:
             self.leave_op_on_error(ec.AL_SYNCHRONIZATION_ERROR)
         elif fault is Fault.FRAME_LOST:
             self.lose_next_frame = True
+            self.frame_faults.pending = True
         else:
             log.warning("fault %s has no EtherCAT equivalent here", fault.name.lower())
 

@@ -33,7 +33,7 @@ from protocol.sii import build_sii
 from sim_bus.device import Cia402Device
 from sim_bus.ethercat.dc import LineClocks
 from sim_bus.ethercat.esc import Esc
-from sim_bus.ethercat.firmware import LineSync, SlaveFirmware
+from sim_bus.ethercat.firmware import FrameFaults, LineSync, SlaveFirmware
 from sim_bus.ethercat.frame_batch import FrameBatch
 from sim_bus.line_physics import DriveLine
 from sim_bus.priority import RealTimeBudget
@@ -68,6 +68,11 @@ class Segment:
     def __init__(self, devices: Sequence[Cia402Device], esi: EsiDevice | None = None):
         self.esi = esi if esi is not None else load_esi(shipped_esi_path())
         self.firmwares = [SlaveFirmware(device, self.esi) for device in devices]
+        # whether a slave's fault on a frame's answer waits (`injected_timing`, `frame_lost`):
+        # one look a frame, not three over every slave (6 us a frame on talos_32's line)
+        self.frame_faults = FrameFaults()
+        for firmware in self.firmwares:
+            firmware.frame_faults = self.frame_faults
         self.escs = []
         for position, firmware in enumerate(self.firmwares):
             esc = Esc(build_sii(self.esi, serial=position + 1), firmware)
@@ -233,14 +238,18 @@ class Segment:
     def injected_timing(self) -> tuple[float, bool]:
         """Fault injection on the answer to the frame just processed: (hold it this many
         seconds, send it twice)."""
-        firmwares = self.firmwares
-        if not any(map(_DELAYED, firmwares)) and not any(map(_REPEATED, firmwares)):
+        faults = self.frame_faults
+        if not faults.pending:  # nearly always: no slave's frame fault is waiting
             return 0.0, False
+        faults.pending = False  # first: a fault injected meanwhile sets it again
+        firmwares = self.firmwares
         delay, twice = 0.0, False
         for firmware in firmwares:
             delay = max(delay, firmware.hold())
             twice = twice or firmware.repeat_next_frame
             firmware.repeat_next_frame = False
+        if any(map(_LOST, firmwares)):  # waits for a process data frame
+            faults.pending = True
         return delay, twice
 
     def frame_lost(self, frame: bytearray | None = None, length: int = 0) -> bool:
@@ -248,14 +257,17 @@ class Segment:
         first `length` bytes; None: one known to carry process data) is lost on its way back
         (every slave took it; the master gets nothing). Another frame (a mailbox access, the
         SDO write that injected the fault) passes: the fault is the cycle's."""
-        firmwares = self.firmwares
-        if not any(map(_LOST, firmwares)):
+        faults, firmwares = self.frame_faults, self.firmwares
+        if not faults.pending or not any(map(_LOST, firmwares)):
             return False
         if frame is not None and not any(
                 span[0] in _LOGICAL for span in ec.datagram_spans(frame, length) or ()):
             return False
+        faults.pending = False  # first: a fault injected meanwhile sets it again
         for firmware in firmwares:
             firmware.lose_next_frame = False
+        if any(map(_DELAYED, firmwares)) or any(map(_REPEATED, firmwares)):
+            faults.pending = True
         return True
 
 
