@@ -69,7 +69,7 @@ class Segment:
         self.esi = esi if esi is not None else load_esi(shipped_esi_path())
         self.firmwares = [SlaveFirmware(device, self.esi) for device in devices]
         # whether a slave's fault on a frame's answer waits (`injected_timing`, `frame_lost`):
-        # one look a frame, not three over every slave (6 us a frame on talos_32's line)
+        # one look a frame, not three passes over every slave (32 slaves: 4.5 us, timeit)
         self.frame_faults = FrameFaults()
         for firmware in self.firmwares:
             firmware.frame_faults = self.frame_faults
