@@ -565,10 +565,11 @@ class EthercatMaster:
         milliseconds to spare; a thread polling at real-time priority holds its CPU until
         the answer comes, and the answer may need that CPU: talos_32 over a veth, the
         virtual line's thread out of real time after the configuration's burst
-        (`sim_bus.priority`), the keeper polled 2 ms on one core for a frame while the cold
-        solve held the other, and the line's thread, ready to answer it, waited those 2 ms
-        (`perf sched`): the frame was lost, and 40-50 ms went without a whole frame, at each
-        start. On a robot the NIC's and the bus's own threads want that CPU the same way."""
+        (`sim_bus.priority`), the keeper polled 2 ms on one core for a frame while the main
+        thread's enable sequence held the other, and the line's thread, ready to answer it,
+        waited those 2 ms (`perf sched`): the frame was lost, and 40-50 ms went without a
+        whole frame, at each start. On a robot the NIC's and the bus's own threads want
+        that CPU the same way."""
         with self.lock:
             sockets = self._polled if self._asleep_depth == 0 else ()
             self._asleep_depth += 1
