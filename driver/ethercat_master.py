@@ -544,9 +544,8 @@ class EthercatMaster:
 
     def _keep_once(self, stop: threading.Event,
                    window: tuple[float, float] | None = None) -> bool:
-        """One look of the keeper (DC: at `window`), as an access outside the cycle
-        (`acyclic`); False: it ends."""
-        with self.acyclic():
+        """One look of the keeper (DC: at `window`), under the line's lock; False: it ends."""
+        with self.lock:
             if stop.is_set():
                 return False
             try:
@@ -631,7 +630,9 @@ class EthercatMaster:
                 self.dc.kept += 1
         elif now - self._last_frame < KEEP_ALIVE:
             return
-        self._frame()
+        # its answer waited for asleep, only when one goes (a DC keeper looks every period)
+        with self.acyclic():
+            self._frame()
 
     def _frame(self) -> bool:
         """One process data frame; whether it came back whole. One that did not come back
