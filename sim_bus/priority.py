@@ -56,15 +56,7 @@ def answer_like_hardware(priority: int = HARDWARE_PRIORITY) -> str | None:
 BUDGET_WINDOW = 0.02  # s of wall time: how often the thread's CPU time is looked at
 BUDGET_WINDOWS = 50  # windows in the second the kernel counts a real-time thread's time over
 BUDGET_HIGH = 0.9  # share of the last second above which the thread leaves real time
-# share of the last second below which it takes its real time again. Out of it, the thread
-# answers only when a CPU is free of real-time work: talos_32 over a veth, the
-# configuration's burst took the line's thread out of real time just before the master's
-# first cycles, and at 0.6 it came back 0.9 s later, the run's first 0.7 s, in which its
-# answers waited behind the master's threads (frames lost, 3-5 in a row). Coming back at
-# 0.8 is as safe: the kernel stops a CPU's real-time threads past 95 % of its period, and a
-# thread that comes back at 0.8 and then runs flat out leaves again at 0.9, one window
-# (2 % of the second) at most later
-BUDGET_LOW = 0.8
+BUDGET_LOW = 0.6  # share of the last second below which it takes its real time again
 # the nice value of a thread out of real time: the strongest normal priority, so CFS runs it
 # at once on waking against work at nice 0 (weight 88 761 against 1 024). At nice 0, waiting
 # its turn beside two busy loops, the line likely left a KickCAT scan without an answer for
