@@ -157,6 +157,11 @@ class Cia402Drive(Drive):
 
     def enable(self) -> None:
         self._steer(State.OPERATION_ENABLED)
+        self.mark_enabled()
+
+    def mark_enabled(self) -> None:
+        """Operation enabled, by `enable` or by its segment with the others
+        (`driver.drive_group.EthercatLine.enable`): a fault met on the way is behind it."""
         with self._lock:
             self._fault = None
 

@@ -369,13 +369,23 @@ class EthercatMaster:
             self.pass_image()
 
     def pass_image(self) -> None:
-        """DC: a frame, then the SYNC0 that takes its outputs and samples the inputs the next
-        one reads (`driver.ethercat_transport` steers through the process data this way).
-        In real time the frame goes at the cycle's own phase of the reference clock
-        (`DcLine.next_frame`) and the line's lock is held for the frame only: a frame sent
-        whenever the caller came by landed late in a window as often as early, and one
-        held back by the lock over a period's sleep kept the keeper from its window (the
-        second of talos_32's DC starts out with 0x001A before its first cycle)."""
+        """One process data frame outside the cycle, by which `driver.ethercat_transport`
+        reads and writes what the process data carries (the enable sequence's statusword and
+        controlword) from OP on. Free run: the slaves take its outputs and run their cycle
+        as it passes, and the next frame reads what they made of them; on drive time the
+        frame is a period of it, as a cycle's is. DC: the SYNC0 after it takes its outputs
+        and samples the inputs the next one reads. In real time the DC frame goes at the
+        cycle's own phase of the reference clock (`DcLine.next_frame`) and the line's lock
+        is held for the frame only: a frame sent whenever the caller came by landed late in
+        a window as often as early, and one held back by the lock over a period's sleep
+        kept the keeper from its window (the second of talos_32's DC starts out with 0x001A
+        before its first cycle)."""
+        if self.dc is None:
+            with self.acyclic():
+                self._frame()
+                if not self.clock.runs_alone and self.period is not None:
+                    self.clock.advance(self.period)
+            return
         if not self.clock.runs_alone:
             with self.lock:
                 self._frame()
@@ -386,6 +396,24 @@ class EthercatMaster:
         with self.lock:
             self._frame()
         self.clock.sleep_until(max(sync0, self._last_frame) + PAST_SYNC0)
+
+    def last_frame(self) -> bool:
+        """After the line failed (one slave left OP, or a frame came back short): one frame
+        more, which takes the staged outputs (a quick stop, the disable on close) to the
+        slaves still in OP, best effort; whether any slave took it. The failure stays: the
+        cycle is over. A drive refuses an SDO write of its controlword from SAFE-OP on, so
+        this frame is how the drives the failure spared are stopped before their own
+        watchdog stops them; a silent line gets none."""
+        if not self.operational or self.master is None or isinstance(self.failure, LineSilent):
+            return False
+        with self.acyclic():
+            self._sent_at = time.monotonic()
+            self.master.send_processdata()
+            wkc = self.master.receive_processdata(self.frame_timeout_us)
+            self._last_frame = time.monotonic()
+            if not self.clock.runs_alone and self.period is not None:
+                self.clock.advance(self.period)
+        return wkc > 0
 
     def clock_trim(self) -> float:
         """s to add to the next period of the cycle's clock (DC: follow the reference)."""

@@ -95,22 +95,26 @@ class EthercatTransport(Transport):
         self.write(objects.CONTROLWORD, 0, cia402.Command.DISABLE_VOLTAGE.value)
 
     def _through_image(self) -> bool:
-        """Real time on distributed clocks, from OP on: objects the process data carries are
-        read and written through it, not by CoE. A CoE access holds the line for its round
-        trip, and the enable sequence's dozens of them (32 drives) left SYNC0 windows without
-        outputs until the slaves dropped out with 0x001A; a cyclic master steers CiA 402
-        through the PDOs anyway."""
+        """From OP on, while the line answers: objects the process data carries are read and
+        written through it (`EthercatMaster.pass_image`), not by CoE, as a cyclic master
+        steers CiA 402. A drive may refuse an SDO write to an object its RxPDO maps (the
+        process data owns it from SAFE-OP on: SOEM's maintainers say so of drives in the
+        field, and `sim_bus.ethercat.objects` refuses it), and where it accepts one the next
+        frame's value overwrites it. A CoE access is also three frames or more and holds the
+        line for its round trip: on distributed clocks the enable sequence's dozens of them
+        (32 drives) left SYNC0 windows without outputs until the slaves dropped out with
+        0x001A, and in free run they were most of the configuration's burst of frames.
+        After the line failed, reads go by CoE and writes by a last frame
+        (`EthercatMaster.last_frame`)."""
         line = self.line
-        return line.dc is not None and line.operational and line.clock.runs_alone and self._mapped
+        return line.operational and self._mapped
 
     def read(self, index: int, subindex: int = 0) -> int:
         var = self._variable(index, subindex)
-        if self._through_image():
-            for k, obj in enumerate(self._inputs):
-                if (obj.index, obj.subindex) == (index, subindex):
-                    self.line.pass_image()  # inputs sampled at a SYNC0 after the last write
-                    with self.line.lock:
-                        return self._in_codec.struct.unpack(self.slave.input)[k]
+        if self._through_image() and self.line.failure is None and self._carries(
+                self._inputs, index, subindex):
+            self.line.pass_image()  # inputs the slave made after the last write
+            return self.image_input(index, subindex)
         try:
             data = self._mailbox(self.slave.sdo_read, index, subindex)
         except pysoem.SdoError as exc:
@@ -123,6 +127,46 @@ class EthercatTransport(Transport):
         var = self._variable(index, subindex)
         # an object the outputs carry is staged first: a frame that goes while the CoE write
         # waits for its answer (the line's keeper) must not take the old value back to it
+        carried = self.stage_output(index, subindex, value)
+        if carried and self._through_image():
+            # a frame takes it to the slave; after the line failed, a last one to the slaves
+            # still in OP (a quick stop, the disable on close), else CoE as the last resort
+            if self.line.failure is None:
+                self.line.pass_image()
+                return
+            if self.line.last_frame():
+                return
+        try:
+            self._mailbox(self.slave.sdo_write, index, subindex, var.encode_raw(value))
+        except pysoem.SdoError as exc:
+            raise SdoRefused(f"{self.name}: CoE write 0x{index:04X}:{subindex:02X} = {value} "
+                             f"aborted: {cia301.sdo_abort_name(exc.abort_code)}",
+                             exc.abort_code) from None
+
+    # --- through the process data (the line's frames carry it) --------------------------------
+
+    def steers_through_image(self) -> bool:
+        """Whether the line's frames carry this drive's controlword and statusword now (OP,
+        the line answering): its segment can walk CiA 402 with the others'
+        (`driver.drive_group.EthercatLine.enable`)."""
+        return (self._through_image() and self.line.failure is None
+                and self._carries(self._inputs, objects.STATUSWORD, 0)
+                and self._carries(self._outputs, objects.CONTROLWORD, 0))
+
+    def image_input(self, index: int, subindex: int = 0) -> int:
+        """An input as the last frame brought it (no frame sent)."""
+        k = next(k for k, o in enumerate(self._inputs)
+                 if (o.index, o.subindex) == (index, subindex))
+        with self.line.lock:
+            return self._in_codec.struct.unpack(self.slave.input)[k]
+
+    def image_state(self) -> State:
+        """The drive's CiA 402 state as the last frame's statusword shows it."""
+        return cia402.state_from_statusword(self.image_input(objects.STATUSWORD))
+
+    def stage_output(self, index: int, subindex: int, value: int) -> bool:
+        """Put `value` in this slave's outputs for the next frame, when they carry the
+        object; whether they do."""
         for k, obj in enumerate(self._outputs):
             if (obj.index, obj.subindex) == (index, subindex):
                 if self.line.mapped and self._mapped:
@@ -130,18 +174,14 @@ class EthercatTransport(Transport):
                     # `driver.drive_group.EthercatLine`), with this object changed
                     with self.line.lock:
                         self._staged[:] = self._out_codec.struct.unpack(self.slave.output)
-                self._staged[k] = value  # the next frame carries it too
+                self._staged[k] = value  # the next frame carries it
                 self._stage()
-        if self._through_image() and any((o.index, o.subindex) == (index, subindex)
-                                         for o in self._outputs):
-            self.line.pass_image()  # staged above: a frame takes it, SYNC0 applies it
-            return
-        try:
-            self._mailbox(self.slave.sdo_write, index, subindex, var.encode_raw(value))
-        except pysoem.SdoError as exc:
-            raise SdoRefused(f"{self.name}: CoE write 0x{index:04X}:{subindex:02X} = {value} "
-                             f"aborted: {cia301.sdo_abort_name(exc.abort_code)}",
-                             exc.abort_code) from None
+                return True
+        return False
+
+    @staticmethod
+    def _carries(mapped: Sequence[MappedObject], index: int, subindex: int) -> bool:
+        return any((o.index, o.subindex) == (index, subindex) for o in mapped)
 
     def _mailbox(self, access, index: int, subindex: int, *data: bytes):
         """One CoE SDO access, tried again when the mailbox exchange itself got no answer (a

@@ -197,6 +197,22 @@ def test_pdo_assignment_rules(coe):
     assert abort.value.code == cia301.SDO_ABORT_WRONG_STATE
 
 
+def test_what_the_outputs_carry_is_written_by_sdo_in_pre_op_only(coe):
+    """From SAFE-OP on the process data owns the objects an assigned RxPDO maps: an SDO write
+    to one (the controlword) is refused, as drives in the field refuse it; the others, and
+    every read, still go."""
+    carried = {e.index for e in ESI.rxpdos[0].entries}
+    assert objects.CONTROLWORD in carried and objects.MODES_OF_OPERATION not in carried
+    coe.download(objects.CONTROLWORD, 0, b"\x06\x00")  # PRE-OP
+    coe.pdo_config_allowed = False  # SAFE-OP, OP
+    with pytest.raises(SdoAbort) as abort:
+        coe.download(objects.CONTROLWORD, 0, b"\x0f\x00")
+    assert abort.value.code == cia301.SDO_ABORT_WRONG_STATE
+    assert coe.upload(objects.CONTROLWORD, 0) == b"\x06\x00"
+    coe.download(objects.MODES_OF_OPERATION, 0, b"\x0a")
+    assert coe.upload(objects.MODES_OF_OPERATION, 0) == b"\x0a"
+
+
 def test_pdo_mapping_takes_only_what_the_esi_offers_in_the_right_direction(coe):
     coe.download(0x1600, 0, b"\x00")
 

@@ -85,8 +85,9 @@ def test_actuatord_runs_the_mpc_over_ethercat_for_5_s_in_lockstep(link):
     assert f"slave 0 on ethercat:{link.master_port} enabled" in result.stdout
     assert "5000 cycles, 0 missed" in result.stdout and "ran 5.0 s" in result.stdout
     # the slave ran a device cycle per frame that wrote its outputs: the 5000 and bring-up's
+    # (the enable sequence's frames, a read or a write each, and the disable's on close)
     cycles = int(report.split("slave 0 ")[1].split(" cycles")[0])
-    assert 5000 <= cycles <= 5010, report
+    assert 5000 <= cycles <= 5020, report
     assert "drive 'switch on disabled'" in report  # left disabled by the master at exit
 
 

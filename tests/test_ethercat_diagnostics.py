@@ -112,12 +112,35 @@ def test_a_refused_state_change_names_the_joint_and_the_al_status_code(robot):
     assert all(device.state is not State.OPERATION_ENABLED for device in robot.devices)
 
 
+def test_a_line_enables_its_drives_together_through_the_process_data():
+    """The enable sequence rides the line's frames, every drive stepped in the same ones (a
+    faulted drive reset on the way): one joint or three take the same few frames of drive
+    time, and no controlword goes by SDO (these slaves refuse it from SAFE-OP on, as drives
+    in the field do). One drive after the other by SDO, the joints enabled first waited at
+    zero torque for the others."""
+    frames = {}
+    for names in (NAMES[:1], NAMES):
+        robot = LinkedRobot(names=names)
+        try:
+            robot.devices[-1].inject(Fault.OVERCURRENT_TRIP)
+            assert robot.devices[-1].state is State.FAULT
+            robot.group.start()
+            assert [d.state for d in robot.devices] == [State.OPERATION_ENABLED] * len(names)
+            frames[len(names)] = {d.cycle_count for d in robot.devices}
+            assert robot.run(5) == (5, None)
+        finally:
+            robot.close()
+    assert frames[1] == frames[3] and len(frames[3]) == 1  # every slave saw every frame
+    assert frames[3].pop() <= 12
+
+
 def test_a_slave_leaving_op_mid_run_is_named_and_every_drive_quick_stops(robot):
-    """The ankle's slave drops to SAFE-OP + ERROR in its 30th cycle (its drive reacts as to
-    a lost master, EMCY 0xA000): the cycle that meets it names the ankle with AL status code
-    0x001A rather than the emergency, and the group quick-stops every drive."""
-    robot.devices[2].schedule(Fault.LEAVES_OP, 0.030)
-    robot.group.start()
+    """The ankle's slave drops to SAFE-OP + ERROR in the run's 30th cycle (its drive reacts
+    as to a lost master, EMCY 0xA000): the cycle that meets it names the ankle with AL status
+    code 0x001A rather than the emergency, and the group quick-stops every drive."""
+    robot.group.start()  # its enable sequence's frames are drive time too
+    ankle = robot.devices[2]
+    ankle.schedule(Fault.LEAVES_OP, (ankle.cycle_count + 30) * 1e-3)
     completed, failure = robot.run(100)
     assert failure is not None and failure.joint == "ankle_joint"
     assert isinstance(failure.cause, LineLost)

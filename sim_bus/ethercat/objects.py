@@ -10,6 +10,8 @@ EtherCAT communication objects the ESI defines, with EtherCAT's rules on top.
 - 0x10F1 Error Settings (ETG.1020): sub 2, the sync error counter limit the DC cycle counts
   missed SYNC0 windows against (`sim_bus.ethercat.firmware`), held here, writable in PRE-OP
   only (the firmware takes it at the OP request); sub 1, the local error reaction, read-only.
+- An object an assigned RxPDO maps (the controlword, the target torque): not written by SDO
+  in SAFE-OP and OP, where the process data carries it.
 - CANopen PDO communication parameters (COB-IDs, transmission types) do not exist on EtherCAT.
 
 The same objects answer the SDO Information service (`object_list`, `object_description`,
@@ -103,6 +105,11 @@ class CoeObjects:
             entries.extend(self.device.read(pdo, k) for k in range(1, count + 1))
         return entries
 
+    def _in_outputs(self, index: int, subindex: int) -> bool:
+        """Whether an assigned RxPDO maps the object (what SM2's process data carries)."""
+        return any(split_mapping_entry(entry)[:2] == (index, subindex)
+                   for entry in self.assigned_entries(ec.RXPDO_ASSIGN))
+
     # --- ObjectAccess ---------------------------------------------------------------------
 
     def upload(self, index: int, subindex: int) -> bytes:
@@ -140,6 +147,11 @@ class CoeObjects:
         self._check_exists(index)
         if _is_rx_mapping(index) or _is_tx_mapping(index):
             self._check_mapping(index, subindex, data)
+        elif not self.pdo_config_allowed and self._in_outputs(index, subindex):
+            # from SAFE-OP on the process data owns what its RxPDOs carry: a write here
+            # would be overwritten by the next frame, and drives in the field refuse it
+            # (SOEM's issues #567, #583); a master steers CiA 402 through its outputs
+            raise SdoAbort(cia301.SDO_ABORT_WRONG_STATE)
         try:
             self.device.write_bytes(index, subindex, data)
         except DeviceAccessError as exc:
