@@ -284,6 +284,8 @@ def _run(args: argparse.Namespace, setup: _Setup, stop: threading.Event,
         # (see driver.clock.collector_off_the_cycle)
         with collector_off_the_cycle():
             group.start(configured=loop.solve_first)
+            loop.report.configure_us = group.bring_up.configure * 1e6
+            loop.report.enable_us = group.bring_up.enable * 1e6
             print(f"actuatord: {setup.started(connection)}", flush=True)
             for clock in group.clocks:  # EtherCAT lines on distributed clocks
                 print(f"actuatord: {clock.describe()}", flush=True)

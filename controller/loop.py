@@ -81,6 +81,9 @@ class LoopReport:
     cycles: int = 0
     fallbacks: int = 0
     cold_solve_us: float = math.nan
+    # the drives' start around it (`driver.drive_group.BringUp`): configured, then enabled
+    configure_us: float = math.nan
+    enable_us: float = math.nan
     exit_code: int = 0
     reason: str = "stopped"
     clock: CycleClock | None = None
@@ -148,6 +151,9 @@ class LoopReport:
                 "missed_by_cause": dict(self.missed_by_cause),
                 "lost_samples": self.lost_samples, "fallbacks": self.fallbacks,
                 "cold_solve_us": self.cold_solve_us,
+                # None: the group did not start (JSON has no NaN)
+                "configure_us": None if math.isnan(self.configure_us) else self.configure_us,
+                "enable_us": None if math.isnan(self.enable_us) else self.enable_us,
                 "jitter": {"p99_us": self.jitter.percentile(99), "max_us": self.jitter.max},
                 "mpc_tick": stats(self.solve), "master": stats(self.master),
                 "wall_per_cycle_us": None if math.isnan(wall := self.wall_per_cycle_us)

@@ -331,23 +331,31 @@ class Cia402Drive(Drive):
 
     def quick_stop(self) -> None:
         """CiA 402 quick stop, now: the controlword by process data (the fastest way in) and
-        again acyclically (in case the cyclic path is what failed). A torque drive then
+        again by the transport's own write (SDO; on an EtherCAT line its frame, or its last
+        frame after a failure: `driver.ethercat_transport`). A torque drive then
         applies no torque and engages its brake (quick stop option 0x605A). Best effort:
         never raises, so one dead drive does not keep the others running. A drive never
         booted (refused: another master drives it) is left alone, as `close` leaves it: a
         refused second master used to quick-stop the first master's running joint."""
         if not self._booted:
             return
-        controlword = cia402.Command.QUICK_STOP.value
+        self.stage_quick_stop()
         try:
-            if self.scaling is not None:
-                self._send(controlword, 0.0)
-        except DriveError as exc:
-            log.warning("%s: quick stop by process data failed: %s", self.name, exc)
-        try:
-            self.transport.write(objects.CONTROLWORD, 0, controlword)
+            self.transport.write(objects.CONTROLWORD, 0, cia402.Command.QUICK_STOP.value)
         except DriveError as exc:
             log.warning("%s: quick stop by acyclic write failed: %s", self.name, exc)
+
+    def stage_quick_stop(self) -> None:
+        """The quick stop's process data half: the controlword and a zero target in the
+        outputs (on EtherCAT the line's next frame carries them; on CANopen the RPDO goes),
+        best effort. A group stages every drive's before any drive's own `quick_stop`, so
+        the first frame that goes stops them all."""
+        if not self._booted or self.scaling is None:
+            return
+        try:
+            self._send(cia402.Command.QUICK_STOP.value, 0.0)
+        except DriveError as exc:
+            log.warning("%s: quick stop by process data failed: %s", self.name, exc)
 
     # --- shutdown ---------------------------------------------------------------------------
 

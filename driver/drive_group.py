@@ -11,7 +11,9 @@ others were planned on the assumption that the whole arm moves together.
 """
 
 import logging
+import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from operator import methodcaller
 from typing import TypeVar
 
@@ -48,6 +50,17 @@ log = logging.getLogger(__name__)
 # walks of the state machine at most (`steer_together`): a fault reset and the three steps
 # to operation enabled, with room for a drive that falls back once (as `Cia402Drive`'s own)
 STEER_STEPS = 8
+
+
+@dataclass(frozen=True)
+class BringUp:
+    """How long a group's start took (s on the host's performance counter): every drive
+    configured (boot, start-up parameters, scaling, PDO mapping, the line to OP), then every
+    drive enabled; the cold solve in between is the controller's (`LoopReport.cold_solve_us`).
+    While the first drives are enabled and the last are not, the enabled ones hold no torque."""
+
+    configure: float
+    enable: float
 
 
 class JointFailure(DriveError):
@@ -511,6 +524,7 @@ class DriveGroup:
         self._whole = len(self.segments) == 1 and self._in_order
         self.period = self.drives[0].period
         self.clocks: list[DcLine] = []
+        self.bring_up: BringUp | None = None  # once started
         self._closed = False
 
     def __len__(self) -> int:
@@ -524,14 +538,18 @@ class DriveGroup:
         position and velocity read acyclically): a controller's cold solve runs there,
         before any drive is enabled, not in the first cycle. A failure names the joint (the
         caller closes the group, which disables those already enabled)."""
+        began = time.perf_counter()
         self._each(methodcaller("configure"))
+        configured_at = time.perf_counter()
         if configured is not None:
             table = np.zeros((len(self.names), len(SAMPLE_COLUMNS)))
             table[:, [SAMPLE_POSITION, SAMPLE_VELOCITY]] = self._each(
                 methodcaller("measured_state"))
             configured(table)
+        enabling = time.perf_counter()
         for segment in self.segments:
             segment.enable()
+        self.bring_up = BringUp(configured_at - began, time.perf_counter() - enabling)
         for segment in self.segments:
             segment.started()
         # the distributed clocks of the lines that run on them (made as the lines went to OP)
@@ -592,6 +610,8 @@ class DriveGroup:
         """Quick-stop every drive (best effort each: a dead one does not spare the others),
         then read back each state: (joint, CiA 402 state name, or why it could not be read).
         A drive this master never booted (refused) is not ours: left alone, said so."""
+        for drive in self.drives:  # every drive's in the outputs before any frame goes
+            drive.stage_quick_stop()
         for drive in self.drives:
             drive.quick_stop()
         states = []

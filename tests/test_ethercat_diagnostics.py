@@ -134,6 +134,20 @@ def test_a_line_enables_its_drives_together_through_the_process_data():
     assert frames[3].pop() <= 12
 
 
+def test_every_drive_of_a_line_quick_stops_in_the_first_frame(robot):
+    """A group stages every drive's quick stop before any drive sends its own: the first
+    drive's frame stops them all, not one drive a frame."""
+    robot.group.start()
+    assert robot.run(5) == (5, None)
+    for drive in robot.group.drives:
+        drive.stage_quick_stop()
+    frames = [device.cycle_count for device in robot.devices]
+    robot.group.drives[0].quick_stop()  # its frame
+    assert [device.cycle_count for device in robot.devices] == [n + 1 for n in frames]
+    assert all(device.state in (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)
+               for device in robot.devices)
+
+
 def test_a_slave_leaving_op_mid_run_is_named_and_every_drive_quick_stops(robot):
     """The ankle's slave drops to SAFE-OP + ERROR in the run's 30th cycle (its drive reacts
     as to a lost master, EMCY 0xA000): the cycle that meets it names the ankle with AL status
@@ -458,6 +472,8 @@ def test_actuatord_rides_through_a_lost_frame(tmp_path):
     assert figures["lost_samples"] == 1 and figures["missed"] == 1
     assert figures["missed_by_cause"]["late sample"] == 1
     assert figures["cycles"] == 999 and figures["fallbacks"] == 0
+    # the start's phases, the drives' side of it: configured, then enabled together
+    assert figures["configure_us"] > figures["enable_us"] > 0
     [warning] = [line for line in result.stderr.splitlines() if "did not come back" in line]
     assert "EtherCAT eth9: the frame of cycle" in warning and "(1 in a row" in warning
     assert "(1 samples lost); ran 1.0 s" in result.stdout
