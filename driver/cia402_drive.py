@@ -337,18 +337,13 @@ class Cia402Drive(Drive):
         never raises, so one dead drive does not keep the others running. A drive never
         booted (refused: another master drives it) is left alone, as `close` leaves it: a
         refused second master used to quick-stop the first master's running joint."""
-        if not self._booted:
-            return
         self.stage_quick_stop()
-        try:
-            self.transport.write(objects.CONTROLWORD, 0, cia402.Command.QUICK_STOP.value)
-        except DriveError as exc:
-            log.warning("%s: quick stop by acyclic write failed: %s", self.name, exc)
+        self.write_quick_stop()
 
     def stage_quick_stop(self) -> None:
         """The quick stop's process data half: the controlword and a zero target in the
         outputs (on EtherCAT the line's next frame carries them; on CANopen the RPDO goes),
-        best effort. A group stages every drive's before any drive's own `quick_stop`, so
+        best effort. A group stages every drive's before any drive's `write_quick_stop`, so
         the first frame that goes stops them all."""
         if not self._booted or self.scaling is None:
             return
@@ -356,6 +351,16 @@ class Cia402Drive(Drive):
             self._send(cia402.Command.QUICK_STOP.value, 0.0)
         except DriveError as exc:
             log.warning("%s: quick stop by process data failed: %s", self.name, exc)
+
+    def write_quick_stop(self) -> None:
+        """The quick stop's other half: the controlword by the transport's own write, best
+        effort."""
+        if not self._booted:
+            return
+        try:
+            self.transport.write(objects.CONTROLWORD, 0, cia402.Command.QUICK_STOP.value)
+        except DriveError as exc:
+            log.warning("%s: quick stop by acyclic write failed: %s", self.name, exc)
 
     # --- shutdown ---------------------------------------------------------------------------
 

@@ -613,7 +613,7 @@ class DriveGroup:
         for drive in self.drives:  # every drive's in the outputs before any frame goes
             drive.stage_quick_stop()
         for drive in self.drives:
-            drive.quick_stop()
+            drive.write_quick_stop()
         states = []
         for name, drive in zip(self.names, self.drives, strict=True):
             if not drive.booted:

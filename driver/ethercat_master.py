@@ -383,8 +383,8 @@ class EthercatMaster:
         if self.dc is None:
             with self.acyclic():
                 self._frame()
-                if not self.clock.runs_alone and self.period is not None:
-                    self.clock.advance(self.period)
+                if self.period is not None:
+                    self.clock.advance(self.period)  # drive time: frames x period
             return
         if not self.clock.runs_alone:
             with self.lock:
@@ -407,12 +407,9 @@ class EthercatMaster:
         if not self.operational or self.master is None or isinstance(self.failure, LineSilent):
             return False
         with self.acyclic():
-            self._sent_at = time.monotonic()
-            self.master.send_processdata()
-            wkc = self.master.receive_processdata(self.frame_timeout_us)
-            self._last_frame = time.monotonic()
-            if not self.clock.runs_alone and self.period is not None:
-                self.clock.advance(self.period)
+            wkc = self._send_and_receive()
+            if self.period is not None:
+                self.clock.advance(self.period)  # drive time: frames x period
         return wkc > 0
 
     def clock_trim(self) -> float:
@@ -668,11 +665,7 @@ class EthercatMaster:
         working counter, the line fails (sticky, raised)."""
         if self.failure is not None:
             raise self.failure
-        master = self.master
-        self._sent_at = time.monotonic()
-        master.send_processdata()
-        wkc = master.receive_processdata(self.frame_timeout_us)
-        self._last_frame = time.monotonic()
+        wkc = self._send_and_receive()
         if wkc == self._expected_wkc:
             if self._lost_in_a_row:
                 log.warning("EtherCAT %s: frames back after %d lost in a row%s", self.interface,
@@ -689,6 +682,15 @@ class EthercatMaster:
         self.failure = self._diagnose(wkc)
         log.error("%s", self.failure)
         raise self.failure
+
+    def _send_and_receive(self) -> int:
+        """One process data frame out and back (the times it went and came kept); its
+        working counter, negative when it did not come back."""
+        self._sent_at = time.monotonic()
+        self.master.send_processdata()
+        wkc = self.master.receive_processdata(self.frame_timeout_us)
+        self._last_frame = time.monotonic()
+        return wkc
 
     def _silence(self) -> float:
         """s from the last whole frame to the end of the last exchange: what the drives went

@@ -111,10 +111,10 @@ class EthercatTransport(Transport):
 
     def read(self, index: int, subindex: int = 0) -> int:
         var = self._variable(index, subindex)
-        if self._through_image() and self.line.failure is None and self._carries(
-                self._inputs, index, subindex):
+        at = _position(self._inputs, index, subindex)
+        if at is not None and self._through_image() and self.line.failure is None:
             self.line.pass_image()  # inputs the slave made after the last write
-            return self.image_input(index, subindex)
+            return self._input_at(at)
         try:
             data = self._mailbox(self.slave.sdo_read, index, subindex)
         except pysoem.SdoError as exc:
@@ -150,38 +150,32 @@ class EthercatTransport(Transport):
         the line answering): its segment can walk CiA 402 with the others'
         (`driver.drive_group.EthercatLine.enable`)."""
         return (self._through_image() and self.line.failure is None
-                and self._carries(self._inputs, objects.STATUSWORD, 0)
-                and self._carries(self._outputs, objects.CONTROLWORD, 0))
-
-    def image_input(self, index: int, subindex: int = 0) -> int:
-        """An input as the last frame brought it (no frame sent)."""
-        k = next(k for k, o in enumerate(self._inputs)
-                 if (o.index, o.subindex) == (index, subindex))
-        with self.line.lock:
-            return self._in_codec.struct.unpack(self.slave.input)[k]
+                and self._statusword_at is not None
+                and _position(self._outputs, objects.CONTROLWORD, 0) is not None)
 
     def image_state(self) -> State:
         """The drive's CiA 402 state as the last frame's statusword shows it."""
-        return cia402.state_from_statusword(self.image_input(objects.STATUSWORD))
+        return cia402.state_from_statusword(self._input_at(self._statusword_at))
+
+    def _input_at(self, k: int) -> int:
+        """Input `k` as the last frame brought it (no frame sent)."""
+        with self.line.lock:
+            return self._in_codec.struct.unpack(self.slave.input)[k]
 
     def stage_output(self, index: int, subindex: int, value: int) -> bool:
         """Put `value` in this slave's outputs for the next frame, when they carry the
         object; whether they do."""
-        for k, obj in enumerate(self._outputs):
-            if (obj.index, obj.subindex) == (index, subindex):
-                if self.line.mapped and self._mapped:
-                    # what the image carries now (the line may have written it as a whole,
-                    # `driver.drive_group.EthercatLine`), with this object changed
-                    with self.line.lock:
-                        self._staged[:] = self._out_codec.struct.unpack(self.slave.output)
-                self._staged[k] = value  # the next frame carries it
-                self._stage()
-                return True
-        return False
-
-    @staticmethod
-    def _carries(mapped: Sequence[MappedObject], index: int, subindex: int) -> bool:
-        return any((o.index, o.subindex) == (index, subindex) for o in mapped)
+        k = _position(self._outputs, index, subindex)
+        if k is None:
+            return False
+        if self.line.mapped and self._mapped:
+            # what the image carries now (the line may have written it as a whole,
+            # `driver.drive_group.EthercatLine`), with this object changed
+            with self.line.lock:
+                self._staged[:] = self._out_codec.struct.unpack(self.slave.output)
+        self._staged[k] = value  # the next frame carries it
+        self._stage()
+        return True
 
     def _mailbox(self, access, index: int, subindex: int, *data: bytes):
         """One CoE SDO access, tried again when the mailbox exchange itself got no answer (a
@@ -346,6 +340,12 @@ class EthercatTransport(Transport):
             return
         self._closed = True
         self.line.unclaim(self.position)
+
+
+def _position(mapped: Sequence[MappedObject], index: int, subindex: int) -> int | None:
+    """Where the object sits among a PDO's `mapped` objects (None: not there)."""
+    return next((k for k, obj in enumerate(mapped)
+                 if (obj.index, obj.subindex) == (index, subindex)), None)
 
 
 def _mappable(dictionary, obj: MappedObject) -> bool:

@@ -135,14 +135,14 @@ def test_a_line_enables_its_drives_together_through_the_process_data():
 
 
 def test_every_drive_of_a_line_quick_stops_in_the_first_frame(robot):
-    """A group stages every drive's quick stop before any drive sends its own: the first
+    """A group stages every drive's quick stop before any drive writes its own: the first
     drive's frame stops them all, not one drive a frame."""
     robot.group.start()
     assert robot.run(5) == (5, None)
     for drive in robot.group.drives:
         drive.stage_quick_stop()
     frames = [device.cycle_count for device in robot.devices]
-    robot.group.drives[0].quick_stop()  # its frame
+    robot.group.drives[0].write_quick_stop()  # its frame
     assert [device.cycle_count for device in robot.devices] == [n + 1 for n in frames]
     assert all(device.state in (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)
                for device in robot.devices)
